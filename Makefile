@@ -1,0 +1,42 @@
+# Every target that runs code first does all set-up on a bare Debian machine:
+# the LLVM runtime Mitsuba's LLVM backend needs, a virtual environment, and the package.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.jprt-installed
+
+.PHONY: setup llvm test test-slow demo bench clean
+
+setup: llvm $(STAMP)
+
+# Dr.Jit's LLVM backend crashes with Debian's default libLLVM 14/15; install libLLVM 19 when no
+# libLLVM >= 16 is present (jprt/render/setup.py finds it and sets DRJIT_LIBLLVM_PATH).
+llvm:
+	@if ls /usr/lib/*/libLLVM-1[6-9]*.so* /usr/lib/*/libLLVM-[2-9][0-9]*.so* /usr/lib/llvm-1[6-9]/lib/libLLVM*.so* /usr/lib/llvm-[2-9][0-9]/lib/libLLVM*.so* >/dev/null 2>&1; then \
+	  echo "libLLVM >= 16 present"; \
+	else \
+	  echo "installing libllvm19 (Mitsuba's LLVM backend needs libLLVM >= 16)"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq libllvm19; \
+	fi
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[test]"
+	touch $(STAMP)
+
+test: setup
+	$(PY) -m pytest -q tests
+
+test-slow: setup
+	$(PY) -m pytest -q -m slow tests
+
+demo: setup
+	$(PY) -m jprt.cli run experiments/cornell_gt.py
+
+bench: setup
+	$(PY) benchmarks/sphere.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info

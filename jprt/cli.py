@@ -1,0 +1,126 @@
+"""The ``jprt`` command: ``info``, ``render`` (a dataset from an experiment config), ``run`` (an experiment).
+
+    jprt info
+    jprt render experiments/cornell_gt.py --set dataset.spp=16
+    jprt run experiments/cornell_gt.py --set dataset.cameras.width=64
+
+An experiment file defines ``CONFIG`` (a nested dict) and ``main(config)``. ``--set a.b=value``
+overrides are typed and deep-merged; an unknown key is an error naming the nearest valid key.
+Errors in the input are reported as one line on stderr (exit status 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import platform
+import sys
+from types import ModuleType
+
+__all__ = ["main", "load_experiment", "resolve_config"]
+
+
+def load_experiment(path: str) -> ModuleType:
+    """Import an experiment file and check it defines CONFIG and main."""
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"experiment file not found: {path}")
+    name = "jprt_experiment_" + os.path.splitext(os.path.basename(path))[0]
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    if not isinstance(getattr(module, "CONFIG", None), dict) or not callable(getattr(module, "main", None)):
+        raise ValueError(f"{path} must define CONFIG (a dict) and main(config)")
+    return module
+
+
+def resolve_config(module: ModuleType, overrides: list[str], preset: str | None = None) -> dict:
+    """The experiment's CONFIG, with a named preset (``PRESETS[preset]``) and ``--set`` overrides."""
+    from jprt.config import apply_overrides, merge
+
+    config = module.CONFIG
+    if preset is not None:
+        presets = getattr(module, "PRESETS", {})
+        if preset not in presets:
+            raise ValueError(f"unknown preset {preset!r}; this experiment has {sorted(presets) or 'none'}")
+        config = merge(config, presets[preset])
+    return apply_overrides(config, overrides)
+
+
+def _info() -> int:
+    from jprt import __version__
+    from jprt.render import setup
+
+    lines = [f"jprt {__version__}", f"python {platform.python_version()} ({sys.executable})"]
+    try:  # first, so DRJIT_LIBLLVM_PATH is set before anything imports drjit
+        mi = setup.mitsuba()
+        active = mi.variant()
+    except Exception as e:
+        active = f"unavailable ({e})"
+    for mod in ("numpy", "jax", "jaxlib", "optax", "mitsuba", "drjit", "OpenEXR"):
+        try:
+            lines.append(f"{mod} {importlib.import_module(mod).__version__}")
+        except Exception as e:  # report, don't crash: info is for diagnosing installs
+            lines.append(f"{mod} unavailable ({type(e).__name__}: {e})")
+    lines.append(f"mitsuba variant: {setup.variant()}")
+    lib = setup.find_libllvm()
+    lines.append(f"llvm library: {lib or 'NOT FOUND (' + setup.INSTALL_COMMAND + ')'}"
+                 + (f" (LLVM {setup.llvm_major(lib)})" if lib else ""))
+    lines.append(f"mitsuba active variant: {active}")
+    try:
+        import jax
+
+        lines.append("jax devices: " + ", ".join(str(d) for d in jax.devices()))
+    except Exception as e:
+        lines.append(f"jax devices: unavailable ({e})")
+    from jprt.render.dataset import cache_root
+
+    lines.append(f"cache: {cache_root()}")
+    print("\n".join(lines))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``jprt`` command; returns the exit status."""
+    parser = argparse.ArgumentParser(prog="jprt", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("info", help="versions, Mitsuba variant, LLVM library, JAX devices")
+    for name, help_text in (("render", "render the dataset of an experiment config"),
+                            ("run", "run an experiment file (CONFIG + main)")):
+        p = sub.add_parser(name, help=help_text)
+        p.add_argument("experiment", help="path to an experiment .py file")
+        p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                       help="override a config value (repeatable), e.g. --set dataset.spp=16")
+        p.add_argument("--preset", default=None, help="a named config preset of the experiment (e.g. small, paper)")
+    args = parser.parse_args(argv)
+
+    from jprt.config import ConfigError
+    from jprt.render.setup import LLVMNotFoundError
+
+    try:
+        if args.command == "info":
+            return _info()
+        module = load_experiment(args.experiment)
+        config = resolve_config(module, args.overrides, args.preset)
+        if args.command == "render":
+            from jprt.render.dataset import from_config
+
+            if "dataset" not in config:
+                raise ValueError(f"{args.experiment}: CONFIG has no 'dataset' section to render")
+            ds = from_config(config["dataset"])
+            print(f"dataset: {ds.folder} ({len(ds)} items; rendered {ds.stats['rendered']} entries, "
+                  f"reused {ds.stats['cached']})")
+            return 0
+        module.main(config)
+        return 0
+    except (ConfigError, LLVMNotFoundError, FileNotFoundError, ValueError) as e:
+        print(f"jprt: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("jprt: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,188 @@
+"""Configs: plain nested dicts with typed ``--set a.b=value`` overrides, strict keys, stable hashes.
+
+Every experiment defines ``CONFIG`` (the defaults). Overrides are deep-merged into a copy; a key
+that the defaults do not have is an error naming the closest valid key (never silently added),
+and a value must have a type compatible with the default's (int -> float widening is allowed,
+``None`` defaults accept anything). A section with a ``name`` key (a scene, a model) that is set
+to a different name is replaced whole, since its keys belong to the new name. The hash of a resolved config is stable across processes
+and dict orders, and is written next to every result with the config itself.
+"""
+
+from __future__ import annotations
+
+import ast
+import copy
+import difflib
+import hashlib
+import json
+import os
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+__all__ = [
+    "ConfigError",
+    "parse_value",
+    "parse_override",
+    "flatten",
+    "merge",
+    "apply_overrides",
+    "config_hash",
+    "stable_hash",
+    "array_digest",
+    "save_resolved",
+]
+
+
+class ConfigError(ValueError):
+    """A config override names an unknown key or has an incompatible type."""
+
+
+def parse_value(text: str) -> Any:
+    """Parse a command-line value: Python/JSON literals (ints, floats, bools, None, lists,
+    dicts, quoted strings), ``true``/``false``/``null``; anything else stays a string."""
+    lowered = text.strip().lower()
+    if lowered in ("true", "false"):
+        return lowered == "true"
+    if lowered in ("none", "null"):
+        return None
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        pass
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def parse_override(item: str) -> tuple[str, Any]:
+    """``"a.b=value"`` -> ("a.b", parsed value)."""
+    if "=" not in item:
+        raise ConfigError(f"override {item!r} is not of the form key.path=value")
+    key, text = item.split("=", 1)
+    key = key.strip()
+    if not key or any(not part for part in key.split(".")):
+        raise ConfigError(f"override {item!r} has an empty key")
+    return key, parse_value(text)
+
+
+def flatten(config: Mapping, prefix: str = "") -> dict[str, Any]:
+    """All dotted key paths of a nested dict (interior dicts included) -> values."""
+    out: dict[str, Any] = {}
+    for k, v in config.items():
+        path = f"{prefix}{k}"
+        out[path] = v
+        if isinstance(v, Mapping):
+            out.update(flatten(v, path + "."))
+    return out
+
+
+def _closest(key: str, candidates: Iterable[str]) -> str:
+    candidates = list(candidates)
+    match = difflib.get_close_matches(key, candidates, n=1, cutoff=0.0)
+    return match[0] if match else "(none)"
+
+
+def _coerce(path: str, default: Any, value: Any) -> Any:
+    if default is None or value is None:
+        return value
+    if isinstance(default, bool):
+        if isinstance(value, bool):
+            return value
+    elif isinstance(default, int):
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+    elif isinstance(default, float):
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+    elif isinstance(default, str):
+        if isinstance(value, str):
+            return value
+    elif isinstance(default, (list, tuple)):
+        if isinstance(value, (list, tuple)):
+            return type(default)(value)
+    elif isinstance(default, Mapping):
+        if isinstance(value, Mapping):
+            return value
+    else:
+        return value
+    raise ConfigError(
+        f"config key {path!r} expects {type(default).__name__} (default {default!r}), got {type(value).__name__} {value!r}"
+    )
+
+
+def merge(base: Mapping, overrides: Mapping, *, _prefix: str = "") -> dict:
+    """Deep-merge ``overrides`` into a copy of ``base``; unknown keys raise ConfigError."""
+    out = copy.deepcopy(dict(base))
+    for k, v in overrides.items():
+        path = f"{_prefix}{k}"
+        if k not in out:
+            raise ConfigError(f"unknown config key {path!r}; did you mean {_prefix + _closest(k, list(out))!r}?")
+        if (isinstance(out[k], Mapping) and isinstance(v, Mapping) and "name" in v
+                and v["name"] != out[k].get("name")):
+            out[k] = copy.deepcopy(dict(v))  # a named section switched to another name: its keys are the new ones
+        elif isinstance(out[k], Mapping) and isinstance(v, Mapping) and out[k]:
+            out[k] = merge(out[k], v, _prefix=path + ".")
+        else:
+            out[k] = _coerce(path, out[k], v)
+    return out
+
+
+def apply_overrides(config: Mapping, items: Iterable[str]) -> dict:
+    """Apply ``--set`` style items (``"a.b=value"``) in order to a copy of ``config``."""
+    out = copy.deepcopy(dict(config))
+    valid = flatten(config)
+    for item in items:
+        key, value = parse_override(item)
+        if key not in valid:
+            raise ConfigError(f"unknown config key {key!r}; did you mean {_closest(key, valid)!r}?")
+        nested: dict = value
+        for part in reversed(key.split(".")):
+            nested = {part: nested}
+        out = merge(out, nested)
+    return out
+
+
+def _canonical(obj: Any) -> Any:
+    if isinstance(obj, Mapping):
+        return {str(k): _canonical(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(obj, (list, tuple)):
+        return [_canonical(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return {"__array__": array_digest(obj)}
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def stable_hash(obj: Any, length: int = 16) -> str:
+    """SHA-256 of the canonical JSON of ``obj`` (sorted keys; arrays by content), hex prefix."""
+    text = json.dumps(_canonical(obj), sort_keys=True, separators=(",", ":"), allow_nan=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:length]
+
+
+def config_hash(config: Mapping) -> str:
+    """Stable 16-hex-digit hash of a resolved config."""
+    return stable_hash(config)
+
+
+def array_digest(array) -> str:
+    """Content digest of an array: dtype, shape and bytes."""
+    a = np.ascontiguousarray(array)
+    h = hashlib.sha256()
+    h.update(str(a.dtype).encode())
+    h.update(str(a.shape).encode())
+    h.update(a.tobytes())
+    return h.hexdigest()[:16]
+
+
+def save_resolved(config: Mapping, folder: str) -> str:
+    """Write ``config.json`` (the resolved config and its hash) into ``folder``; returns the hash."""
+    from jprt.io import write_json
+
+    digest = config_hash(config)
+    write_json(os.path.join(folder, "config.json"), {"hash": digest, "config": config})
+    return digest

@@ -1,0 +1,234 @@
+"""Files: EXR images (OpenEXR), tonemapped PNG previews, pytree checkpoints. Every write is atomic.
+
+Atomic means: data goes to a temporary file in the destination folder, is flushed and fsync-ed,
+and is renamed over the destination (``os.replace``), so a reader sees the old file or the new
+one, never half of one, and an interrupted write leaves at most a ``*.tmp`` file behind.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io as _io
+import json
+import os
+import tempfile
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+
+__all__ = [
+    "atomic_path",
+    "atomic_write_bytes",
+    "write_json",
+    "write_exr",
+    "read_exr",
+    "exr_channels",
+    "tonemap",
+    "write_png",
+    "save_checkpoint",
+    "load_checkpoint",
+]
+
+
+@contextlib.contextmanager
+def atomic_path(path: str, suffix: str = "") -> Iterator[str]:
+    """Yield a temporary path beside ``path``; on success it is renamed to ``path``.
+
+    On any exception (KeyboardInterrupt included) the temporary file is removed and ``path`` is
+    left untouched.
+    """
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=suffix + ".tmp", dir=folder)
+    os.close(fd)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)
+        raise
+
+
+def atomic_write_bytes(path: str, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(data)
+
+
+def write_json(path: str, obj: Any) -> None:
+    """Write ``obj`` as indented JSON, atomically (NumPy scalars and arrays are converted)."""
+
+    def default(o):
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+        if isinstance(o, np.generic):
+            return o.item()
+        raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
+
+    atomic_write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True, default=default) + "\n").encode())
+
+
+# --------------------------------------------------------------------------------------------
+# EXR
+
+_DEFAULT_NAMES = {1: ("Y",), 2: ("U", "V"), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
+
+
+def write_exr(path: str, image, channels: Sequence[str] | None = None, *, half: bool = False) -> None:
+    """Write an (H, W) or (H, W, C) image to an EXR file, atomically.
+
+    Args:
+      image: float array. (H, W) is written as one channel "Y".
+      channels: channel names, one per C; default Y / U,V / R,G,B / R,G,B,A by C.
+      half: store float16 instead of float32 (float32 round-trips bit-exactly).
+    """
+    import OpenEXR
+
+    image = np.asarray(image)
+    if image.ndim == 2:
+        image = image[..., None]
+    if image.ndim != 3 or image.shape[0] == 0 or image.shape[1] == 0:
+        raise ValueError(f"EXR image must be (H, W) or (H, W, C), got shape {image.shape}")
+    c = image.shape[2]
+    names = tuple(channels) if channels is not None else _DEFAULT_NAMES.get(c)
+    if names is None or len(names) != c or len(set(names)) != c:
+        raise ValueError(f"need {c} distinct channel names for an image with {c} channels, got {channels!r}")
+    dtype = np.float16 if half else np.float32
+    data = {name: np.ascontiguousarray(image[..., k].astype(dtype)) for k, name in enumerate(names)}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path, suffix=".exr") as tmp:
+        OpenEXR.File(header, data).write(tmp)
+
+
+def exr_channels(path: str) -> list[str]:
+    """Channel names stored in an EXR file."""
+    import OpenEXR
+
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"EXR file not found: {path}")
+    with OpenEXR.File(path, separate_channels=True, header_only=True) as f:
+        return sorted(ch.name for ch in f.header()["channels"])
+
+
+def read_exr(path: str, channels: str | Sequence[str] | None = "RGB", dtype=np.float32):
+    """Read channels of an EXR file.
+
+    Args:
+      channels: "RGB", "RGBA", "Y" (strings of one-letter names) or a list of names -> an
+        (H, W, C) array in that order; None -> a dict of all channels as (H, W) arrays.
+      dtype: output dtype (float16 files are widened exactly to float32).
+
+    Raises:
+      FileNotFoundError: no such file.
+      ValueError: a requested channel is missing (one line naming those present).
+    """
+    import OpenEXR
+
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"EXR file not found: {path}")
+    try:
+        f = OpenEXR.File(path, separate_channels=True)
+    except Exception as e:  # OpenEXR raises plain exceptions for corrupt files
+        raise ValueError(f"cannot read EXR file {path}: {e}") from None
+    with f:
+        data = {name: ch.pixels for name, ch in f.channels().items()}
+    if channels is None:
+        return {k: np.asarray(v, dtype) for k, v in data.items()}
+    names = list(channels)
+    missing = [n for n in names if n not in data]
+    if missing:
+        raise ValueError(f"EXR file {path} has channels {sorted(data)}, missing requested {missing}")
+    return np.stack([np.asarray(data[n], dtype) for n in names], axis=-1)
+
+
+# --------------------------------------------------------------------------------------------
+# PNG previews
+
+
+def tonemap(image, *, exposure: float = 0.0, mode: str = "srgb") -> np.ndarray:
+    """HDR linear RGB -> display values in [0, 1].
+
+    ``image * 2**exposure`` is encoded with the sRGB transfer function (``mode="srgb"``, clipped),
+    or first compressed by Reinhard x / (1 + x) (``mode="reinhard"``). NaNs become 0.
+    """
+    x = np.nan_to_num(np.asarray(image, np.float32) * np.float32(2.0**exposure), nan=0.0, posinf=0.0, neginf=0.0)
+    x = np.maximum(x, 0.0)
+    if mode == "reinhard":
+        x = x / (1.0 + x)
+    elif mode != "srgb":
+        raise ValueError(f"unknown tonemap mode {mode!r} (use 'srgb' or 'reinhard')")
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
+
+
+def write_png(path: str, image, *, exposure: float = 0.0, mode: str = "srgb", tonemapped: bool = False) -> None:
+    """Write an 8-bit PNG preview of a linear HDR image (or of [0, 1] values if ``tonemapped``)."""
+    from PIL import Image
+
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
+    display = np.clip(image, 0.0, 1.0) if tonemapped else tonemap(image, exposure=exposure, mode=mode)
+    pixels = np.round(display * 255.0).astype(np.uint8)
+    buf = _io.BytesIO()
+    Image.fromarray(pixels).save(buf, format="PNG")
+    atomic_write_bytes(path, buf.getvalue())
+
+
+# --------------------------------------------------------------------------------------------
+# Checkpoints
+
+
+def save_checkpoint(path: str, tree: Any, *, step: int | None = None, meta: dict | None = None) -> None:
+    """Save a pytree of arrays atomically (an .npz keyed by tree paths, plus JSON metadata).
+
+    Leaves are stored bit-exactly (dtype kept), so a resumed run is bit-identical.
+    """
+    import jax
+
+    leaves_with_path, _ = jax.tree_util.tree_flatten_with_path(tree)
+    arrays = {}
+    for k, (key_path, leaf) in enumerate(leaves_with_path):
+        arrays[f"{k:05d}|{jax.tree_util.keystr(key_path)}"] = np.asarray(leaf)
+    header = {"step": step, "meta": meta or {}, "n_leaves": len(arrays)}
+    arrays["__jprt_checkpoint__"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    with atomic_path(path, suffix=".npz") as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+
+
+def load_checkpoint(path: str, like: Any) -> tuple[Any, int | None, dict]:
+    """Load a checkpoint written by ``save_checkpoint`` into the structure of ``like``.
+
+    Returns (tree, step, meta). Raises ValueError when the stored tree paths, shapes or dtypes
+    differ from ``like``'s (a checkpoint from a different model or config).
+    """
+    import jax
+
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            stored = {k: data[k] for k in data.files}
+    except Exception as e:
+        raise ValueError(f"cannot read checkpoint {path}: {e}") from None
+    header = json.loads(bytes(stored.pop("__jprt_checkpoint__")).decode())
+    leaves_with_path, treedef = jax.tree_util.tree_flatten_with_path(like)
+    keys = sorted(stored)
+    if len(keys) != len(leaves_with_path):
+        raise ValueError(f"checkpoint {path} has {len(keys)} leaves, the model has {len(leaves_with_path)}")
+    leaves = []
+    for key, (key_path, leaf) in zip(keys, leaves_with_path):
+        want = jax.tree_util.keystr(key_path)
+        if key.split("|", 1)[1] != want:
+            raise ValueError(f"checkpoint {path}: leaf {key.split('|', 1)[1]!r} where the model has {want!r}")
+        value = stored[key]
+        ref = np.asarray(leaf)
+        if value.shape != ref.shape or value.dtype != ref.dtype:
+            raise ValueError(f"checkpoint {path}: {want} is {value.dtype}{value.shape}, model has {ref.dtype}{ref.shape}")
+        leaves.append(value)
+    return jax.tree_util.tree_unflatten(treedef, leaves), header["step"], header["meta"]

@@ -1,0 +1,139 @@
+"""Pinhole cameras and camera trajectories (look-at, orbit, helix, random views in a box).
+
+Cameras are plain NamedTuples of floats so they hash and serialise; ``to_sensor_dict`` turns one
+into a Mitsuba ``perspective`` sensor with a box pixel filter, so a pixel's value is the average
+over exactly its footprint (the G-buffer samples the pixel centre of the same footprint).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["Camera", "look_at", "orbit", "helix", "random_in_box", "to_sensor_dict", "camera_rays"]
+
+
+class Camera(NamedTuple):
+    """A pinhole camera looking from ``origin`` at ``target``.
+
+    ``fov`` is the field of view in degrees along the smaller image axis (Mitsuba's
+    ``fov_axis='smaller'``).
+    """
+
+    origin: tuple[float, float, float]
+    target: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov: float = 39.3077
+    width: int = 256
+    height: int = 256
+
+    def describe(self) -> dict:
+        return {k: (list(map(float, v)) if isinstance(v, tuple) else v) for k, v in self._asdict().items()}
+
+
+def _vec3(v) -> tuple[float, float, float]:
+    v = np.asarray(v, dtype=np.float64).reshape(-1)
+    if v.shape != (3,) or not np.isfinite(v).all():
+        raise ValueError(f"expected a finite 3-vector, got {v!r}")
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def look_at(origin, target, up=(0.0, 1.0, 0.0), *, fov: float = 39.3077, width: int = 256, height: int = 256) -> Camera:
+    """Validated ``Camera`` constructor."""
+    origin, target, up = _vec3(origin), _vec3(target), _vec3(up)
+    forward = np.subtract(target, origin)
+    if np.linalg.norm(forward) == 0:
+        raise ValueError("camera origin and target coincide")
+    if np.linalg.norm(np.cross(forward, up)) < 1e-9 * np.linalg.norm(forward) * max(np.linalg.norm(up), 1e-30):
+        raise ValueError("camera up vector is parallel to the viewing direction")
+    if not (0 < fov < 180):
+        raise ValueError(f"fov must be in (0, 180) degrees, got {fov}")
+    if int(width) <= 0 or int(height) <= 0:
+        raise ValueError(f"image size must be positive, got {width}x{height}")
+    return Camera(origin, target, up, float(fov), int(width), int(height))
+
+
+def orbit(center, radius: float, n: int, *, elevation_deg: float = 0.0, start_deg: float = 0.0,
+          arc_deg: float = 360.0, **camera_kw) -> list[Camera]:
+    """``n`` cameras on a horizontal circle around ``center`` (Y up), looking at it.
+
+    Azimuth 0 is the +Z side; with ``arc_deg=360`` the views are spread without repeating the start.
+    """
+    center = np.asarray(_vec3(center))
+    step = arc_deg / n if abs(arc_deg - 360.0) < 1e-9 else (arc_deg / max(n - 1, 1))
+    el = np.radians(elevation_deg)
+    cams = []
+    for k in range(n):
+        az = np.radians(start_deg + k * step)
+        offset = radius * np.array([np.cos(el) * np.sin(az), np.sin(el), np.cos(el) * np.cos(az)])
+        cams.append(look_at(center + offset, center, **camera_kw))
+    return cams
+
+
+def helix(center, radius: float, n: int, *, height_range=(-0.5, 0.5), turns: float = 2.0, **camera_kw) -> list[Camera]:
+    """``n`` cameras on a helix around ``center``: ``turns`` revolutions while the height goes
+    through ``height_range`` (relative to the centre), each looking at the centre. Used for
+    occluded scenes where one circle sees too little (Raghavan et al. 2023, §5)."""
+    center = np.asarray(_vec3(center))
+    t = np.linspace(0.0, 1.0, n)
+    cams = []
+    for tk in t:
+        az = 2.0 * np.pi * turns * tk
+        y = height_range[0] + (height_range[1] - height_range[0]) * tk
+        cams.append(look_at(center + np.array([radius * np.sin(az), y, radius * np.cos(az)]), center, **camera_kw))
+    return cams
+
+
+def random_in_box(seed: int, n: int, lo, hi, target, *, jitter_target: float = 0.0, **camera_kw) -> list[Camera]:
+    """``n`` cameras with origins uniform in the axis-aligned box [lo, hi], looking at ``target``
+    (optionally jittered uniformly by +-``jitter_target`` per axis)."""
+    rng = np.random.default_rng(seed)
+    lo, hi, target = np.asarray(_vec3(lo)), np.asarray(_vec3(hi)), np.asarray(_vec3(target))
+    if np.any(hi < lo):
+        raise ValueError(f"box lower corner {lo} exceeds upper corner {hi}")
+    origins = lo + (hi - lo) * rng.random((n, 3))
+    targets = target + jitter_target * (2.0 * rng.random((n, 3)) - 1.0)
+    return [look_at(o, t, **camera_kw) for o, t in zip(origins, targets)]
+
+
+def to_sensor_dict(camera: Camera, spp: int, mi) -> dict:
+    """Mitsuba sensor dict for ``camera`` with an independent sampler of ``spp`` samples."""
+    return {
+        "type": "perspective",
+        "fov": camera.fov,
+        "fov_axis": "smaller",
+        "near_clip": 1e-3,
+        "far_clip": 1e4,
+        "to_world": mi.ScalarTransform4f().look_at(origin=camera.origin, target=camera.target, up=camera.up),
+        "sampler": {"type": "independent", "sample_count": int(spp)},
+        "film": {
+            "type": "hdrfilm",
+            "width": camera.width,
+            "height": camera.height,
+            "rfilter": {"type": "box"},
+            "pixel_format": "rgb",
+            "component_format": "float32",
+        },
+    }
+
+
+def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-centre primary rays (origins, unit directions), each (H, W, 3), in NumPy.
+
+    Same geometry as Mitsuba's perspective sensor with ``fov_axis='smaller'``: row 0 is the top
+    of the image, column 0 its left (Mitsuba's look-at frame has +X to the image left).
+    """
+    o = np.asarray(camera.origin, np.float64)
+    f = np.asarray(camera.target, np.float64) - o
+    f /= np.linalg.norm(f)
+    left = np.cross(np.asarray(camera.up, np.float64), f)
+    left /= np.linalg.norm(left)
+    up = np.cross(f, left)
+    w, h = camera.width, camera.height
+    half = np.tan(np.radians(camera.fov) / 2.0) / min(w, h)
+    xs = (np.arange(w) + 0.5 - w / 2.0) * 2.0 * half
+    ys = (np.arange(h) + 0.5 - h / 2.0) * 2.0 * half
+    d = f[None, None] - xs[None, :, None] * left[None, None] - ys[:, None, None] * up[None, None]
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return np.broadcast_to(o, d.shape).copy(), d

@@ -1,0 +1,140 @@
+"""G-buffers from exact pixel-centre primary rays.
+
+Mitsuba's ``aov`` integrator averages over each pixel's footprint, which blurs edges and makes
+integer quantities (object ids) meaningless at partially covered pixels. Here every pixel gets
+one primary ray through its centre (``sensor.sample_ray`` at film position ((x + 0.5) / W,
+(y + 0.5) / H)), intersected with ``scene.ray_intersect``.
+
+Conventions: ``view`` points from the surface to the camera; the shading ``normal`` is flipped to
+the viewer's side (n . v >= 0) so back-facing hits behave like two-sided surfaces, and
+``reflected = reflect(-view, normal) = 2 (n . v) n - v``. Invalid pixels (the ray escapes) are
+zero with ``object_id = -1``.
+
+BRDF parameters per pixel: ``diffuse_albedo`` from the BSDF itself (textures included, through
+``eval_diffuse_reflectance``); ``specular_albedo`` and ``roughness`` (GGX alpha) per object,
+read from the BSDF's parameters (diffuse objects: specular 0, roughness 1).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from jprt.render.cameras import Camera, to_sensor_dict
+from jprt.render.scenes import SceneHandle
+
+__all__ = ["GBuffer", "gbuffer", "object_materials"]
+
+
+class GBuffer(NamedTuple):
+    """Per-pixel surface attributes of the first hit, all (H, W, ...) NumPy arrays.
+
+    Fields:
+      position:        (H, W, 3) float32 world position.
+      normal:          (H, W, 3) float32 unit shading normal, facing the viewer.
+      view:            (H, W, 3) float32 unit direction from the surface to the camera.
+      reflected:       (H, W, 3) float32 unit mirror direction reflect(-view, normal).
+      uv:              (H, W, 2) float32 surface texture coordinates.
+      diffuse_albedo:  (H, W, 3) float32.
+      specular_albedo: (H, W, 3) float32.
+      roughness:       (H, W)    float32 GGX alpha (1 for diffuse surfaces).
+      object_id:       (H, W)    int32 index into the scene's shapes, -1 where invalid.
+      valid:           (H, W)    bool, the primary ray hit a surface.
+    """
+
+    position: np.ndarray
+    normal: np.ndarray
+    view: np.ndarray
+    reflected: np.ndarray
+    uv: np.ndarray
+    diffuse_albedo: np.ndarray
+    specular_albedo: np.ndarray
+    roughness: np.ndarray
+    object_id: np.ndarray
+    valid: np.ndarray
+
+
+def _first_value(params, suffixes) -> np.ndarray | None:
+    for key in params.keys():
+        if any(key == s or key.endswith("." + s) for s in suffixes):
+            value = np.asarray(params[key], np.float32).reshape(-1)
+            if value.size:
+                return value
+    return None
+
+
+def object_materials(handle: SceneHandle) -> tuple[np.ndarray, np.ndarray]:
+    """(specular_albedo (S, 3), roughness (S,)) for each shape of the scene, from BSDF params."""
+    mi = handle.mi
+    specular, roughness = [], []
+    for shape in handle.shapes():
+        params = mi.traverse(shape.bsdf())
+        spec = _first_value(params, ("specular_reflectance.value",))
+        alpha = _first_value(params, ("alpha", "alpha.value", "alpha_u", "alpha_u.value"))
+        is_specular = alpha is not None or spec is not None
+        spec = np.broadcast_to(spec if spec is not None else (1.0 if is_specular else 0.0), (3,))
+        specular.append(np.asarray(spec, np.float32))
+        roughness.append(float(alpha[0]) if alpha is not None else (0.0 if is_specular else 1.0))
+    return np.stack(specular).astype(np.float32), np.asarray(roughness, np.float32)
+
+
+def gbuffer(handle: SceneHandle, camera: Camera) -> GBuffer:
+    """Exact pixel-centre G-buffer of ``camera`` in the scene of ``handle``."""
+    mi = handle.mi
+    import drjit as dr
+
+    sensor = mi.load_dict(to_sensor_dict(camera, 1, mi))
+    w, h = camera.width, camera.height
+    idx = dr.arange(mi.UInt32, w * h)
+    x = mi.Float(idx % w) + 0.5
+    y = mi.Float(idx // w) + 0.5
+    film_pos = mi.Point2f(x / w, y / h)
+    ray, _ = sensor.sample_ray(mi.Float(0.0), mi.Float(0.5), film_pos, mi.Point2f(0.5, 0.5))
+    si = handle.scene.ray_intersect(ray)
+    valid = si.is_valid()
+
+    n = si.sh_frame.n
+    v = -ray.d
+    flip = dr.select(dr.dot(n, v) < 0, -1.0, 1.0)
+    n = n * flip
+    ndotv = dr.dot(n, v)
+    r = 2.0 * ndotv * n - v
+
+    bsdf = si.bsdf(ray)
+    albedo = bsdf.eval_diffuse_reflectance(si, valid)
+
+    object_id = dr.full(mi.Int32, -1, w * h)
+    for k, shape in enumerate(handle.shapes()):
+        object_id = dr.select(valid & (si.shape == mi.ShapePtr(shape)), k, object_id)
+
+    def arr(value, c):
+        a = np.array(value, dtype=np.float32)
+        a = a.T if a.ndim == 2 else a
+        return a.reshape(h, w, c) if c > 1 else a.reshape(h, w)
+
+    valid_np = np.array(valid, dtype=bool).reshape(h, w)
+    mask3 = valid_np[..., None]
+    object_np = np.array(object_id, dtype=np.int32).reshape(h, w)
+
+    specular_table, roughness_table = object_materials(handle)
+    safe_ids = np.maximum(object_np, 0)
+    specular = np.where(mask3, specular_table[safe_ids], 0.0).astype(np.float32)
+    roughness = np.where(valid_np, roughness_table[safe_ids], 0.0).astype(np.float32)
+
+    def unit(a):
+        norm = np.linalg.norm(a, axis=-1, keepdims=True)
+        return np.where(mask3, a / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
+
+    return GBuffer(
+        position=np.where(mask3, arr(si.p, 3), 0.0).astype(np.float32),
+        normal=unit(arr(n, 3)),
+        view=unit(arr(v, 3)),
+        reflected=unit(arr(r, 3)),
+        uv=np.where(mask3, arr(si.uv, 2), 0.0).astype(np.float32),
+        diffuse_albedo=np.where(mask3, arr(albedo, 3), 0.0).astype(np.float32),
+        specular_albedo=specular,
+        roughness=roughness,
+        object_id=object_np,
+        valid=valid_np,
+    )

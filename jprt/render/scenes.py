@@ -1,0 +1,308 @@
+"""Scenes: JSON-able descriptions, and Mitsuba scenes built from them with swappable lights.
+
+A scene *description* is a plain dict (so it hashes into dataset cache keys and configs):
+
+  {"name": "cornell_box", "area_light": True, "materials": {"floor": {...}, ...}}
+  {"name": "glossy_cornell", "floor_roughness": 0.2, "sphere_roughness": 0.05, ...}
+  {"name": "xml", "path": "/abs/scene.xml", "sha256": "...", "keep_emitters": True}
+
+Materials (``materials`` entries override the defaults per object):
+
+  {"type": "diffuse", "albedo": [r, g, b]}                       Lambertian
+  {"type": "diffuse", "albedo": {"checker": [[r,g,b], [r,g,b]], "scale": 4}}  textured albedo
+  {"type": "diffuse", "albedo": {"texture": "/path/image.png"}}  textured albedo from a file
+  {"type": "glossy", "albedo": [...], "specular": [...], "roughness": a}  diffuse + GGX coat
+  {"type": "metal", "specular": [...], "roughness": a}          GGX conductor, Fresnel = 1
+
+``roughness`` is always Mitsuba's microfacet ``alpha`` (GGX), not its square root.
+
+``SceneHandle`` builds the Mitsuba scene once and swaps point lights or an environment map by
+writing scene parameters, rebuilding only when the *kind* or count of lights changes.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import os
+from typing import Any
+
+import numpy as np
+
+from jprt.render.lights import EnvMap, Lighting, PointLights, mitsuba_envmap_data, to_mitsuba_envmap
+from jprt.render.setup import mitsuba
+
+__all__ = [
+    "cornell_box",
+    "glossy_cornell",
+    "xml",
+    "describe",
+    "SceneHandle",
+    "CORNELL_OBJECTS",
+    "CORNELL_CAMERA",
+]
+
+CORNELL_OBJECTS = ("floor", "ceiling", "back", "green-wall", "red-wall", "small-box", "large-box")
+#: The built-in Cornell box's own camera: (origin, target, fov along the smaller axis).
+CORNELL_CAMERA = ((0.0, 0.0, 3.9), (0.0, 0.0, 0.0), 39.3077)
+
+_WHITE = [0.885809, 0.698859, 0.666422]
+_CORNELL_DEFAULT_MATERIALS = {
+    "floor": {"type": "diffuse", "albedo": _WHITE},
+    "ceiling": {"type": "diffuse", "albedo": _WHITE},
+    "back": {"type": "diffuse", "albedo": _WHITE},
+    "green-wall": {"type": "diffuse", "albedo": [0.105421, 0.37798, 0.076425]},
+    "red-wall": {"type": "diffuse", "albedo": [0.570068, 0.0430135, 0.0443706]},
+    "small-box": {"type": "diffuse", "albedo": _WHITE},
+    "large-box": {"type": "diffuse", "albedo": _WHITE},
+}
+_MATERIAL_KEYS = {
+    "diffuse": {"type", "albedo"},
+    "glossy": {"type", "albedo", "specular", "roughness"},
+    "metal": {"type", "specular", "roughness"},
+}
+
+
+def _check_material(name: str, material: dict) -> dict:
+    kind = material.get("type")
+    if kind not in _MATERIAL_KEYS:
+        raise ValueError(f"material {name!r}: unknown type {kind!r} (use one of {sorted(_MATERIAL_KEYS)})")
+    extra = set(material) - _MATERIAL_KEYS[kind]
+    if extra:
+        raise ValueError(f"material {name!r} of type {kind!r}: unknown keys {sorted(extra)}")
+    roughness = material.get("roughness", 0.1)
+    if not (1e-4 <= float(roughness) <= 1.0):
+        raise ValueError(f"material {name!r}: roughness (GGX alpha) must be in [1e-4, 1], got {roughness}")
+    return material
+
+
+def cornell_box(*, area_light: bool = True, materials: dict | None = None) -> dict:
+    """Mitsuba's built-in Cornell box (embedded default; needs no asset files).
+
+    Args:
+      area_light: keep the ceiling's area light. Turn it off to light the box with point lights
+        or an environment map only (the light's quad then stays as a white diffuse patch).
+      materials: per-object overrides keyed by ``CORNELL_OBJECTS`` names.
+    """
+    materials = dict(materials or {})
+    unknown = set(materials) - set(CORNELL_OBJECTS)
+    if unknown:
+        raise ValueError(f"unknown Cornell box objects {sorted(unknown)}; objects are {list(CORNELL_OBJECTS)}")
+    merged = {k: _check_material(k, materials.get(k, v)) for k, v in _CORNELL_DEFAULT_MATERIALS.items()}
+    return {"name": "cornell_box", "area_light": bool(area_light), "materials": merged}
+
+
+def glossy_cornell(*, floor_roughness: float = 0.15, sphere_roughness: float = 0.02,
+                   area_light: bool = False, albedo_checker: bool = True) -> dict:
+    """A Cornell box with glossy interreflection and a caustic.
+
+    The floor is diffuse + GGX (``roughplastic``, alpha = ``floor_roughness``), the tall box is
+    replaced by a near-mirror metal sphere (alpha = ``sphere_roughness``) that focuses light
+    onto the walls and floor (a reflective caustic), the back wall has a checker albedo texture.
+    """
+    materials = dict(_CORNELL_DEFAULT_MATERIALS)
+    materials["floor"] = {"type": "glossy", "albedo": [0.35, 0.35, 0.4], "specular": [0.8, 0.8, 0.8],
+                          "roughness": float(floor_roughness)}
+    if albedo_checker:
+        materials["back"] = {"type": "diffuse", "albedo": {"checker": [_WHITE, [0.3, 0.3, 0.55]], "scale": 4}}
+    materials["large-box"] = {"type": "metal", "specular": [0.95, 0.93, 0.88], "roughness": float(sphere_roughness)}
+    for k, v in materials.items():
+        _check_material(k, v)
+    return {"name": "glossy_cornell", "area_light": bool(area_light), "materials": materials}
+
+
+def xml(path: str, *, keep_emitters: bool = True) -> dict:
+    """Description of a Mitsuba XML scene file (content-hashed, so an edited file re-renders)."""
+    path = os.path.abspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"scene file not found: {path}")
+    with open(path, "rb") as f:
+        digest = hashlib.sha256(f.read()).hexdigest()
+    return {"name": "xml", "path": path, "sha256": digest, "keep_emitters": bool(keep_emitters)}
+
+
+def describe(scene: dict | str) -> dict:
+    """Normalise a scene given as a description dict or a name ("cornell_box", "glossy_cornell",
+    or a path to an .xml file) into a full description."""
+    if isinstance(scene, str):
+        if scene == "cornell_box":
+            return cornell_box()
+        if scene == "glossy_cornell":
+            return glossy_cornell()
+        if scene.endswith(".xml"):
+            return xml(scene)
+        raise ValueError(f"unknown scene {scene!r}: use 'cornell_box', 'glossy_cornell' or an .xml path")
+    name = scene.get("name")
+    kwargs = {k: v for k, v in scene.items() if k != "name"}
+    if name == "cornell_box":
+        return cornell_box(**kwargs)
+    if name == "glossy_cornell":
+        if "materials" in kwargs:  # already a full description
+            unknown = set(kwargs) - {"area_light", "materials"}
+            if unknown or set(kwargs["materials"]) != set(CORNELL_OBJECTS):
+                raise ValueError(f"malformed glossy_cornell description (keys {sorted(kwargs)})")
+            for k, v in kwargs["materials"].items():
+                _check_material(k, v)
+            return {"name": name, "area_light": bool(kwargs.get("area_light", False)),
+                    "materials": dict(kwargs["materials"])}
+        return glossy_cornell(**kwargs)
+    if name == "xml":
+        return xml(scene["path"], keep_emitters=scene.get("keep_emitters", True))
+    raise ValueError(f"unknown scene name {name!r}: use 'cornell_box', 'glossy_cornell' or 'xml'")
+
+
+# --------------------------------------------------------------------------------------------
+# Building Mitsuba objects
+
+
+def _rgb(value) -> dict:
+    value = np.broadcast_to(np.asarray(value, np.float64), (3,))
+    return {"type": "rgb", "value": [float(c) for c in value]}
+
+
+def _albedo_texture(albedo, mi) -> dict:
+    if isinstance(albedo, dict):
+        if "checker" in albedo:
+            c0, c1 = albedo["checker"]
+            scale = float(albedo.get("scale", 4))
+            return {"type": "checkerboard", "color0": _rgb(c0), "color1": _rgb(c1),
+                    "to_uv": mi.ScalarTransform3f().scale([scale, scale])}
+        if "texture" in albedo:
+            path = albedo["texture"]
+            if not os.path.isfile(path):
+                raise FileNotFoundError(f"albedo texture not found: {path}")
+            return {"type": "bitmap", "filename": path}
+        raise ValueError(f"albedo must be an RGB triple, {{'checker': ...}} or {{'texture': path}}, got {albedo!r}")
+    return _rgb(albedo)
+
+
+def _bsdf_dict(material: dict, mi) -> dict:
+    kind = material["type"]
+    if kind == "diffuse":
+        return {"type": "diffuse", "reflectance": _albedo_texture(material["albedo"], mi)}
+    if kind == "glossy":
+        return {"type": "roughplastic", "distribution": "ggx", "alpha": float(material["roughness"]),
+                "diffuse_reflectance": _albedo_texture(material["albedo"], mi),
+                "specular_reflectance": _rgb(material.get("specular", [1.0, 1.0, 1.0])), "nonlinear": False}
+    if kind == "metal":
+        return {"type": "roughconductor", "distribution": "ggx", "alpha": float(material["roughness"]),
+                "material": "none", "specular_reflectance": _rgb(material.get("specular", [1.0, 1.0, 1.0]))}
+    raise ValueError(f"unknown material type {kind!r}")
+
+
+def _base_dict(desc: dict, mi) -> dict:
+    """Scene dict without sensor, integrator or jprt lights."""
+    name = desc["name"]
+    if name in ("cornell_box", "glossy_cornell"):
+        base = mi.cornell_box()
+        for key in ("integrator", "sensor", "white", "green", "red"):
+            base.pop(key, None)
+        for obj in CORNELL_OBJECTS:
+            base[obj] = dict(base[obj])
+            base[obj]["bsdf"] = _bsdf_dict(desc["materials"][obj], mi)
+        if name == "glossy_cornell":
+            base["large-box"] = {"type": "sphere", "center": [0.33, -0.6, 0.1], "radius": 0.4,
+                                 "bsdf": base["large-box"]["bsdf"]}
+        if not desc["area_light"]:
+            light = dict(base["light"])
+            light.pop("emitter", None)
+            light["bsdf"] = _bsdf_dict({"type": "diffuse", "albedo": _WHITE}, mi)
+            base["light"] = light
+        return base
+    if name == "xml":
+        loaded = mi.load_file(desc["path"], optimize=False)
+        base = {"type": "scene"}
+        for k, shape in enumerate(loaded.shapes()):
+            if shape.emitter() is not None and not desc["keep_emitters"]:
+                continue
+            base[f"shape_{k:04d}"] = shape
+        if desc["keep_emitters"]:
+            for k, emitter in enumerate(loaded.emitters()):
+                if emitter.shape() is None:  # area lights come with their shapes
+                    base[f"emitter_{k:04d}"] = emitter
+        return base
+    raise ValueError(f"unknown scene name {name!r}")
+
+
+def _lighting_dict(lighting: Lighting, mi) -> dict:
+    if lighting is None:
+        return {}
+    if isinstance(lighting, PointLights):
+        return {
+            f"jprt_point_{k}": {"type": "point", "position": [float(c) for c in lighting.position[k]],
+                                "intensity": _rgb(lighting.intensity[k])}
+            for k in range(lighting.count)
+        }
+    if isinstance(lighting, EnvMap):
+        return {"jprt_envmap": {"type": "envmap", "bitmap": mi.Bitmap(to_mitsuba_envmap(lighting.radiance))}}
+    raise TypeError(f"unknown lighting type {type(lighting).__name__}")
+
+
+def _lighting_layout(lighting: Lighting) -> Any:
+    if lighting is None:
+        return None
+    if isinstance(lighting, PointLights):
+        return ("point", lighting.count)
+    return ("envmap", tuple(lighting.radiance.shape))
+
+
+class SceneHandle:
+    """A built Mitsuba scene with swappable jprt lighting.
+
+    >>> handle = SceneHandle(cornell_box(area_light=False))
+    >>> handle.set_lighting(PointLights.create([0, 0.8, 0], [5, 5, 5]))
+
+    ``set_lighting`` writes emitter parameters (positions, intensities, the halo-padded envmap
+    array) when the layout (kind and count of lights, map shape) is unchanged, and rebuilds the
+    scene otherwise. ``builds`` counts rebuilds (tests use it).
+    """
+
+    def __init__(self, scene: dict | str, lighting: Lighting = None):
+        self.description = describe(scene)
+        self._mi = mitsuba()
+        self._base = _base_dict(self.description, self._mi)
+        self.builds = 0
+        self.lighting: Lighting = None
+        self._layout: Any = "unbuilt"
+        self.scene = None
+        self.set_lighting(lighting)
+
+    @property
+    def mi(self):
+        return self._mi
+
+    def _build(self, lighting: Lighting) -> None:
+        d = copy.copy(self._base)
+        d.update(_lighting_dict(lighting, self._mi))
+        # optimize=False keeps one shape per object (merging would break object ids and materials).
+        self.scene = self._mi.load_dict(d, optimize=False)
+        self.builds += 1
+        self._layout = _lighting_layout(lighting)
+
+    def set_lighting(self, lighting: Lighting) -> None:
+        """Use ``lighting`` (PointLights, EnvMap or None for the scene's own emitters)."""
+        if isinstance(lighting, EnvMap):
+            lighting = EnvMap.create(lighting.radiance)
+        elif isinstance(lighting, PointLights):
+            lighting = PointLights.create(lighting.position, lighting.intensity)
+        layout = _lighting_layout(lighting)
+        if layout != self._layout:
+            self._build(lighting)
+        elif lighting is not None:
+            params = self._mi.traverse(self.scene)
+            if isinstance(lighting, PointLights):
+                for k in range(lighting.count):
+                    params[f"jprt_point_{k}.position"] = self._mi.Point3f(*map(float, lighting.position[k]))
+                    params[f"jprt_point_{k}.intensity.value"] = self._mi.Color3f(*map(float, lighting.intensity[k]))
+            else:
+                params["jprt_envmap.data"] = self._mi.TensorXf(mitsuba_envmap_data(lighting.radiance))
+            params.update()
+        self.lighting = lighting
+
+    def shapes(self) -> list:
+        """The scene's shapes in object-id order."""
+        return list(self.scene.shapes())
+
+    def object_names(self) -> list[str]:
+        """Shape ids in object-id order (the ``object_id`` of the G-buffer indexes this list)."""
+        return [s.id() for s in self.scene.shapes()]
