@@ -118,11 +118,13 @@ def to_sensor_dict(camera: Camera, spp: int, mi) -> dict:
     }
 
 
-def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel-centre primary rays (origins, unit directions), each (H, W, 3), in NumPy.
+def camera_rays(camera: Camera, offset=None) -> tuple[np.ndarray, np.ndarray]:
+    """Primary rays (origins, unit directions), each (H, W, 3), in NumPy.
 
-    Same geometry as Mitsuba's perspective sensor with ``fov_axis='smaller'``: row 0 is the top
-    of the image, column 0 its left (Mitsuba's look-at frame has +X to the image left).
+    ``offset`` is the position inside each pixel in [0, 1)^2 (x right, y down): None for the
+    pixel centre (0.5, 0.5), or an (H, W, 2) array (e.g. uniform jitter, which makes the mean
+    over many offsets the box-filtered pixel value). Same geometry as Mitsuba's perspective
+    sensor with ``fov_axis='smaller'``: row 0 is the top of the image, column 0 its left.
     """
     o = np.asarray(camera.origin, np.float64)
     f = np.asarray(camera.target, np.float64) - o
@@ -132,8 +134,9 @@ def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     up = np.cross(f, left)
     w, h = camera.width, camera.height
     half = np.tan(np.radians(camera.fov) / 2.0) / min(w, h)
-    xs = (np.arange(w) + 0.5 - w / 2.0) * 2.0 * half
-    ys = (np.arange(h) + 0.5 - h / 2.0) * 2.0 * half
-    d = f[None, None] - xs[None, :, None] * left[None, None] - ys[:, None, None] * up[None, None]
+    off = np.full((h, w, 2), 0.5) if offset is None else np.broadcast_to(np.asarray(offset, np.float64), (h, w, 2))
+    xs = (np.arange(w)[None, :] + off[..., 0] - w / 2.0) * 2.0 * half
+    ys = (np.arange(h)[:, None] + off[..., 1] - h / 2.0) * 2.0 * half
+    d = f[None, None] - xs[..., None] * left[None, None] - ys[..., None] * up[None, None]
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     return np.broadcast_to(o, d.shape).copy(), d

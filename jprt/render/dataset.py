@@ -157,8 +157,10 @@ def render_dataset(scene, cameras: Sequence[cams.Camera], lightings: Sequence[Li
     """
     from jprt.render.images import check_spp, direct_indirect
     from jprt.render.scenes import describe
+    from jprt.render.setup import mitsuba
 
     spp = check_spp(spp)
+    mitsuba()  # fail on a missing libLLVM before anything is written
     cameras, lightings = list(cameras), list(lightings)
     if not cameras or not lightings:
         raise ValueError("a dataset needs at least one camera and one lighting")

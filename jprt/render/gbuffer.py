@@ -64,19 +64,27 @@ def _first_value(params, suffixes) -> np.ndarray | None:
     return None
 
 
-def object_materials(handle: SceneHandle) -> tuple[np.ndarray, np.ndarray]:
-    """(specular_albedo (S, 3), roughness (S,)) for each shape of the scene, from BSDF params."""
+# BSDFs without a diffuse lobe. Mitsuba's default eval_diffuse_reflectance evaluates the whole
+# BSDF at normal incidence, which is not zero for them.
+_NO_DIFFUSE = ("Conductor", "Dielectric")
+
+
+def object_materials(handle: SceneHandle) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per shape of the scene, from its BSDF: (specular_albedo (S, 3), roughness (S,),
+    has_diffuse (S,) bool)."""
     mi = handle.mi
-    specular, roughness = [], []
+    specular, roughness, has_diffuse = [], [], []
     for shape in handle.shapes():
-        params = mi.traverse(shape.bsdf())
+        bsdf = shape.bsdf()
+        has_diffuse.append(not any(kind in bsdf.class_name() for kind in _NO_DIFFUSE))
+        params = mi.traverse(bsdf)
         spec = _first_value(params, ("specular_reflectance.value",))
         alpha = _first_value(params, ("alpha", "alpha.value", "alpha_u", "alpha_u.value"))
         is_specular = alpha is not None or spec is not None
         spec = np.broadcast_to(spec if spec is not None else (1.0 if is_specular else 0.0), (3,))
         specular.append(np.asarray(spec, np.float32))
         roughness.append(float(alpha[0]) if alpha is not None else (0.0 if is_specular else 1.0))
-    return np.stack(specular).astype(np.float32), np.asarray(roughness, np.float32)
+    return np.stack(specular).astype(np.float32), np.asarray(roughness, np.float32), np.asarray(has_diffuse)
 
 
 def gbuffer(handle: SceneHandle, camera: Camera) -> GBuffer:
@@ -117,8 +125,9 @@ def gbuffer(handle: SceneHandle, camera: Camera) -> GBuffer:
     mask3 = valid_np[..., None]
     object_np = np.array(object_id, dtype=np.int32).reshape(h, w)
 
-    specular_table, roughness_table = object_materials(handle)
+    specular_table, roughness_table, diffuse_table = object_materials(handle)
     safe_ids = np.maximum(object_np, 0)
+    has_diffuse = (valid_np & diffuse_table[safe_ids])[..., None]
     specular = np.where(mask3, specular_table[safe_ids], 0.0).astype(np.float32)
     roughness = np.where(valid_np, roughness_table[safe_ids], 0.0).astype(np.float32)
 
@@ -132,7 +141,7 @@ def gbuffer(handle: SceneHandle, camera: Camera) -> GBuffer:
         view=unit(arr(v, 3)),
         reflected=unit(arr(r, 3)),
         uv=np.where(mask3, arr(si.uv, 2), 0.0).astype(np.float32),
-        diffuse_albedo=np.where(mask3, arr(albedo, 3), 0.0).astype(np.float32),
+        diffuse_albedo=np.where(has_diffuse, arr(albedo, 3), 0.0).astype(np.float32),
         specular_albedo=specular,
         roughness=roughness,
         object_id=object_np,

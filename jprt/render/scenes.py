@@ -5,6 +5,7 @@ A scene *description* is a plain dict (so it hashes into dataset cache keys and 
   {"name": "cornell_box", "area_light": True, "materials": {"floor": {...}, ...}}
   {"name": "glossy_cornell", "floor_roughness": 0.2, "sphere_roughness": 0.05, ...}
   {"name": "xml", "path": "/abs/scene.xml", "sha256": "...", "keep_emitters": True}
+  {"name": "empty"}                          no geometry: only the jprt lighting (probes, tests)
 
 Materials (``materials`` entries override the defaults per object):
 
@@ -33,6 +34,7 @@ from jprt.render.lights import EnvMap, Lighting, PointLights, mitsuba_envmap_dat
 from jprt.render.setup import mitsuba
 
 __all__ = [
+    "empty",
     "cornell_box",
     "glossy_cornell",
     "xml",
@@ -76,12 +78,17 @@ def _check_material(name: str, material: dict) -> dict:
     return material
 
 
+def empty() -> dict:
+    """A scene with no geometry; rays see only the lighting (environment-map probes and tests)."""
+    return {"name": "empty"}
+
+
 def cornell_box(*, area_light: bool = True, materials: dict | None = None) -> dict:
     """Mitsuba's built-in Cornell box (embedded default; needs no asset files).
 
     Args:
       area_light: keep the ceiling's area light. Turn it off to light the box with point lights
-        or an environment map only (the light's quad then stays as a white diffuse patch).
+        or an environment map only (the light's quad is then removed).
       materials: per-object overrides keyed by ``CORNELL_OBJECTS`` names.
     """
     materials = dict(materials or {})
@@ -125,15 +132,19 @@ def describe(scene: dict | str) -> dict:
     """Normalise a scene given as a description dict or a name ("cornell_box", "glossy_cornell",
     or a path to an .xml file) into a full description."""
     if isinstance(scene, str):
+        if scene == "empty":
+            return empty()
         if scene == "cornell_box":
             return cornell_box()
         if scene == "glossy_cornell":
             return glossy_cornell()
         if scene.endswith(".xml"):
             return xml(scene)
-        raise ValueError(f"unknown scene {scene!r}: use 'cornell_box', 'glossy_cornell' or an .xml path")
+        raise ValueError(f"unknown scene {scene!r}: use 'empty', 'cornell_box', 'glossy_cornell' or an .xml path")
     name = scene.get("name")
     kwargs = {k: v for k, v in scene.items() if k != "name"}
+    if name == "empty":
+        return empty()
     if name == "cornell_box":
         return cornell_box(**kwargs)
     if name == "glossy_cornell":
@@ -148,7 +159,7 @@ def describe(scene: dict | str) -> dict:
         return glossy_cornell(**kwargs)
     if name == "xml":
         return xml(scene["path"], keep_emitters=scene.get("keep_emitters", True))
-    raise ValueError(f"unknown scene name {name!r}: use 'cornell_box', 'glossy_cornell' or 'xml'")
+    raise ValueError(f"unknown scene name {name!r}: use 'empty', 'cornell_box', 'glossy_cornell' or 'xml'")
 
 
 # --------------------------------------------------------------------------------------------
@@ -193,6 +204,8 @@ def _bsdf_dict(material: dict, mi) -> dict:
 def _base_dict(desc: dict, mi) -> dict:
     """Scene dict without sensor, integrator or jprt lights."""
     name = desc["name"]
+    if name == "empty":
+        return {"type": "scene"}
     if name in ("cornell_box", "glossy_cornell"):
         base = mi.cornell_box()
         for key in ("integrator", "sensor", "white", "green", "red"):
@@ -204,10 +217,7 @@ def _base_dict(desc: dict, mi) -> dict:
             base["large-box"] = {"type": "sphere", "center": [0.33, -0.6, 0.1], "radius": 0.4,
                                  "bsdf": base["large-box"]["bsdf"]}
         if not desc["area_light"]:
-            light = dict(base["light"])
-            light.pop("emitter", None)
-            light["bsdf"] = _bsdf_dict({"type": "diffuse", "albedo": _WHITE}, mi)
-            base["light"] = light
+            base.pop("light")  # its quad sits just below the ceiling; without emission it only casts slivers
         return base
     if name == "xml":
         loaded = mi.load_file(desc["path"], optimize=False)

@@ -1,0 +1,36 @@
+"""Shared test set-up: an isolated dataset cache, Mitsuba configured once, asset paths."""
+
+import os
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ASSETS = os.path.abspath(os.path.join(ROOT, "..", "shared", "assets"))
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _isolated_cache(tmp_path_factory):
+    """Tests never read or write the user's ~/.cache/jprt."""
+    old = os.environ.get("JPRT_CACHE")
+    os.environ["JPRT_CACHE"] = str(tmp_path_factory.mktemp("jprt_cache"))
+    yield
+    if old is None:
+        os.environ.pop("JPRT_CACHE", None)
+    else:
+        os.environ["JPRT_CACHE"] = old
+
+
+@pytest.fixture(scope="session")
+def mi():
+    """Mitsuba with the jprt variant (fails, not skips, when libLLVM is missing: make test installs it)."""
+    from jprt.render.setup import mitsuba
+
+    return mitsuba()
+
+
+@pytest.fixture(scope="session")
+def assets():
+    """Path of ../shared/assets; skips the test with the reason when the folder is absent."""
+    if not os.path.isdir(ASSETS):
+        pytest.skip(f"shared test assets not found at {ASSETS} (they live beside the project checkout)")
+    return ASSETS
