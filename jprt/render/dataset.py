@@ -28,7 +28,7 @@ import numpy as np
 from jprt.config import stable_hash
 from jprt.io import atomic_path, atomic_write_bytes, write_json
 from jprt.render import cameras as cams
-from jprt.render.lights import EnvMap, Lighting, PointLights, lighting_description
+from jprt.render.lights import EnvMap, Lighting, PointLights, lighting_description, validate_lighting
 
 __all__ = ["Dataset", "cache_root", "render_dataset", "open_dataset", "from_config", "cameras_from_config",
            "lightings_from_config", "DEFAULT_DATASET_CONFIG"]
@@ -161,7 +161,7 @@ def render_dataset(scene, cameras: Sequence[cams.Camera], lightings: Sequence[Li
 
     spp = check_spp(spp)
     mitsuba()  # fail on a missing libLLVM before anything is written
-    cameras, lightings = list(cameras), list(lightings)
+    cameras, lightings = list(cameras), [validate_lighting(li) for li in lightings]
     if not cameras or not lightings:
         raise ValueError("a dataset needs at least one camera and one lighting")
     if pairs == "product":

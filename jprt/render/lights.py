@@ -37,6 +37,7 @@ __all__ = [
     "from_mitsuba_envmap",
     "mitsuba_envmap_data",
     "validate_envmap",
+    "validate_lighting",
     "lighting_description",
 ]
 
@@ -119,6 +120,17 @@ def validate_envmap(radiance) -> np.ndarray:
             f"environment map contains {int(bad.any(axis=2).sum())} non-finite texels (first at row {i}, column {j})"
         )
     return radiance
+
+
+def validate_lighting(lighting: Lighting) -> Lighting:
+    """Return ``lighting`` re-validated (finite values, right shapes), or raise ValueError."""
+    if lighting is None:
+        return None
+    if isinstance(lighting, PointLights):
+        return PointLights.create(lighting.position, lighting.intensity)
+    if isinstance(lighting, EnvMap):
+        return EnvMap.create(lighting.radiance)
+    raise TypeError(f"unknown lighting type {type(lighting).__name__}")
 
 
 def equirect_directions(height: int, width: int) -> np.ndarray:

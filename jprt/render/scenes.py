@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from jprt.render.lights import EnvMap, Lighting, PointLights, mitsuba_envmap_data, to_mitsuba_envmap
+from jprt.render.lights import (EnvMap, Lighting, PointLights, mitsuba_envmap_data, to_mitsuba_envmap,
+                               validate_lighting)
 from jprt.render.setup import mitsuba
 
 __all__ = [
@@ -291,10 +292,7 @@ class SceneHandle:
 
     def set_lighting(self, lighting: Lighting) -> None:
         """Use ``lighting`` (PointLights, EnvMap or None for the scene's own emitters)."""
-        if isinstance(lighting, EnvMap):
-            lighting = EnvMap.create(lighting.radiance)
-        elif isinstance(lighting, PointLights):
-            lighting = PointLights.create(lighting.position, lighting.intensity)
+        lighting = validate_lighting(lighting)
         layout = _lighting_layout(lighting)
         if layout != self._layout:
             self._build(lighting)

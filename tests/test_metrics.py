@@ -1,0 +1,66 @@
+"""Metrics: SSIM against scikit-image, PSNR / RMSE definitions, tonemapped variants, jit and gradients."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+from jprt import io, metrics
+
+
+@pytest.fixture(scope="module")
+def images():
+    rng = np.random.default_rng(0)
+    ref = rng.gamma(2.0, 0.5, size=(32, 40, 3)).astype(np.float32)  # HDR-ish, heavy upper tail
+    noisy = (ref + rng.normal(0, 0.2, ref.shape)).astype(np.float32)
+    return ref, noisy
+
+
+def test_ssim_matches_scikit_image(images):
+    skm = pytest.importorskip("skimage.metrics", reason="scikit-image is the SSIM reference (test extra)")
+    ref, noisy = images
+    data_range = float(ref.max() - ref.min())
+    expected = skm.structural_similarity(noisy, ref, data_range=data_range, channel_axis=2, gaussian_weights=True,
+                                         sigma=1.5, use_sample_covariance=False)
+    assert float(metrics.ssim(noisy, ref)) == pytest.approx(expected, abs=2e-4)
+    tm_expected = skm.structural_similarity(io.tonemap(noisy), io.tonemap(ref), data_range=1.0, channel_axis=2,
+                                            gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
+    assert float(metrics.tonemapped(metrics.ssim, noisy, ref)) == pytest.approx(tm_expected, abs=2e-4)
+
+
+def test_definitions(images):
+    ref, noisy = images
+    mse = np.mean((noisy.astype(np.float64) - ref) ** 2)
+    assert float(metrics.rmse(noisy, ref)) == pytest.approx(np.sqrt(mse), rel=1e-5)
+    assert float(metrics.psnr(noisy, ref)) == pytest.approx(10 * np.log10(ref.max() ** 2 / mse), rel=1e-5)
+    assert float(metrics.relative_rmse(noisy, ref)) == pytest.approx(np.sqrt(mse / np.mean(ref.astype(np.float64) ** 2)),
+                                                                     rel=1e-5)
+    # Scale invariance of the HDR conventions.
+    assert float(metrics.relative_rmse(4 * noisy, 4 * ref)) == pytest.approx(float(metrics.relative_rmse(noisy, ref)),
+                                                                             rel=1e-5)
+    assert float(metrics.psnr(4 * noisy, 4 * ref)) == pytest.approx(float(metrics.psnr(noisy, ref)), rel=1e-5)
+    assert float(metrics.ssim(ref, ref)) == pytest.approx(1.0, abs=1e-6)
+    # Masks restrict to valid pixels.
+    valid = np.zeros(ref.shape[:2], bool)
+    valid[:10] = True
+    assert float(metrics.rmse(noisy, ref, valid)) == pytest.approx(float(metrics.rmse(noisy[:10], ref[:10])), rel=1e-5)
+    np.testing.assert_allclose(np.asarray(metrics.tonemap(ref)), io.tonemap(ref), atol=1e-6)
+
+
+def test_jit_and_gradients(images):
+    ref, noisy = images
+    f = jax.jit(lambda x: metrics.ssim(x, ref) + metrics.tonemapped(metrics.psnr, x, ref) * 1e-2)
+    assert np.isfinite(float(f(noisy)))
+    grad = jax.grad(lambda x: metrics.tonemapped(metrics.ssim, x, ref))(jnp.asarray(noisy))
+    assert np.isfinite(np.asarray(grad)).all()
+    small = jnp.asarray(noisy[:12, :12, 0])
+    check_grads(lambda x: metrics.rmse(x, ref[:12, :12, 0]), (small,), order=1, atol=5e-2, rtol=5e-2)
+
+
+def test_error_map(images):
+    ref, noisy = images
+    emap = metrics.error_map(noisy, ref)
+    assert emap.shape == (32, 40, 3) and emap.min() >= 0 and emap.max() <= 1
+    with pytest.raises(ValueError, match="smaller than"):
+        metrics.ssim(ref[:5, :5], ref[:5, :5])
