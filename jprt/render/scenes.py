@@ -217,7 +217,9 @@ def _base_dict(desc: dict, mi) -> dict:
         if name == "glossy_cornell":
             base["large-box"] = {"type": "sphere", "center": [0.33, -0.6, 0.1], "radius": 0.4,
                                  "bsdf": base["large-box"]["bsdf"]}
-        if not desc["area_light"]:
+        if desc["area_light"]:
+            base["light"] = dict(base["light"], bsdf=_bsdf_dict({"type": "diffuse", "albedo": _WHITE}, mi))
+        else:
             base.pop("light")  # its quad sits just below the ceiling; without emission it only casts slivers
         return base
     if name == "xml":
@@ -226,11 +228,14 @@ def _base_dict(desc: dict, mi) -> dict:
         for k, shape in enumerate(loaded.shapes()):
             if shape.emitter() is not None and not desc["keep_emitters"]:
                 continue
-            base[f"shape_{k:04d}"] = shape
+            name = shape.id()
+            base[name if name and name not in base else f"shape_{k:04d}"] = shape
         if desc["keep_emitters"]:
             for k, emitter in enumerate(loaded.emitters()):
-                if emitter.shape() is None:  # area lights come with their shapes
+                if not mi.has_flag(emitter.flags(), mi.EmitterFlags.Surface):  # area lights come with their shapes
                     base[f"emitter_{k:04d}"] = emitter
+        if loaded.sensors():
+            base["jprt_sensor"] = loaded.sensors()[0]
         return base
     raise ValueError(f"unknown scene name {name!r}")
 
@@ -306,6 +311,24 @@ class SceneHandle:
                 params["jprt_envmap.data"] = self._mi.TensorXf(mitsuba_envmap_data(lighting.radiance))
             params.update()
         self.lighting = lighting
+
+    def default_camera(self, width: int | None = None, height: int | None = None):
+        """The scene's own camera as a jprt ``Camera`` (the XML file's first sensor; the
+        built-in Cornell box camera otherwise), at its film size unless ``width``/``height``."""
+        from jprt.render.cameras import look_at
+
+        sensors = self.scene.sensors()
+        if self.description["name"] == "xml" and sensors:
+            params = self._mi.traverse(sensors[0])
+            to_world = np.array(params["to_world"].matrix, np.float64).reshape(4, 4)
+            film_w, film_h = (int(v) for v in sensors[0].film().size())
+            w, h = width or film_w, height or film_h
+            x_fov = float(np.ravel(params["x_fov"])[0])
+            fov = x_fov if w <= h else float(np.degrees(2 * np.arctan(np.tan(np.radians(x_fov) / 2) * h / w)))
+            origin = to_world[:3, 3]
+            return look_at(origin, origin + to_world[:3, 2], to_world[:3, 1], fov=fov, width=w, height=h)
+        origin, target, fov = CORNELL_CAMERA
+        return look_at(origin, target, fov=fov, width=width or 256, height=height or 256)
 
     def shapes(self) -> list:
         """The scene's shapes in object-id order."""

@@ -5,7 +5,7 @@ import pytest
 
 from jprt.render import cameras, images
 from jprt.render.lights import PointLights
-from jprt.render.scenes import SceneHandle, cornell_box, glossy_cornell
+from jprt.render.scenes import CORNELL_CAMERA, SceneHandle, cornell_box, glossy_cornell
 
 SEEDS = (11, 12, 13, 14)
 
@@ -72,3 +72,14 @@ def test_bad_spp_and_rays(mi):
             images.render(handle, camera, spp=spp)
     with pytest.raises(ValueError, match="non-zero"):
         images.radiance_rays(handle, np.zeros((2, 3)), np.zeros((2, 3)), spp=1)
+
+
+def test_builtin_cornell_box_with_its_own_area_light(mi):
+    """The embedded default scene, lit by its own emitter (lighting=None): the light is visible to
+    the camera in the direct image and the indirect is positive."""
+    handle = SceneHandle(cornell_box(), None)
+    origin, target, fov = CORNELL_CAMERA
+    camera = cameras.look_at(origin, target, fov=fov, width=16, height=16)
+    r = images.direct_indirect(handle, camera, spp=8, seed=0)
+    assert r.direct.max() > 5.0  # the area light itself (radiance ~18 in red)
+    assert r.indirect.mean() > 0.01 and (r.indirect >= -1e-6).all()
