@@ -1,0 +1,316 @@
+"""Spherical Gaussians (SGs), anisotropic SGs (ASGs) and SG-mixture fitting.
+
+Isotropic SG (Currius et al. 2020, Eq. 1 / Eq. 16):   G(v; u, lambda, a) = a exp(lambda (v . u - 1)).
+
+* integral:       int G = 2 pi a (1 - exp(-2 lambda)) / lambda, evaluated as -2 pi a expm1(-2 lambda) / lambda.
+* product:        G1 G2 = G(v; u_m / |u_m|, |u_m|, a1 a2 exp(|u_m| - lambda1 - lambda2)), u_m = lambda1 u1 + lambda2 u2.
+* inner product:  int G1 G2 = 4 pi a1 a2 sinh(d) / (d exp(lambda1 + lambda2)), d = |lambda1 u1 + lambda2 u2|.
+  Currius et al. Eq. 21-23 normalise the mean axis (u_m / (lambda1 + lambda2)); that is wrong
+  (see ../shared/papers/README.md). Here it is evaluated stably as
+  2 pi a1 a2 exp(d - lambda1 - lambda2) (-expm1(-2 d)) / d, every exponent <= 0.
+
+Anisotropic SG (Xu et al. 2013, Eq. 4): ASG(v; [x, y, z], [lx, ly], c) = c max(v . z, 0) exp(-lx (v . x)^2 - ly (v . y)^2)
+(Currius et al. Eq. 20 prints the exponent without the squares).
+
+GGX as SGs (Currius et al. 2020, Appendix B, after Pettineo 2016): the NDF as an SG in the
+half-vector domain (Eq. 17), warped to an ASG about the reflected view direction (Eq. 18), and
+convolved with an isotropic light SG by Xu et al. 2013, Eq. 12:
+
+    int G(v; u, lambda, a) ASG(v) dv ~= pi a c / sqrt((nu + lx)(nu + ly)) ASG(u; [x, y, z], [nu lx / (nu + lx), nu ly / (nu + ly)], 1),
+
+with nu = lambda / 2. Currius et al. Eq. 24 prints this with the ASG's own sharpnesses and
+evaluated at v; the sharpnesses must be convolved and the ASG evaluated at the light lobe's axis
+(as Pettineo's code does).
+
+Fitting (Currius et al. 2020 §4 and its baselines): gradient descent on the log-L2 loss
+(log(T + 1) - log(P + 1))^2 with an optional axis-alignment regulariser between neighbouring
+texels, and EM on a von Mises-Fisher mixture (Banerjee et al. 2005).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = [
+    "SG", "ASG",
+    "evaluate", "integral", "product", "inner_product",
+    "mixture_evaluate", "mixture_integral",
+    "asg_evaluate", "orthonormal_basis",
+    "ggx_ndf_sg", "warp_ndf_to_asg", "convolve_sg_asg",
+    "peak_axes", "fit_gd", "fit_em",
+]
+
+_TINY = 1e-20
+
+
+class SG(NamedTuple):
+    """An isotropic SG (or a batch): axis (..., 3) unit, sharpness (...), amplitude (...) or (..., C)."""
+
+    axis: jax.Array
+    sharpness: jax.Array
+    amplitude: jax.Array
+
+
+class ASG(NamedTuple):
+    """An anisotropic SG: orthonormal frame (x, y, z) each (..., 3), sharpness_x/y (...), amplitude (...)."""
+
+    x: jax.Array
+    y: jax.Array
+    z: jax.Array
+    sharpness_x: jax.Array
+    sharpness_y: jax.Array
+    amplitude: jax.Array
+
+
+def _dot(a, b):
+    return jnp.sum(a * b, axis=-1)
+
+
+def _safe_norm(v):
+    # Clamped so the gradient is finite when v = 0 (equal and opposite lobes).
+    return jnp.sqrt(jnp.maximum(jnp.sum(v * v, axis=-1), _TINY))
+
+
+def _one_minus_exp_neg2_over(x):
+    """(1 - exp(-2 x)) / x, stable for x -> 0 (limit 2) and x large."""
+    x = jnp.maximum(x, _TINY)
+    return -jnp.expm1(-2.0 * x) / x
+
+
+def evaluate(v, axis, sharpness, amplitude):
+    """G(v; u, lambda, a) = a exp(lambda (v . u - 1))."""
+    return amplitude * jnp.exp(sharpness * (_dot(v, axis) - 1.0))
+
+
+def integral(sharpness, amplitude):
+    """int_S2 G = 2 pi a (1 - exp(-2 lambda)) / lambda (-> 4 pi a as lambda -> 0)."""
+    return 2.0 * jnp.pi * amplitude * _one_minus_exp_neg2_over(sharpness)
+
+
+def product(axis1, sharpness1, amplitude1, axis2, sharpness2, amplitude2) -> SG:
+    """The SG equal to G1(v) G2(v) (axis undefined, set to axis1, when the lobes cancel exactly)."""
+    um = sharpness1[..., None] * axis1 + sharpness2[..., None] * axis2
+    lm = _safe_norm(um)
+    axis = um / lm[..., None]
+    return SG(axis, lm, amplitude1 * amplitude2 * jnp.exp(lm - sharpness1 - sharpness2))
+
+
+def inner_product(axis1, sharpness1, amplitude1, axis2, sharpness2, amplitude2):
+    """int_S2 G1 G2 = 4 pi a1 a2 sinh(d) / (d exp(lambda1 + lambda2)), d = |lambda1 u1 + lambda2 u2|."""
+    d = _safe_norm(sharpness1[..., None] * axis1 + sharpness2[..., None] * axis2)
+    # 4 pi sinh(d) exp(-l1 - l2) / d = 2 pi exp(d - l1 - l2) (1 - exp(-2 d)) / d
+    return 2.0 * jnp.pi * amplitude1 * amplitude2 * jnp.exp(d - sharpness1 - sharpness2) * _one_minus_exp_neg2_over(d)
+
+
+def mixture_evaluate(v, axes, sharpness, amplitudes):
+    """Sum of K SGs at directions v (..., 3): axes (K, 3), sharpness (K,), amplitudes (K, C) -> (..., C)."""
+    k = jnp.exp(sharpness * (jnp.tensordot(v, axes, axes=([-1], [-1])) - 1.0))  # (..., K)
+    return jnp.tensordot(k, amplitudes, axes=([-1], [0]))
+
+
+def mixture_integral(sharpness, amplitudes):
+    """int_S2 of a mixture: (C,) from sharpness (K,) and amplitudes (K, C)."""
+    return jnp.sum(integral(sharpness[:, None], amplitudes), axis=0)
+
+
+def asg_evaluate(v, asg: ASG):
+    """ASG(v) = c max(v . z, 0) exp(-lx (v . x)^2 - ly (v . y)^2) (Xu et al. 2013, Eq. 4)."""
+    vx, vy, vz = _dot(v, asg.x), _dot(v, asg.y), _dot(v, asg.z)
+    return asg.amplitude * jnp.maximum(vz, 0.0) * jnp.exp(-asg.sharpness_x * vx * vx - asg.sharpness_y * vy * vy)
+
+
+def orthonormal_basis(z):
+    """An orthonormal frame (x, y) around unit z, continuous and branch-free (Duff et al. 2017)."""
+    sign = jnp.where(z[..., 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + z[..., 2])
+    b = z[..., 0] * z[..., 1] * a
+    x = jnp.stack([1.0 + sign * z[..., 0] ** 2 * a, sign * b, -sign * z[..., 0]], axis=-1)
+    y = jnp.stack([b, sign + z[..., 1] ** 2 * a, -z[..., 1]], axis=-1)
+    return x, y
+
+
+def ggx_ndf_sg(roughness):
+    """(sharpness, amplitude) of the SG approximating the NDF (Currius et al. 2020, Eq. 17):
+    exp(-(arccos(h . n) / r)^2) ~= G(h; n, 2 / r^2, 1 / (pi r^2))."""
+    r2 = jnp.square(roughness)
+    return 2.0 / r2, 1.0 / (jnp.pi * r2)
+
+
+def warp_ndf_to_asg(normal, view, roughness) -> ASG:
+    """The NDF SG warped to an ASG about the reflected view direction (Currius et al. 2020,
+    Eq. 18, after Pettineo 2016): z = reflect(-view, n), x perpendicular to the plane of
+    incidence, lx = lambda_d / (8 max(n . view, 1e-4)^2), ly = lambda_d / 8, c = a_d."""
+    lam, amp = ggx_ndf_sg(roughness)
+    ndotv = _dot(normal, view)
+    z = 2.0 * ndotv[..., None] * normal - view
+    cross = jnp.cross(normal, z)
+    cross_norm = jnp.sqrt(jnp.sum(cross * cross, axis=-1))
+    fallback_x, _ = orthonormal_basis(z)
+    # At normal incidence the plane of incidence is undefined and the lobe is isotropic.
+    x = jnp.where((cross_norm > 1e-6)[..., None], cross / jnp.maximum(cross_norm, 1e-6)[..., None], fallback_x)
+    y = jnp.cross(z, x)
+    c = jnp.maximum(ndotv, 1e-4)
+    return ASG(x, y, z, lam / (8.0 * c * c), lam / 8.0 + 0.0 * c, amp + 0.0 * c)
+
+
+def convolve_sg_asg(axis, sharpness, amplitude, asg: ASG):
+    """int_S2 G(v; axis, sharpness, amplitude) ASG(v) dv by Xu et al. 2013, Eq. 12."""
+    nu = 0.5 * sharpness
+    sx = nu * asg.sharpness_x / (nu + asg.sharpness_x)
+    sy = nu * asg.sharpness_y / (nu + asg.sharpness_y)
+    scale = jnp.pi / jnp.sqrt((nu + asg.sharpness_x) * (nu + asg.sharpness_y))
+    return amplitude * scale * asg_evaluate(axis, ASG(asg.x, asg.y, asg.z, sx, sy, asg.amplitude))
+
+
+# --------------------------------------------------------------------------------------------
+# Fitting
+
+
+def peak_axes(directions, values, k: int, min_separation_deg: float = 15.0):
+    """Greedy initial axes: the ``k`` brightest directions at least ``min_separation_deg`` apart.
+
+    NumPy (not traced): fitting initialisation, run once per image.
+    """
+    d = np.asarray(directions, np.float64)
+    lum = np.asarray(values, np.float64)
+    lum = lum.mean(axis=-1) if lum.ndim == 2 else lum
+    cos_sep = np.cos(np.radians(min_separation_deg))
+    order = np.argsort(-lum)
+    chosen: list[int] = []
+    for i in order:
+        if all(d[i] @ d[j] < cos_sep for j in chosen):
+            chosen.append(int(i))
+            if len(chosen) == k:
+                break
+    while len(chosen) < k:  # not enough separated peaks: fill with the next brightest
+        chosen.append(int(order[len(chosen)]))
+    return d[chosen].astype(np.float32)
+
+
+class FitResult(NamedTuple):
+    """A fitted mixture: axes (..., K, 3), sharpness (..., K), amplitudes (..., K, C), final loss."""
+
+    axes: jax.Array
+    sharpness: jax.Array
+    amplitudes: jax.Array
+    loss: jax.Array
+
+
+def _log_l2(pred, target, weights):
+    return jnp.sum(weights[..., None] * jnp.square(jnp.log1p(jnp.maximum(pred, 0.0)) - jnp.log1p(target))) / jnp.sum(weights)
+
+
+def fit_gd(directions, weights, values, init_axes, *, init_sharpness: float = 10.0, steps: int = 500,
+           learning_rate: float = 0.05, neighbours=None, align_weight: float = 0.0) -> FitResult:
+    """Fit K-lobe SG mixtures to spherical images by Adam on the log-L2 loss (Currius et al. §4).
+
+    Args:
+      directions: (N, 3) sample directions shared by all images; weights: (N,) solid angles.
+      values: (B, N, C) images (B texels).
+      init_axes: (B, K, 3) or (K, 3) initial lobe axes (e.g. from ``peak_axes``).
+      neighbours: optional (B, M) int indices of each texel's neighbours; with ``align_weight``
+        > 0, adds align_weight * mean(1 - u_bk . u_nk) over neighbour pairs and lobes k
+        (the axis-alignment regulariser that keeps lobe k coherent across texels).
+    """
+    import optax
+
+    directions = jnp.asarray(directions, jnp.float32)
+    weights = jnp.asarray(weights, jnp.float32)
+    values = jnp.asarray(values, jnp.float32)
+    b, _, c = values.shape
+    init_axes = jnp.broadcast_to(jnp.asarray(init_axes, jnp.float32), (b,) + jnp.asarray(init_axes).shape[-2:])
+    k = init_axes.shape[-2]
+    mean_value = jnp.mean(values, axis=1)  # (B, C)
+    params = {
+        "axes": init_axes,
+        "log_sharpness": jnp.full((b, k), math.log(init_sharpness), jnp.float32),
+        "log_amplitude": jnp.log(jnp.maximum(jnp.broadcast_to(mean_value[:, None, :], (b, k, c)), 1e-3)),
+    }
+
+    def unpack(p):
+        axes = p["axes"] / jnp.linalg.norm(p["axes"], axis=-1, keepdims=True)
+        return axes, jnp.exp(p["log_sharpness"]), jnp.exp(p["log_amplitude"])
+
+    def loss_fn(p):
+        axes, lam, amp = unpack(p)
+        pred = jax.vmap(lambda a, l, m: mixture_evaluate(directions, a, l, m))(axes, lam, amp)
+        loss = _log_l2(pred, values, jnp.broadcast_to(weights, values.shape[:2]))
+        if neighbours is not None and align_weight > 0.0:
+            nb = jnp.asarray(neighbours)
+            align = jnp.sum(axes[:, None, :, :] * axes[nb], axis=-1)  # (B, M, K)
+            loss = loss + align_weight * jnp.mean(1.0 - align)
+        return loss
+
+    opt = optax.adam(learning_rate)
+
+    @jax.jit
+    def run(p):
+        def step(carry, _):
+            p, state = carry
+            loss, grads = jax.value_and_grad(loss_fn)(p)
+            updates, state = opt.update(grads, state, p)
+            return (optax.apply_updates(p, updates), state), loss
+
+        (p, _), losses = jax.lax.scan(step, (p, opt.init(p)), None, length=steps)
+        return p, losses[-1]
+
+    params, last = run(params)
+    axes, lam, amp = unpack(params)
+    return FitResult(axes, lam, amp, loss_fn(params) if steps == 0 else last)
+
+
+def _log_vmf_norm(kappa):
+    """log of kappa / (2 pi (1 - exp(-2 kappa))), the vMF normaliser in the SG form exp(kappa (u.x - 1))."""
+    return jnp.log(kappa) - jnp.log(2.0 * jnp.pi) - jnp.log(-jnp.expm1(-2.0 * kappa))
+
+
+def fit_em(directions, weights, values, init_axes, *, iterations: int = 100, init_sharpness: float = 10.0,
+           max_sharpness: float = 1e5) -> FitResult:
+    """Fit a K-lobe SG mixture to one spherical image by EM on a von Mises-Fisher mixture.
+
+    The image is treated as weighted samples (weight = luminance x solid angle); vMF lobes are
+    SGs with amplitude = energy x mixing weight x kappa / (2 pi (1 - exp(-2 kappa))). Per-channel
+    amplitudes are then refitted by weighted least squares with the axes and sharpnesses fixed
+    (clipped at 0). directions (N, 3), weights (N,), values (N, C), init_axes (K, 3).
+    """
+    directions = jnp.asarray(directions, jnp.float32)
+    weights = jnp.asarray(weights, jnp.float32)
+    values = jnp.asarray(values, jnp.float32)
+    lum = jnp.maximum(jnp.mean(values, axis=-1), 0.0)
+    w = lum * weights
+    total = jnp.sum(w)
+    axes = jnp.asarray(init_axes, jnp.float32)
+    k = axes.shape[0]
+    kappa = jnp.full((k,), init_sharpness, jnp.float32)
+    pi = jnp.full((k,), 1.0 / k, jnp.float32)
+
+    @jax.jit
+    def em(axes, kappa, pi):
+        def body(carry, _):
+            axes, kappa, pi = carry
+            logp = jnp.log(pi) + _log_vmf_norm(kappa) + kappa * (directions @ axes.T - 1.0)  # (N, K)
+            r = jax.nn.softmax(logp, axis=-1) * w[:, None]
+            mass = jnp.maximum(jnp.sum(r, axis=0), 1e-30)
+            resultant = r.T @ directions  # (K, 3)
+            length = jnp.linalg.norm(resultant, axis=-1)
+            axes = resultant / jnp.maximum(length, 1e-30)[:, None]
+            rbar = jnp.clip(length / mass, 1e-6, 1.0 - 1e-6)
+            kappa = jnp.clip(rbar * (3.0 - rbar**2) / (1.0 - rbar**2), 1e-3, max_sharpness)
+            return (axes, kappa, mass / total), None
+
+        (axes, kappa, pi), _ = jax.lax.scan(body, (axes, kappa, pi), None, length=iterations)
+        return axes, kappa, pi
+
+    axes, kappa, pi = em(axes, kappa, pi)
+    basis = jnp.exp(kappa * (directions @ axes.T - 1.0))  # (N, K)
+    gram = (basis * weights[:, None]).T @ basis + 1e-9 * jnp.eye(k)
+    rhs = (basis * weights[:, None]).T @ values
+    amplitudes = jnp.maximum(jnp.linalg.solve(gram, rhs), 0.0)
+    pred = basis @ amplitudes
+    loss = _log_l2(pred, values, weights)
+    return FitResult(axes, kappa, amplitudes, loss)

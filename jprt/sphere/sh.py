@@ -1,0 +1,182 @@
+"""Real spherical harmonics: evaluation to any degree, projection, irradiance, network encodings,
+and the quadratic-to-hemispherical-linear mapping (OHLSH) of Loos et al. 2011, Appendix B.
+
+Convention: real SH without the Condon-Shortley phase (as in Sloan's "Stupid SH tricks"), polar
+axis +Z of the direction vector, flat index k = l^2 + l + m:
+
+    Y_l^0  = K_l^0 P_l^0(z)
+    Y_l^m  = sqrt(2) K_l^m P_l^m(z) cos(m phi)      m > 0
+    Y_l^-m = sqrt(2) K_l^m P_l^m(z) sin(m phi)      m > 0
+
+Evaluation uses the fully normalised associated-Legendre recurrences (stable to high degree; no
+factorials) on the polynomial form: sin^m(theta) cos(m phi) = Re((x + i y)^m), so there is no
+atan2 and gradients stay finite at the poles.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from jprt.sphere import cubemap as _cubemap
+
+__all__ = [
+    "num_coeffs",
+    "index",
+    "evaluate",
+    "project",
+    "project_cubemap",
+    "project_equirect",
+    "reconstruct",
+    "clamped_cosine_coeffs",
+    "irradiance",
+    "encode",
+    "ohlsh",
+    "OHLSH_C1",
+    "OHLSH_C2",
+    "OHLSH_C3",
+]
+
+
+def num_coeffs(degree: int) -> int:
+    """Number of real SH functions of degree <= ``degree``: (degree + 1)^2."""
+    return (degree + 1) ** 2
+
+
+def index(l: int, m: int) -> int:
+    """Flat index l^2 + l + m."""
+    return l * l + l + m
+
+
+def evaluate(d, degree: int):
+    """Real SH Y_k(d), k < (degree + 1)^2, of unit directions d (..., 3) -> (..., (degree + 1)^2)."""
+    if degree < 0:
+        raise ValueError(f"degree must be >= 0, got {degree}")
+    d = jnp.asarray(d)
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    # Q[l][m] = K_l^m P_l^m(z) / sin^m(theta)  (fully normalised, polynomial part only)
+    q: dict[tuple[int, int], jnp.ndarray] = {(0, 0): jnp.full_like(z, 1.0 / math.sqrt(4.0 * math.pi))}
+    for m in range(1, degree + 1):
+        q[(m, m)] = math.sqrt((2.0 * m + 1.0) / (2.0 * m)) * q[(m - 1, m - 1)]
+    for m in range(0, degree):
+        q[(m + 1, m)] = math.sqrt(2.0 * m + 3.0) * z * q[(m, m)]
+    for m in range(0, degree + 1):
+        for l in range(m + 2, degree + 1):
+            a = math.sqrt((4.0 * l * l - 1.0) / (l * l - m * m))
+            b = math.sqrt(((l - 1.0) ** 2 - m * m) / (4.0 * (l - 1.0) ** 2 - 1.0))
+            q[(l, m)] = a * (z * q[(l - 1, m)] - b * q[(l - 2, m)])
+    # Re/Im of (x + i y)^m by complex multiplication.
+    cos_m, sin_m = [jnp.ones_like(x)], [jnp.zeros_like(x)]
+    for _ in range(1, degree + 1):
+        c, s = cos_m[-1], sin_m[-1]
+        cos_m.append(c * x - s * y)
+        sin_m.append(c * y + s * x)
+    out = []
+    sqrt2 = math.sqrt(2.0)
+    for l in range(degree + 1):
+        for m in range(-l, l + 1):
+            if m == 0:
+                out.append(q[(l, 0)])
+            elif m > 0:
+                out.append(sqrt2 * q[(l, m)] * cos_m[m])
+            else:
+                out.append(sqrt2 * q[(l, -m)] * sin_m[-m])
+    return jnp.stack(out, axis=-1)
+
+
+def project(values, directions, weights, degree: int):
+    """SH coefficients ((degree + 1)^2, ...) of samples by quadrature sum_i w_i f(d_i) Y(d_i).
+
+    values (N, ...), directions (N, 3), weights (N,) (solid angles of the samples).
+    """
+    y = evaluate(directions, degree) * jnp.asarray(weights)[:, None]
+    return jnp.tensordot(y, jnp.asarray(values), axes=([0], [0]))
+
+
+def project_cubemap(cube, degree: int):
+    """SH coefficients of a (6, n, n, ...) cube map with exact texel solid angles."""
+    cube = jnp.asarray(cube)
+    n = cube.shape[1]
+    d = _cubemap.texel_directions(n).reshape(-1, 3)
+    w = _cubemap.texel_solid_angles(n).reshape(-1)
+    return project(cube.reshape((6 * n * n,) + cube.shape[3:]), d, w, degree)
+
+
+def project_equirect(equirect, degree: int):
+    """SH coefficients of an (H, W, ...) jprt equirect map with exact texel solid angles.
+
+    Note the polar axis of the SH is +Z while the equirect's is +Y: the map is projected as the
+    function of direction it is, in one world frame.
+    """
+    equirect = jnp.asarray(equirect)
+    h, w = equirect.shape[:2]
+    d = _cubemap.equirect_directions(h, w).reshape(-1, 3)
+    sa = _cubemap.equirect_solid_angles(h, w).reshape(-1)
+    return project(equirect.reshape((h * w,) + equirect.shape[2:]), d, sa, degree)
+
+
+def reconstruct(coeffs, d):
+    """Evaluate sum_k c_k Y_k(d) for coefficients ((degree + 1)^2, ...) at directions (..., 3)."""
+    coeffs = jnp.asarray(coeffs)
+    degree = int(round(math.sqrt(coeffs.shape[0]))) - 1
+    if num_coeffs(degree) != coeffs.shape[0]:
+        raise ValueError(f"{coeffs.shape[0]} is not a square number of SH coefficients")
+    return jnp.tensordot(evaluate(d, degree), coeffs, axes=([-1], [0]))
+
+
+def clamped_cosine_coeffs(degree: int) -> np.ndarray:
+    """A_l of the clamped cosine max(cos theta, 0) convolution (Ramamoorthi and Hanrahan 2001,
+    Eq. 8-9): E_lm = A_l L_lm with A_0 = pi, A_1 = 2 pi / 3, A_l = 0 for odd l > 1 and
+    A_l = 2 pi (-1)^(l/2 - 1) / ((l + 2)(l - 1)) * l! / (2^l ((l/2)!)^2) for even l."""
+    out = np.zeros(degree + 1)
+    for l in range(degree + 1):
+        if l == 0:
+            out[l] = math.pi
+        elif l == 1:
+            out[l] = 2.0 * math.pi / 3.0
+        elif l % 2 == 0:
+            out[l] = (2.0 * math.pi * (-1) ** (l // 2 - 1) / ((l + 2) * (l - 1))
+                      * math.factorial(l) / (2**l * math.factorial(l // 2) ** 2))
+    return out
+
+
+def irradiance(coeffs, normals):
+    """Irradiance E(n) = sum_lm A_l L_lm Y_lm(n) of radiance SH coefficients at normals (..., 3)."""
+    coeffs = jnp.asarray(coeffs)
+    degree = int(round(math.sqrt(coeffs.shape[0]))) - 1
+    a = clamped_cosine_coeffs(degree)
+    per_k = np.concatenate([np.full(2 * l + 1, a[l]) for l in range(degree + 1)])
+    scaled = coeffs * jnp.asarray(per_k, coeffs.dtype).reshape((-1,) + (1,) * (coeffs.ndim - 1))
+    return reconstruct(scaled, normals)
+
+
+def encode(d, bands: int = 4):
+    """SH encoding of directions for network inputs: the first ``bands``^2 real SH (bands = 4
+    gives degrees 0..3, 16 features: tiny-cuda-nn's "SphericalHarmonics, degree 4", the SH4(w_r)
+    of Raghavan et al. 2023 §4). ``bands`` up to 5 (degree 4)."""
+    if not 1 <= bands <= 5:
+        raise ValueError(f"SH encoding supports 1..5 bands, got {bands}")
+    return evaluate(d, bands - 1)
+
+
+# Loos et al. 2011, Appendix B.
+OHLSH_C1 = 3.0 * math.sqrt(5.0) / 4.0
+OHLSH_C2 = 3.0 * math.sqrt(5.0) / 8.0
+OHLSH_C3 = math.sqrt(15.0) / 2.0
+
+
+def ohlsh(b):
+    """Optimal hemispherical linear SH (Loos et al. 2011, Appendix B): the 4 linear coefficients
+    a minimising int_{z >= 0} (L2 - L1)^2 for quadratic coefficients b (9, ...):
+
+        a = H1^-1 H2 b = (b1 - c1 b7, b2 + c2 b6, b3 + c3 b7, b4 + c2 b8)
+
+    with 1-based indices in the order l = 0; l = 1 (m = -1, 0, 1); l = 2 (m = -2 .. 2), c1 =
+    3 sqrt(5) / 4, c2 = 3 sqrt(5) / 8, c3 = sqrt(15) / 2, for the hemisphere about +Z.
+    """
+    b = jnp.asarray(b)
+    if b.shape[0] != 9:
+        raise ValueError(f"OHLSH maps 9 quadratic SH coefficients, got {b.shape[0]}")
+    return jnp.stack([b[0] - OHLSH_C1 * b[6], b[1] + OHLSH_C2 * b[5], b[2] + OHLSH_C3 * b[6], b[3] + OHLSH_C2 * b[7]])
