@@ -14,13 +14,16 @@ Raghavan et al. 2023 §4 ("Haar wavelets on cubemap faces"). Conventions (OpenGL
 The equirect convention is jprt's (``jprt.render.lights``): texel (i, j) centred at
 theta = pi (i + 0.5) / H, phi = 2 pi (j + 0.5) / W, d = (sin phi sin theta, cos theta,
 -cos phi sin theta). Resampling is area-weighted: each destination texel averages the source
-over its own solid angle (by ``supersample^2`` solid-angle-weighted sub-samples taking the value of
-the source texel they fall in), so the total energy sum(L * solid angle) is preserved up to the
-quadrature of the overlaps.
+over the source texels it overlaps, with overlap areas estimated from sub-samples of both grids
+and balanced towards the exact texel solid angles, so constant maps stay constant and the total
+energy sum(L * solid angle) is kept to within 1 % (tested on the HDR maps in ../shared/assets).
 """
 
 from __future__ import annotations
 
+from functools import partial
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -142,40 +145,106 @@ def sample_cubemap_nearest(cubemap, d):
     return jnp.asarray(cubemap)[face, row, col]
 
 
-def _sub_offsets(s: int):
-    return (jnp.arange(s) + 0.5) / s
-
-
-def equirect_to_cubemap(equirect, n: int, supersample: int = 4):
-    """Area-weighted resampling of an (H, W, C) equirect map to a (6, n, n, C) cube map."""
-    equirect = jnp.asarray(equirect)
-    s = supersample
-    o = _sub_offsets(s)
-    # Sub-sample face coordinates: (n*s,) along each axis.
-    coords = ((jnp.arange(n)[:, None] + o[None, :]) / n).reshape(-1)
-    v, u = jnp.meshgrid(coords, coords, indexing="ij")
-    faces = jnp.broadcast_to(jnp.arange(6)[:, None, None], (6, n * s, n * s))
-    d = face_uv_to_direction(faces, u[None], v[None])  # (6, ns, ns, 3)
-    # Solid-angle weight of each sub-sample: the exact sub-texel solid angle.
-    w = texel_solid_angles(n * s)  # (6, ns, ns)
-    values = sample_equirect_nearest(equirect, d)  # (6, ns, ns, C)
-    num = (values * w[..., None]).reshape(6, n, s, n, s, -1).sum(axis=(2, 4))
-    den = w.reshape(6, n, s, n, s).sum(axis=(2, 4))
-    return num / den[..., None]
-
-
-def cubemap_to_equirect(cubemap, height: int, width: int, supersample: int = 4):
-    """Area-weighted resampling of a (6, n, n, C) cube map to an (H, W, C) equirect map."""
-    cubemap = jnp.asarray(cubemap)
-    s = supersample
-    o = _sub_offsets(s)
+def _equirect_subsamples(height: int, width: int, s: int):
+    """Sub-samples of equirect texels, s x s per texel, uniform in cos(theta) and phi:
+    directions (H*s*W*s, 3), texel index (H*s*W*s,), equal solid angles (texel / s^2)."""
+    o = (jnp.arange(s) + 0.5) / s
     theta_edges = jnp.pi * jnp.arange(height + 1) / height
-    # Sub-rows uniform in cos(theta) inside each row, so each sub-sample has equal solid angle.
     ct0, ct1 = jnp.cos(theta_edges[:-1]), jnp.cos(theta_edges[1:])
-    ct = (ct0[:, None] + (ct1 - ct0)[:, None] * o[None, :]).reshape(-1)  # (H*s,)
-    phi = (2.0 * jnp.pi * (jnp.arange(width)[:, None] + o[None, :]) / width).reshape(-1)  # (W*s,)
+    ct = (ct0[:, None] + (ct1 - ct0)[:, None] * o[None, :]).reshape(-1)
+    phi = (2.0 * jnp.pi * (jnp.arange(width)[:, None] + o[None, :]) / width).reshape(-1)
     st = jnp.sqrt(jnp.maximum(1.0 - ct * ct, 0.0))
     d = jnp.stack(jnp.broadcast_arrays(jnp.sin(phi)[None] * st[:, None], ct[:, None],
                                        -jnp.cos(phi)[None] * st[:, None]), axis=-1)
-    values = sample_cubemap_nearest(cubemap, d)  # (H*s, W*s, C)
-    return values.reshape(height, s, width, s, -1).mean(axis=(1, 3))
+    rows = jnp.repeat(jnp.arange(height), s)[:, None]
+    cols = jnp.repeat(jnp.arange(width), s)[None, :]
+    index = jnp.broadcast_to(rows * width + cols, d.shape[:2])
+    omega = jnp.repeat(jnp.repeat(equirect_solid_angles(height, width), s, axis=0), s, axis=1) / (s * s)
+    return d.reshape(-1, 3), index.reshape(-1), omega.reshape(-1)
+
+
+def _cube_subsamples(n: int, s: int):
+    """Sub-texels of an n x n cube map, s x s per texel: centre directions, texel index, exact solid angles."""
+    d = texel_directions(n * s)
+    fine = jnp.arange(n * s) // s
+    index = (jnp.arange(6)[:, None, None] * n + fine[None, :, None]) * n + fine[None, None, :]
+    return d.reshape(-1, 3), index.reshape(-1), texel_solid_angles(n * s).reshape(-1)
+
+
+def _cube_index(d, n: int):
+    face, row, col = direction_to_texel(d, n)
+    return (face * n + row) * n + col
+
+
+def _equirect_index(d, height: int, width: int):
+    row, col = _equirect_texel(d, height, width)
+    return row * width + col
+
+
+def _overlap_resample(values, src, dst, src_lookup, dst_lookup, src_omega, dst_omega, iterations: int):
+    """Area-weighted resampling through an estimated overlap matrix A (dst x src).
+
+    A is estimated from sub-samples of both grids (each sub-sample adds its solid angle to the
+    (dst, src) pair it falls in: source sub-samples make sure every source texel's energy lands
+    somewhere, destination sub-samples that every destination texel is covered). ``iterations``
+    rounds of proportional fitting pull its column sums towards the source texels' solid angles
+    (energy conservation); a final row normalisation makes each output texel an exact weighted
+    average (constant maps stay constant). out_d = sum_s A_ds L_s / sum_s A_ds.
+    """
+    src_dirs, src_idx, src_w = src
+    dst_dirs, dst_idx, dst_w = dst
+    d_of = jnp.concatenate([dst_lookup(src_dirs), dst_idx])
+    s_of = jnp.concatenate([src_idx, src_lookup(dst_dirs)])
+    area = 0.5 * jnp.concatenate([src_w, dst_w])
+    n_dst, n_src = dst_omega.shape[0], src_omega.shape[0]
+
+    def balance(_, a):
+        rows = jax.ops.segment_sum(a, d_of, n_dst)
+        a = a * (dst_omega / jnp.maximum(rows, 1e-30))[d_of]
+        cols = jax.ops.segment_sum(a, s_of, n_src)
+        return a * (src_omega / jnp.maximum(cols, 1e-30))[s_of]
+
+    area = jax.lax.fori_loop(0, iterations, balance, area)
+    rows = jax.ops.segment_sum(area, d_of, n_dst)
+    flat = values.reshape((n_src, -1))
+    return jax.ops.segment_sum(area[:, None] * flat[s_of], d_of, n_dst) / jnp.maximum(rows, 1e-30)[:, None]
+
+
+def _auto_supersample(src_angle: float, dst_angle: float) -> int:
+    # At least 4 x 4 per texel: with 2 x 2 on both grids the sampled overlap pattern can admit no
+    # balanced solution (measured: 25 % row error at any iteration count for 16x32 <-> 6x8x8).
+    return max(4, min(8, int(np.ceil(2.0 * src_angle / dst_angle))))
+
+
+@partial(jax.jit, static_argnames=("n", "supersample", "iterations"))
+def equirect_to_cubemap(equirect, n: int, supersample: int | None = None, iterations: int = 12):
+    """Area-weighted, energy-conserving resampling of an (H, W, ...) equirect map to (6, n, n, ...).
+
+    See ``_overlap_resample``: each cube texel is the overlap-area-weighted average of the
+    equirect texels it covers (constant maps stay constant), and the total energy sum(L dω) is
+    kept within 1 % on real HDR maps with a sun (tested).
+    """
+    equirect = jnp.asarray(equirect)
+    h, w = equirect.shape[:2]
+    s = supersample or _auto_supersample(np.pi / h, (np.pi / 2) / n)
+    t = supersample or _auto_supersample((np.pi / 2) / n, np.pi / h)
+    out = _overlap_resample(
+        equirect, _equirect_subsamples(h, w, s), _cube_subsamples(n, t),
+        lambda d: _equirect_index(d, h, w), lambda d: _cube_index(d, n),
+        equirect_solid_angles(h, w).reshape(-1), texel_solid_angles(n).reshape(-1), iterations)
+    return out.reshape((6, n, n) + equirect.shape[2:])
+
+
+@partial(jax.jit, static_argnames=("height", "width", "supersample", "iterations"))
+def cubemap_to_equirect(cube, height: int, width: int, supersample: int | None = None, iterations: int = 12):
+    """Area-weighted, energy-conserving resampling of a (6, n, n, ...) cube map to (H, W, ...)
+    (the inverse direction of ``equirect_to_cubemap``, same method)."""
+    cube = jnp.asarray(cube)
+    n = cube.shape[1]
+    s = supersample or _auto_supersample((np.pi / 2) / n, np.pi / height)
+    t = supersample or _auto_supersample(np.pi / height, (np.pi / 2) / n)
+    out = _overlap_resample(
+        cube, _cube_subsamples(n, s), _equirect_subsamples(height, width, t),
+        lambda d: _cube_index(d, n), lambda d: _equirect_index(d, height, width),
+        texel_solid_angles(n).reshape(-1), equirect_solid_angles(height, width).reshape(-1), iterations)
+    return out.reshape((height, width) + cube.shape[3:])

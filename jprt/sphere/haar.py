@@ -23,6 +23,7 @@ sum_k L_k T_k equal the quadrature sum_texels L T dω; Raghavan et al. §5 train
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -66,6 +67,7 @@ def _from_face_last(x):
     return jnp.moveaxis(x, (-3, -2, -1), (0, 1, 2))
 
 
+@partial(jax.jit, static_argnames=("premultiply",))
 def forward(cubemap, *, premultiply: bool = False):
     """Non-standard Haar transform of every face of a (6, N, N, ...) cube map (Mallat layout).
 
@@ -92,6 +94,7 @@ def forward(cubemap, *, premultiply: bool = False):
     return _from_face_last(out)
 
 
+@partial(jax.jit, static_argnames=("premultiplied",))
 def inverse(coeffs, *, premultiplied: bool = False):
     """Inverse of ``forward`` (divides by the texel solid angles if ``premultiplied``)."""
     coeffs = jnp.asarray(coeffs)
@@ -172,6 +175,7 @@ def _magnitude(coeffs):
     return jnp.sqrt(jnp.sum(jnp.square(c.reshape(c.shape[:3] + (-1,))), axis=-1))
 
 
+@partial(jax.jit, static_argnames=("k", "area_weighted"))
 def top_k(coeffs, k: int, *, area_weighted: bool = False):
     """The ``k`` most important coefficients of a (6, N, N, ...) coefficient cube map.
 
