@@ -94,6 +94,7 @@ def integral(sharpness, amplitude):
 
 def product(axis1, sharpness1, amplitude1, axis2, sharpness2, amplitude2) -> SG:
     """The SG equal to G1(v) G2(v) (axis undefined, set to axis1, when the lobes cancel exactly)."""
+    sharpness1, sharpness2 = jnp.asarray(sharpness1), jnp.asarray(sharpness2)
     um = sharpness1[..., None] * axis1 + sharpness2[..., None] * axis2
     lm = _safe_norm(um)
     axis = um / lm[..., None]
@@ -102,6 +103,7 @@ def product(axis1, sharpness1, amplitude1, axis2, sharpness2, amplitude2) -> SG:
 
 def inner_product(axis1, sharpness1, amplitude1, axis2, sharpness2, amplitude2):
     """int_S2 G1 G2 = 4 pi a1 a2 sinh(d) / (d exp(lambda1 + lambda2)), d = |lambda1 u1 + lambda2 u2|."""
+    sharpness1, sharpness2 = jnp.asarray(sharpness1), jnp.asarray(sharpness2)
     d = _safe_norm(sharpness1[..., None] * axis1 + sharpness2[..., None] * axis2)
     # 4 pi sinh(d) exp(-l1 - l2) / d = 2 pi exp(d - l1 - l2) (1 - exp(-2 d)) / d
     return 2.0 * jnp.pi * amplitude1 * amplitude2 * jnp.exp(d - sharpness1 - sharpness2) * _one_minus_exp_neg2_over(d)
@@ -171,25 +173,29 @@ def convolve_sg_asg(axis, sharpness, amplitude, asg: ASG):
 # Fitting
 
 
-def peak_axes(directions, values, k: int, min_separation_deg: float = 15.0):
-    """Greedy initial axes: the ``k`` brightest directions at least ``min_separation_deg`` apart.
+def peak_axes(directions, values, k: int, min_separation_deg: float = 5.0):
+    """Initial lobe axes by greedy matching pursuit on the image's luminance.
 
-    NumPy (not traced): fitting initialisation, run once per image.
+    Repeatedly takes the brightest direction of the residual, estimates that lobe's sharpness
+    from the samples above half its peak (ln(peak / value) = lambda (1 - cos theta) for an SG),
+    and subtracts the lobe, so a bright lobe's shoulder is not mistaken for another lobe.
+    NumPy (not traced): initialisation runs once per image. Returns (k, 3) float32.
     """
     d = np.asarray(directions, np.float64)
     lum = np.asarray(values, np.float64)
-    lum = lum.mean(axis=-1) if lum.ndim == 2 else lum
+    residual = (lum.mean(axis=-1) if lum.ndim == 2 else lum).copy()
     cos_sep = np.cos(np.radians(min_separation_deg))
-    order = np.argsort(-lum)
-    chosen: list[int] = []
-    for i in order:
-        if all(d[i] @ d[j] < cos_sep for j in chosen):
-            chosen.append(int(i))
-            if len(chosen) == k:
-                break
-    while len(chosen) < k:  # not enough separated peaks: fill with the next brightest
-        chosen.append(int(order[len(chosen)]))
-    return d[chosen].astype(np.float32)
+    chosen: list[np.ndarray] = []
+    for _ in range(k):
+        candidates = np.argsort(-residual)
+        i = next((int(c) for c in candidates if all(d[c] @ u < cos_sep for u in chosen)), int(candidates[0]))
+        peak = max(residual[i], 1e-30)
+        cos = d @ d[i]
+        near = (residual > 0.5 * peak) & (cos > 0.5) & (cos < 1.0 - 1e-9)
+        lam = np.median(np.log(peak / residual[near]) / (1.0 - cos[near])) if near.any() else 10.0
+        residual = np.maximum(residual - peak * np.exp(lam * (cos - 1.0)), 0.0)
+        chosen.append(d[i])
+    return np.asarray(chosen, np.float32)
 
 
 class FitResult(NamedTuple):

@@ -16,7 +16,9 @@ atan2 and gradients stay finite at the poles.
 from __future__ import annotations
 
 import math
+from functools import partial
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -50,40 +52,60 @@ def index(l: int, m: int) -> int:
     return l * l + l + m
 
 
+def _recurrence_tables(degree: int):
+    """Per (l, m) constants of the normalised recurrences, as (L + 1, L + 1) NumPy arrays."""
+    size = degree + 1
+    diag = np.zeros(size)
+    diag[0] = 1.0 / math.sqrt(4.0 * math.pi)
+    for m in range(1, size):
+        diag[m] = math.sqrt((2.0 * m + 1.0) / (2.0 * m)) * diag[m - 1]
+    a = np.zeros((size, size))
+    b = np.zeros((size, size))
+    for l in range(size):
+        for m in range(l - 1):  # m <= l - 2
+            a[l, m] = math.sqrt((4.0 * l * l - 1.0) / (l * l - m * m))
+            b[l, m] = math.sqrt(((l - 1.0) ** 2 - m * m) / (4.0 * (l - 1.0) ** 2 - 1.0))
+    return diag, a, b
+
+
+@partial(jax.jit, static_argnames=("degree",))
 def evaluate(d, degree: int):
     """Real SH Y_k(d), k < (degree + 1)^2, of unit directions d (..., 3) -> (..., (degree + 1)^2)."""
     if degree < 0:
         raise ValueError(f"degree must be >= 0, got {degree}")
     d = jnp.asarray(d)
-    x, y, z = d[..., 0], d[..., 1], d[..., 2]
-    # Q[l][m] = K_l^m P_l^m(z) / sin^m(theta)  (fully normalised, polynomial part only)
-    q: dict[tuple[int, int], jnp.ndarray] = {(0, 0): jnp.full_like(z, 1.0 / math.sqrt(4.0 * math.pi))}
-    for m in range(1, degree + 1):
-        q[(m, m)] = math.sqrt((2.0 * m + 1.0) / (2.0 * m)) * q[(m - 1, m - 1)]
-    for m in range(0, degree):
-        q[(m + 1, m)] = math.sqrt(2.0 * m + 3.0) * z * q[(m, m)]
-    for m in range(0, degree + 1):
-        for l in range(m + 2, degree + 1):
-            a = math.sqrt((4.0 * l * l - 1.0) / (l * l - m * m))
-            b = math.sqrt(((l - 1.0) ** 2 - m * m) / (4.0 * (l - 1.0) ** 2 - 1.0))
-            q[(l, m)] = a * (z * q[(l - 1, m)] - b * q[(l - 2, m)])
-    # Re/Im of (x + i y)^m by complex multiplication.
+    if d.shape[-1] != 3:
+        raise ValueError(f"directions must have a last axis of 3, got shape {d.shape}")
+    x, y, z = d[..., 0:1], d[..., 1:2], d[..., 2:3]
+    size = degree + 1
+    diag, a, b = _recurrence_tables(degree)
+    ms = np.arange(size)
+    # Row l of Q = K_l^m P_l^m(z) / sin^m(theta) for all m at once (0 where m > l):
+    #   Q[m, m] = diag[m];  Q[m + 1, m] = sqrt(2m + 3) z Q[m, m];
+    #   Q[l, m] = a_lm (z Q[l - 1, m] - b_lm Q[l - 2, m])  for m <= l - 2.
+    zeros = jnp.zeros(z.shape[:-1] + (size,), d.dtype)
+    rows = []
+    prev2, prev1 = zeros, zeros
+    for l in range(size):
+        row = jnp.asarray(a[l], d.dtype) * (z * prev1 - jnp.asarray(b[l], d.dtype) * prev2)
+        row = jnp.where(ms == l, jnp.asarray(diag, d.dtype), row)
+        if l >= 1:
+            row = jnp.where(ms == l - 1, jnp.asarray(np.sqrt(2.0 * ms + 3.0) * diag, d.dtype) * z, row)
+        rows.append(row)
+        prev2, prev1 = prev1, row
+    q = jnp.stack(rows, axis=-2)  # (..., L + 1 [l], L + 1 [m])
+    # cos(m phi) sin^m(theta) = Re((x + i y)^m), sin(m phi) sin^m(theta) = Im((x + i y)^m).
     cos_m, sin_m = [jnp.ones_like(x)], [jnp.zeros_like(x)]
-    for _ in range(1, degree + 1):
+    for _ in range(degree):
         c, s = cos_m[-1], sin_m[-1]
         cos_m.append(c * x - s * y)
         sin_m.append(c * y + s * x)
-    out = []
-    sqrt2 = math.sqrt(2.0)
-    for l in range(degree + 1):
-        for m in range(-l, l + 1):
-            if m == 0:
-                out.append(q[(l, 0)])
-            elif m > 0:
-                out.append(sqrt2 * q[(l, m)] * cos_m[m])
-            else:
-                out.append(sqrt2 * q[(l, -m)] * sin_m[-m])
-    return jnp.stack(out, axis=-1)
+    trig = jnp.concatenate(cos_m + sin_m, axis=-1)  # (..., 2 (L + 1))
+    ls = np.concatenate([np.full(2 * l + 1, l) for l in range(size)])
+    mm = np.concatenate([np.arange(-l, l + 1) for l in range(size)])
+    scale = np.where(mm == 0, 1.0, math.sqrt(2.0))
+    trig_index = np.where(mm >= 0, np.abs(mm), size + np.abs(mm))
+    return q[..., ls, np.abs(mm)] * trig[..., trig_index] * jnp.asarray(scale, d.dtype)
 
 
 def project(values, directions, weights, degree: int):
