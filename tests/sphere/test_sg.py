@@ -92,11 +92,14 @@ def test_gradients_check(x64):
 # SG x warped-GGX ASG convolution (Currius et al. 2020, Appendix B; Xu et al. 2013, Eq. 12)
 
 # The closed form replaces the integral of the product by a Gaussian integral over the tangent
-# plane. It is meant to hold when the product lobe is sharp: effective sharpness
-# nu + min(lambda_x, lambda_y) >= 8 (nu = light sharpness / 2), i.e. an angular width of the
-# product under about 20 degrees. There it is within 5 % of quadrature (benchmarks/sphere.py
-# writes the full table, including the broad lobes outside this region where it is not).
+# plane. It is meant to hold when the product lobe is sharp, effective sharpness
+# s = nu + min(lambda_x, lambda_y) >= 8 (nu = light sharpness / 2, an angular width under about
+# 20 degrees), and the light axis is not in the far tail of the BRDF lobe: its offset from the
+# reflected direction is <= 4 / sqrt(s). There it is within 5 % of quadrature.
+# benchmarks/sphere.py writes the full table, including the cases outside this region (broad
+# lobes: up to 100 %; far tails: about 7 %).
 VALID_SHARPNESS = 8.0
+MAX_OFFSET_WIDTHS = 4.0
 
 
 def convolution_case(roughness, light_sharpness, view_deg, offset_rad):
@@ -120,14 +123,14 @@ def convolution_case(roughness, light_sharpness, view_deg, offset_rad):
 def test_sg_asg_convolution_in_its_region(x64, roughness, light_sharpness):
     checked = 0
     for view_deg in (0.0, 40.0, 80.0):
-        for offset in (0.0, 0.1):
+        for offset in (0.0, 0.1, 0.3):
             closed, numeric, effective = convolution_case(roughness, light_sharpness, view_deg, offset)
             assert np.isfinite(closed)
-            if effective >= VALID_SHARPNESS:
+            if effective >= VALID_SHARPNESS and offset * np.sqrt(effective) <= MAX_OFFSET_WIDTHS:
                 checked += 1
                 assert abs(closed / numeric - 1) <= 0.05, (view_deg, offset, closed, numeric)
     if 0.5 * light_sharpness + 2.0 / roughness**2 / 8.0 >= VALID_SHARPNESS:
-        assert checked == 6
+        assert checked >= 6  # at least the offsets 0 and 0.1 at every view angle
 
 
 def test_warp_basis_is_orthonormal_and_degenerate_safe():
