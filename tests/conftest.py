@@ -2,7 +2,11 @@
 
 import os
 
+import jax
 import pytest
+
+# Strict numerics (STYLE.md 9): implicit rank promotion is a bug waiting to happen in batched code.
+jax.config.update("jax_numpy_rank_promotion", "raise")
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ASSETS = os.path.abspath(os.path.join(ROOT, "..", "shared", "assets"))

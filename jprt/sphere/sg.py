@@ -68,6 +68,8 @@ class ASG(NamedTuple):
 
 
 def _dot(a, b):
+    """Dot product over the last axis; batch axes broadcast explicitly (one axis vs many directions)."""
+    a, b = jnp.broadcast_arrays(jnp.asarray(a), jnp.asarray(b))
     return jnp.sum(a * b, axis=-1)
 
 
@@ -111,13 +113,14 @@ def inner_product(axis1, sharpness1, amplitude1, axis2, sharpness2, amplitude2):
 
 def mixture_evaluate(v, axes, sharpness, amplitudes):
     """Sum of K SGs at directions v (..., 3): axes (K, 3), sharpness (K,), amplitudes (K, C) -> (..., C)."""
-    k = jnp.exp(sharpness * (jnp.tensordot(v, axes, axes=([-1], [-1])) - 1.0))  # (..., K)
+    cos = jnp.tensordot(v, axes, axes=([-1], [-1]))  # (..., K)
+    k = jnp.exp(jnp.broadcast_to(sharpness, cos.shape) * (cos - 1.0))
     return jnp.tensordot(k, amplitudes, axes=([-1], [0]))
 
 
 def mixture_integral(sharpness, amplitudes):
     """int_S2 of a mixture: (C,) from sharpness (K,) and amplitudes (K, C)."""
-    return jnp.sum(integral(sharpness[:, None], amplitudes), axis=0)
+    return jnp.sum(integral(jnp.broadcast_to(sharpness[:, None], amplitudes.shape), amplitudes), axis=0)
 
 
 def asg_evaluate(v, asg: ASG):
@@ -208,7 +211,9 @@ class FitResult(NamedTuple):
 
 
 def _log_l2(pred, target, weights):
-    return jnp.sum(weights[..., None] * jnp.square(jnp.log1p(jnp.maximum(pred, 0.0)) - jnp.log1p(target))) / jnp.sum(weights)
+    """Weighted mean over samples of the log-L2 loss (Currius et al. §4); weights match pred[..., 0]."""
+    err = jnp.square(jnp.log1p(jnp.maximum(pred, 0.0)) - jnp.log1p(target))
+    return jnp.sum(weights[..., None] * err) / jnp.sum(weights)
 
 
 def fit_gd(directions, weights, values, init_axes, *, init_sharpness: float = 10.0, steps: int = 500,
@@ -299,7 +304,8 @@ def fit_em(directions, weights, values, init_axes, *, iterations: int = 100, ini
     def em(axes, kappa, pi):
         def body(carry, _):
             axes, kappa, pi = carry
-            logp = jnp.log(pi) + _log_vmf_norm(kappa) + kappa * (directions @ axes.T - 1.0)  # (N, K)
+            log_prior = (jnp.log(pi) + _log_vmf_norm(kappa))[None, :]
+            logp = log_prior + kappa[None, :] * (directions @ axes.T - 1.0)  # (N, K)
             r = jax.nn.softmax(logp, axis=-1) * w[:, None]
             mass = jnp.maximum(jnp.sum(r, axis=0), 1e-30)
             resultant = r.T @ directions  # (K, 3)
@@ -313,7 +319,7 @@ def fit_em(directions, weights, values, init_axes, *, iterations: int = 100, ini
         return axes, kappa, pi
 
     axes, kappa, pi = em(axes, kappa, pi)
-    basis = jnp.exp(kappa * (directions @ axes.T - 1.0))  # (N, K)
+    basis = jnp.exp(kappa[None, :] * (directions @ axes.T - 1.0))  # (N, K)
     gram = (basis * weights[:, None]).T @ basis + 1e-9 * jnp.eye(k)
     rhs = (basis * weights[:, None]).T @ values
     amplitudes = jnp.maximum(jnp.linalg.solve(gram, rhs), 0.0)

@@ -84,13 +84,17 @@ def evaluate(d, degree: int):
     #   Q[m, m] = diag[m];  Q[m + 1, m] = sqrt(2m + 3) z Q[m, m];
     #   Q[l, m] = a_lm (z Q[l - 1, m] - b_lm Q[l - 2, m])  for m <= l - 2.
     zeros = jnp.zeros(z.shape[:-1] + (size,), d.dtype)
+
+    def per_m(table):  # an (L + 1,) table over m, explicitly broadcast against the batch
+        return jnp.broadcast_to(jnp.asarray(table, d.dtype), zeros.shape)
+
     rows = []
     prev2, prev1 = zeros, zeros
     for l in range(size):
-        row = jnp.asarray(a[l], d.dtype) * (z * prev1 - jnp.asarray(b[l], d.dtype) * prev2)
-        row = jnp.where(ms == l, jnp.asarray(diag, d.dtype), row)
+        row = per_m(a[l]) * (z * prev1 - per_m(b[l]) * prev2)
+        row = jnp.where(per_m(ms == l) > 0, per_m(diag), row)
         if l >= 1:
-            row = jnp.where(ms == l - 1, jnp.asarray(np.sqrt(2.0 * ms + 3.0) * diag, d.dtype) * z, row)
+            row = jnp.where(per_m(ms == l - 1) > 0, per_m(np.sqrt(2.0 * ms + 3.0) * diag) * z, row)
         rows.append(row)
         prev2, prev1 = prev1, row
     q = jnp.stack(rows, axis=-2)  # (..., L + 1 [l], L + 1 [m])
@@ -105,7 +109,8 @@ def evaluate(d, degree: int):
     mm = np.concatenate([np.arange(-l, l + 1) for l in range(size)])
     scale = np.where(mm == 0, 1.0, math.sqrt(2.0))
     trig_index = np.where(mm >= 0, np.abs(mm), size + np.abs(mm))
-    return q[..., ls, np.abs(mm)] * trig[..., trig_index] * jnp.asarray(scale, d.dtype)
+    values = q[..., ls, np.abs(mm)] * trig[..., trig_index]
+    return values * jnp.broadcast_to(jnp.asarray(scale, d.dtype), values.shape)
 
 
 def project(values, directions, weights, degree: int):

@@ -15,8 +15,8 @@ ASG_ARGS = (jnp.array([[0.0, 0.0, 1.0]] * 3), D, jnp.array([0.3, 0.5, 0.8]))
 # name -> (function of batched arrays, batched args, differentiable argnums)
 REGISTRY = {
     "cubemap.direction_to_face_uv": (lambda d: cubemap.direction_to_face_uv(d)[1:], (D,), (0,)),
-    "cubemap.face_uv_to_direction": (lambda u: cubemap.face_uv_to_direction(jnp.array([0, 2, 5]), u, 1 - u),
-                                     (jnp.array([0.2, 0.5, 0.9]),), (0,)),
+    "cubemap.face_uv_to_direction": (lambda u, f: cubemap.face_uv_to_direction(f, u, 1 - u),
+                                     (jnp.array([0.2, 0.5, 0.9]), jnp.array([0, 2, 5])), (0,)),
     "cubemap.direction_to_texel": (lambda d: cubemap.direction_to_texel(d, 4), (D,), ()),
     "cubemap.equirect_to_cubemap": (lambda e: cubemap.equirect_to_cubemap(e, 4), (jnp.ones((3, 8, 16, 1)),), ()),
     "cubemap.cubemap_to_equirect": (lambda c: cubemap.cubemap_to_equirect(c, 8, 16), (CUBE[:3],), ()),
