@@ -1,0 +1,288 @@
+"""Levenberg-Marquardt for sums of squared residuals of any function family.
+
+Minimises E(w) = sum_i m_i ||r(w, sample_i)||^2 (Ren et al. 2013, Eq. 6; m_i in {0, 1} masks
+padding) with the update of Eq. 10,
+
+    w <- w - (J^T J + mu D)^-1 J^T r,     D = diag(J^T J)   (Marquardt's scaling),
+
+and Nielsen's (1999) damping rule: after a step with gain ratio rho = (actual decrease) /
+(decrease predicted by the linear model) > 0, accept and set mu <- mu max(1/3, 1 - (2 rho - 1)^3),
+nu <- 2; otherwise reject and set mu <- mu nu, nu <- 2 nu.
+
+Memory: J^T J (P x P) and J^T r (P) are accumulated over chunks of ``chunk_size`` samples from
+per-sample Jacobians (``vmap(jacrev)``), so the solver holds O(P^2 + chunk_size R P) numbers,
+never the N R x P Jacobian. The linear system is solved by Cholesky in float64 when JAX's x64 mode
+is on, and otherwise in float32 with a diagonal jitter; a step that still comes out non-finite is
+treated as rejected, so the returned parameters are never NaN.
+
+Stopping: E <= ``loss_threshold``, a relative decrease below ``rtol`` on an accepted step, mu
+beyond 1e16 (no progress possible), or ``max_iters`` iterations.
+
+The solver is a pure function of arrays and ``jax.vmap``s over a batch of independent problems of
+equal shape (``solve_batched``: the leaves of an RRF kd-tree), with masks for unequal sample
+counts. ``backend="jaxopt"`` runs ``jaxopt.LevenbergMarquardt`` on the same problem (flattened
+parameters, full Jacobian) for comparison.
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+__all__ = ["LMResult", "solve", "solve_batched", "STOP_REASONS"]
+
+STOP_REASONS = ("running", "loss_threshold", "relative_decrease", "max_iters", "damping_overflow")
+
+
+class LMResult(NamedTuple):
+    """Outcome of a solve (fields batched along a leading axis for ``solve_batched``).
+
+    Fields:
+      params:     the solution, same pytree structure as the start.
+      loss:       () E = sum of squared (masked) residuals.
+      rmse:       () sqrt(E / (number of unmasked residual entries)).
+      iterations: () int32 iterations taken (accepted and rejected).
+      history:    (max_iters,) E after each iteration (the last value repeats once stopped).
+      reason:     () int32 index into STOP_REASONS.
+    """
+
+    params: Any
+    loss: jax.Array
+    rmse: jax.Array
+    iterations: jax.Array
+    history: jax.Array
+    reason: jax.Array
+
+
+class _State(NamedTuple):
+    flat: jax.Array
+    jtj: jax.Array
+    jtr: jax.Array
+    loss: jax.Array
+    mu: jax.Array
+    nu: jax.Array
+    iteration: jax.Array
+    reason: jax.Array
+    history: jax.Array
+
+
+def _pad_samples(data, mask, chunk_size: int):
+    """Pad the sample axis to a multiple of chunk_size (padding masked out); reshape to chunks."""
+    leaves = jax.tree_util.tree_leaves(data)
+    if not leaves:
+        raise ValueError("LM needs data with a leading sample axis")
+    n = leaves[0].shape[0]
+    if any(leaf.shape[0] != n for leaf in leaves):
+        raise ValueError("all data arrays need the same number of samples on their first axis")
+    if n == 0:
+        raise ValueError("LM needs at least one sample")
+    mask = jnp.ones((n,), jnp.float32) if mask is None else jnp.asarray(mask, jnp.float32)
+    chunk = min(chunk_size, n)
+    pad = (-n) % chunk
+
+    def pad_and_split(a):
+        a = jnp.asarray(a)
+        if pad:
+            a = jnp.concatenate([a, jnp.repeat(a[:1], pad, axis=0)], axis=0)
+        return a.reshape((-1, chunk) + a.shape[1:])
+
+    chunks = jax.tree_util.tree_map(pad_and_split, data)
+    mask = jnp.concatenate([mask, jnp.zeros((pad,), mask.dtype)]).reshape(-1, chunk)
+    return chunks, mask
+
+
+@functools.lru_cache(maxsize=64)
+def _build(residual_fn: Callable, unravel_key, max_iters: int, loss_threshold: float, rtol: float, damping: float,
+           jitter: float):
+    """The pure solver for one residual function and config (cached, so repeated calls reuse the
+    compiled program)."""
+    unravel = unravel_key.unravel
+
+    def per_sample(flat, sample):
+        return jnp.atleast_1d(residual_fn(unravel(flat), sample)).reshape(-1)
+
+    def residual_pass(flat, chunks, mask):
+        def body(acc, xs):
+            chunk, m = xs
+            r = jax.vmap(per_sample, in_axes=(None, 0))(flat, chunk)  # (C, R)
+            return acc + jnp.sum(m[:, None] * jnp.square(r)), None
+
+        loss, _ = jax.lax.scan(body, jnp.zeros((), flat.dtype), (chunks, mask))
+        return loss
+
+    def normal_pass(flat, chunks, mask):
+        p = flat.shape[0]
+
+        def body(acc, xs):
+            jtj, jtr, loss = acc
+            chunk, m = xs
+            r = jax.vmap(per_sample, in_axes=(None, 0))(flat, chunk)  # (C, R)
+            jac = jax.vmap(jax.jacrev(per_sample), in_axes=(None, 0))(flat, chunk)  # (C, R, P)
+            jac = jac * jnp.sqrt(m)[:, None, None]
+            rm = r * jnp.sqrt(m)[:, None]
+            jtj = jtj + jnp.einsum("crp,crq->pq", jac, jac)
+            jtr = jtr + jnp.einsum("crp,cr->p", jac, rm)
+            return (jtj, jtr, loss + jnp.sum(jnp.square(rm))), None
+
+        init = (jnp.zeros((p, p), flat.dtype), jnp.zeros((p,), flat.dtype), jnp.zeros((), flat.dtype))
+        (jtj, jtr, loss), _ = jax.lax.scan(body, init, (chunks, mask))
+        return jtj, jtr, loss
+
+    def step_direction(jtj, jtr, mu):
+        solve_dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+        a = jtj.astype(solve_dtype)
+        g = jtr.astype(solve_dtype)
+        diag = jnp.diagonal(a)
+        scale = jnp.maximum(jnp.max(diag), jnp.finfo(solve_dtype).tiny)
+        d = jnp.maximum(diag, jitter * scale)  # Marquardt scaling, floored for zero columns
+        eye = jnp.eye(a.shape[0], dtype=solve_dtype)
+        a = a + mu.astype(solve_dtype) * jnp.diag(d) + (jitter * scale) * eye
+        chol = jnp.linalg.cholesky(a)
+        delta = -jax.scipy.linalg.cho_solve((chol, True), g)
+        return delta.astype(jtr.dtype)
+
+    def solver(flat0, chunks, mask):
+        jtj, jtr, loss = normal_pass(flat0, chunks, mask)
+        state = _State(flat0, jtj, jtr, loss, jnp.asarray(damping, flat0.dtype), jnp.asarray(2.0, flat0.dtype),
+                       jnp.zeros((), jnp.int32), jnp.where(loss <= loss_threshold, 1, 0).astype(jnp.int32),
+                       jnp.full((max_iters,), loss, flat0.dtype))
+
+        def cond(s):
+            return (s.reason == 0) & (s.iteration < max_iters)
+
+        def body(s):
+            delta = step_direction(s.jtj, s.jtr, s.mu)
+            trial = s.flat + delta
+            new_loss = residual_pass(trial, chunks, mask)
+            predicted = -(2.0 * jnp.dot(delta, s.jtr) + jnp.dot(delta, s.jtj @ delta))
+            actual = s.loss - new_loss
+            finite = jnp.all(jnp.isfinite(delta)) & jnp.isfinite(new_loss)
+            rho = jnp.where(finite & (predicted > 0), actual / jnp.maximum(predicted, 1e-30), -1.0)
+            accept = finite & (rho > 0)
+            jtj, jtr, loss = jax.lax.cond(accept, lambda: normal_pass(trial, chunks, mask),
+                                          lambda: (s.jtj, s.jtr, s.loss))
+            flat = jnp.where(accept, trial, s.flat)
+            mu = jnp.where(accept, s.mu * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), s.mu * s.nu)
+            nu = jnp.where(accept, 2.0, 2.0 * s.nu)
+            rel = actual / jnp.maximum(s.loss, 1e-30)
+            reason = jnp.where(loss <= loss_threshold, 1,
+                               jnp.where(accept & (rel < rtol), 2, jnp.where(mu > 1e16, 4, 0))).astype(jnp.int32)
+            iteration = s.iteration + 1
+            reason = jnp.where((reason == 0) & (iteration >= max_iters), 3, reason).astype(jnp.int32)
+            history = jax.lax.dynamic_update_slice(s.history, loss[None], (s.iteration,))
+            history = jnp.where(jnp.arange(max_iters) > s.iteration, loss, history)
+            return _State(flat, jtj, jtr, loss, mu, nu, iteration, reason, history)
+
+        s = jax.lax.while_loop(cond, body, state)
+        reason = jnp.where(s.reason == 0, 3, s.reason).astype(jnp.int32)
+        residual_size = per_sample(flat0, jax.tree_util.tree_map(lambda a: a[0, 0], chunks)).shape[0]
+        count = jnp.maximum(jnp.sum(mask) * residual_size, 1.0)
+        return s.flat, s.loss, jnp.sqrt(s.loss / count), s.iteration, s.history, reason
+
+    return solver
+
+
+class _UnravelKey:
+    """Hashable wrapper of a ravel_pytree unravel function, keyed by the pytree structure."""
+
+    def __init__(self, params):
+        flat, self.unravel = ravel_pytree(params)
+        leaves, treedef = jax.tree_util.tree_flatten(params)
+        self.key = (treedef, tuple((leaf.shape, str(leaf.dtype)) for leaf in map(jnp.asarray, leaves)))
+
+    def __hash__(self):
+        return hash(self.key)
+
+    def __eq__(self, other):
+        return isinstance(other, _UnravelKey) and self.key == other.key
+
+
+def solve(residual_fn: Callable, params, data, *, mask=None, max_iters: int = 100, loss_threshold: float = 0.0,
+          rtol: float = 1e-7, damping: float = 1e-3, chunk_size: int = 2048, jitter: float = 1e-7,
+          backend: str = "jax", jaxopt_solver: str = "qr") -> LMResult:
+    """Minimise sum_i mask_i ||residual_fn(params, sample_i)||^2 by Levenberg-Marquardt.
+
+    Args:
+      residual_fn: (params, sample) -> residual vector (R,) for ONE sample (a slice of ``data``).
+      params: starting pytree (any family's parameters).
+      data: pytree of arrays with the samples on the first axis (N, ...).
+      mask: optional (N,) 0/1 weights (unequal sample counts in batched problems).
+      max_iters, loss_threshold, rtol: stopping rules (module docstring).
+      damping: initial mu (relative to diag(J^T J), Marquardt scaling).
+      chunk_size: samples per Jacobian chunk (memory O(P^2 + chunk_size R P)).
+      backend: "jax" (this solver) or "jaxopt" (``jaxopt.LevenbergMarquardt`` for comparison).
+    """
+    if backend == "jaxopt":
+        return _solve_jaxopt(residual_fn, params, data, mask, max_iters, jaxopt_solver)
+    if backend != "jax":
+        raise ValueError(f"unknown LM backend {backend!r}; use 'jax' or 'jaxopt'")
+    if max_iters < 1:
+        raise ValueError(f"max_iters must be >= 1, got {max_iters}")
+    key = _UnravelKey(params)
+    flat0, _ = ravel_pytree(params)
+    chunks, chunk_mask = _pad_samples(data, mask, chunk_size)
+    solver = _jitted(residual_fn, key, max_iters, float(loss_threshold), float(rtol), float(damping), float(jitter))
+    flat, loss, rmse, iterations, history, reason = solver(flat0, chunks, chunk_mask)
+    return LMResult(key.unravel(flat), loss, rmse, iterations, history, reason)
+
+
+@functools.lru_cache(maxsize=64)
+def _jitted(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter):
+    return jax.jit(_build(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter))
+
+
+@functools.lru_cache(maxsize=64)
+def _jitted_batched(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter):
+    return jax.jit(jax.vmap(_build(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter)))
+
+
+def solve_batched(residual_fn: Callable, params, data, *, mask=None, max_iters: int = 100,
+                  loss_threshold: float = 0.0, rtol: float = 1e-7, damping: float = 1e-3, chunk_size: int = 2048,
+                  jitter: float = 1e-7) -> LMResult:
+    """Solve B independent problems of equal shape in one vmapped call.
+
+    ``params`` and ``data`` carry a leading batch axis B (data: (B, N, ...)); ``mask`` (B, N)
+    marks each problem's real samples, so problems with fewer samples are padded. Every
+    ``LMResult`` field gets the leading B axis.
+    """
+    first = jax.tree_util.tree_map(lambda a: a[0], params)
+    key = _UnravelKey(first)
+    flat0 = jax.vmap(lambda p: ravel_pytree(p)[0])(params)
+    b = flat0.shape[0]
+    n = jax.tree_util.tree_leaves(data)[0].shape[1]
+    mask = jnp.ones((b, n), jnp.float32) if mask is None else jnp.asarray(mask, jnp.float32)
+    chunks, chunk_mask = jax.vmap(lambda d, m: _pad_samples(d, m, chunk_size))(data, mask)
+    solver = _jitted_batched(residual_fn, key, max_iters, float(loss_threshold), float(rtol), float(damping),
+                             float(jitter))
+    flat, loss, rmse, iterations, history, reason = solver(flat0, chunks, chunk_mask)
+    return LMResult(jax.vmap(key.unravel)(flat), loss, rmse, iterations, history, reason)
+
+
+def _solve_jaxopt(residual_fn, params, data, mask, max_iters, solver_name) -> LMResult:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # jaxopt is archived upstream
+        import jaxopt
+
+    flat0, unravel = ravel_pytree(params)
+    n = jax.tree_util.tree_leaves(data)[0].shape[0]
+    weights = jnp.ones((n,), flat0.dtype) if mask is None else jnp.asarray(mask, flat0.dtype)
+
+    def all_residuals(flat):
+        r = jax.vmap(lambda s: jnp.atleast_1d(residual_fn(unravel(flat), s)).reshape(-1))(data)
+        return (r * jnp.sqrt(weights)[:, None]).reshape(-1)
+
+    lm = jaxopt.LevenbergMarquardt(all_residuals, maxiter=max_iters, materialize_jac=True, solver=solver_name,
+                                   jit=True)
+    result = lm.run(flat0)
+    flat = result.params
+    loss = jnp.sum(jnp.square(all_residuals(flat)))
+    count = jnp.sum(weights) * (all_residuals(flat).shape[0] // n)
+    history = jnp.full((max_iters,), loss)
+    return LMResult(unravel(flat), loss, jnp.sqrt(loss / count), jnp.asarray(result.state.iter_num, jnp.int32),
+                    history, jnp.asarray(3, jnp.int32))
