@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-__all__ = ["LMResult", "solve", "solve_batched", "STOP_REASONS"]
+__all__ = ["LMResult", "solve", "solve_batched", "normal_equations", "STOP_REASONS"]
 
 STOP_REASONS = ("running", "loss_threshold", "relative_decrease", "max_iters", "damping_overflow")
 
@@ -97,15 +97,48 @@ def _pad_samples(data, mask, chunk_size: int):
     return chunks, mask
 
 
+def _per_sample_fn(residual_fn: Callable, unravel: Callable) -> Callable:
+    def per_sample(flat, sample):
+        return jnp.atleast_1d(residual_fn(unravel(flat), sample)).reshape(-1)
+
+    return per_sample
+
+
+def _normal_pass(per_sample: Callable, flat, chunks, mask):
+    """(J^T J, J^T r, sum r^2) accumulated chunk by chunk from per-sample Jacobians."""
+    p = flat.shape[0]
+
+    def body(acc, xs):
+        jtj, jtr, loss = acc
+        chunk, m = xs
+        r = jax.vmap(per_sample, in_axes=(None, 0))(flat, chunk)  # (C, R)
+        jac = jax.vmap(jax.jacrev(per_sample), in_axes=(None, 0))(flat, chunk)  # (C, R, P)
+        jac = jac * jnp.sqrt(m)[:, None, None]
+        rm = r * jnp.sqrt(m)[:, None]
+        jtj = jtj + jnp.einsum("crp,crq->pq", jac, jac)
+        jtr = jtr + jnp.einsum("crp,cr->p", jac, rm)
+        return (jtj, jtr, loss + jnp.sum(jnp.square(rm))), None
+
+    init = (jnp.zeros((p, p), flat.dtype), jnp.zeros((p,), flat.dtype), jnp.zeros((), flat.dtype))
+    (jtj, jtr, loss), _ = jax.lax.scan(body, init, (chunks, mask))
+    return jtj, jtr, loss
+
+
+def normal_equations(residual_fn: Callable, params, data, *, mask=None, chunk_size: int = 2048):
+    """(J^T J (P, P), J^T r (P,), E) at ``params`` over flattened parameters (``ravel_pytree``
+    order), accumulated in chunks exactly as the solver does (diagnostics and tests)."""
+    flat, unravel = ravel_pytree(params)
+    chunks, chunk_mask = _pad_samples(data, mask, chunk_size)
+    return jax.jit(lambda f, c, m: _normal_pass(_per_sample_fn(residual_fn, unravel), f, c, m))(flat, chunks,
+                                                                                                  chunk_mask)
+
+
 @functools.lru_cache(maxsize=64)
 def _build(residual_fn: Callable, unravel_key, max_iters: int, loss_threshold: float, rtol: float, damping: float,
            jitter: float):
     """The pure solver for one residual function and config (cached, so repeated calls reuse the
     compiled program)."""
-    unravel = unravel_key.unravel
-
-    def per_sample(flat, sample):
-        return jnp.atleast_1d(residual_fn(unravel(flat), sample)).reshape(-1)
+    per_sample = _per_sample_fn(residual_fn, unravel_key.unravel)
 
     def residual_pass(flat, chunks, mask):
         def body(acc, xs):
@@ -117,22 +150,7 @@ def _build(residual_fn: Callable, unravel_key, max_iters: int, loss_threshold: f
         return loss
 
     def normal_pass(flat, chunks, mask):
-        p = flat.shape[0]
-
-        def body(acc, xs):
-            jtj, jtr, loss = acc
-            chunk, m = xs
-            r = jax.vmap(per_sample, in_axes=(None, 0))(flat, chunk)  # (C, R)
-            jac = jax.vmap(jax.jacrev(per_sample), in_axes=(None, 0))(flat, chunk)  # (C, R, P)
-            jac = jac * jnp.sqrt(m)[:, None, None]
-            rm = r * jnp.sqrt(m)[:, None]
-            jtj = jtj + jnp.einsum("crp,crq->pq", jac, jac)
-            jtr = jtr + jnp.einsum("crp,cr->p", jac, rm)
-            return (jtj, jtr, loss + jnp.sum(jnp.square(rm))), None
-
-        init = (jnp.zeros((p, p), flat.dtype), jnp.zeros((p,), flat.dtype), jnp.zeros((), flat.dtype))
-        (jtj, jtr, loss), _ = jax.lax.scan(body, init, (chunks, mask))
-        return jtj, jtr, loss
+        return _normal_pass(per_sample, flat, chunks, mask)
 
     def step_direction(jtj, jtr, mu):
         solve_dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32

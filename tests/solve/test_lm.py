@@ -1,0 +1,118 @@
+"""Levenberg-Marquardt: fits, float64 finite differences, batching with masks, never NaN."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jprt.nn import count_parameters, mlp, with_scaling
+from jprt.solve import lm
+
+
+def smooth_target(x):
+    return np.stack([np.sin(2 * x[:, 0]) * np.cos(x[:, 1]) + 0.3 * x[:, 2],
+                     np.exp(-x[:, 0] ** 2 - x[:, 2] ** 2) - 0.5 * x[:, 1]], axis=1).astype(np.float32)
+
+
+NET = mlp((3, 12, 8, 2), activation="tanh", init="rrf")
+
+
+def residual(params, sample):
+    return NET.apply(params, sample["x"]) - sample["y"]
+
+
+def problem(n, seed=0):
+    x = np.random.default_rng(seed).uniform(-1, 1, (n, 3)).astype(np.float32)
+    y = smooth_target(x)
+    params = with_scaling(NET.init(jax.random.PRNGKey(seed)), x, y)
+    return params, {"x": x, "y": y}
+
+
+def test_fits_a_smooth_function():
+    params, data = problem(2000)
+    start = float(jnp.sqrt(jnp.mean(jnp.square(jax.vmap(lambda s: residual(params, s))(data)))))
+    result = lm.solve(residual, params, data, max_iters=60, chunk_size=512)
+    assert float(result.rmse) < 0.02 < start
+    assert np.all(np.diff(np.asarray(result.history)) <= 1e-6 * np.asarray(result.history)[:-1] + 1e-7)  # monotone
+    assert int(result.iterations) <= 60
+
+
+def test_normal_equations_match_float64_finite_differences():
+    """The chunk-accumulated J^T J and J^T r equal those of a float64 central-difference Jacobian
+    of the full residual vector (optimistix-style finite-difference check), padding included."""
+    with jax.enable_x64(True):
+        net = mlp((2, 4, 1), activation="tanh", init="glorot", dtype=jnp.float64)
+        x = np.random.default_rng(1).uniform(-1, 1, (40, 2))
+        data = {"x": x, "y": np.sin(x[:, :1] * 2)}
+        params = net.init(jax.random.PRNGKey(3))
+        res = lambda p, s: net.apply(p, s["x"]) - s["y"]  # noqa: E731
+        from jax.flatten_util import ravel_pytree
+
+        flat, unravel = ravel_pytree(params)
+        full = lambda f: jax.vmap(lambda s: res(unravel(f), s))(data).reshape(-1)  # noqa: E731
+        eps = 1e-6
+        jac = np.stack([(full(flat + eps * e) - full(flat - eps * e)) / (2 * eps) for e in np.eye(flat.size)], axis=1)
+        r = np.asarray(full(flat))
+        jtj, jtr, loss = lm.normal_equations(res, params, data, chunk_size=7)  # 40 = 5 chunks of 7 + padding
+        # ravel order puts "layers" before "scaling"; the scaling is frozen (stop_gradient), so the
+        # solver sees zero columns there while finite differences see the function change.
+        n = count_parameters(params)
+        jac = jac[:, :n]
+        np.testing.assert_allclose(np.asarray(jtj)[:n, :n], jac.T @ jac, rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(np.asarray(jtr)[:n], jac.T @ r, rtol=1e-6, atol=1e-8)
+        assert not np.asarray(jtj)[n:].any() and not np.asarray(jtr)[n:].any()
+        assert float(loss) == pytest.approx(float(r @ r), rel=1e-12)
+
+
+def test_mask_equals_dropping_samples():
+    params, data = problem(300, seed=2)
+    mask = np.zeros(300, np.float32)
+    mask[:200] = 1
+    masked = lm.solve(residual, params, data, mask=mask, max_iters=10, chunk_size=64)
+    dropped = lm.solve(residual, params, jax.tree_util.tree_map(lambda a: a[:200], data), max_iters=10, chunk_size=64)
+    np.testing.assert_allclose(masked.loss, dropped.loss, rtol=1e-4)
+    jax.tree_util.tree_map(lambda a, b: np.testing.assert_allclose(a, b, rtol=2e-3, atol=2e-4),
+                           masked.params, dropped.params)
+
+
+def test_batched_equals_sequential():
+    problems = [problem(256, seed=s) for s in range(4)]
+    params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[p for p, _ in problems])
+    data = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[d for _, d in problems])
+    mask = np.ones((4, 256), np.float32)
+    mask[1, 100:] = 0  # problem 1 has only 100 real samples
+    batched = lm.solve_batched(residual, params, data, mask=mask, max_iters=15, chunk_size=64)
+    for i, (p, d) in enumerate(problems):
+        single = lm.solve(residual, p, d, mask=mask[i], max_iters=15, chunk_size=64)
+        assert int(batched.iterations[i]) == int(single.iterations)
+        np.testing.assert_allclose(batched.loss[i], single.loss, rtol=1e-3)
+
+
+def test_stops_on_loss_threshold():
+    params, data = problem(500)
+    result = lm.solve(residual, params, data, max_iters=200, loss_threshold=1.0)
+    assert float(result.loss) <= 1.0 and lm.STOP_REASONS[int(result.reason)] == "loss_threshold"
+    assert int(result.iterations) < 200
+
+
+def test_ill_conditioned_problems_never_return_nan():
+    """Duplicated samples, a dead input feature, huge targets: finite results, loss not increased."""
+    params, data = problem(64)
+    x = np.repeat(data["x"][:4], 16, axis=0)
+    x[:, 2] = 0.0  # a feature with no variation: zero Jacobian columns
+    data = {"x": x, "y": 1e6 * smooth_target(x)}
+    start = lm.solve(residual, params, data, max_iters=1)
+    result = lm.solve(residual, params, data, max_iters=30)
+    leaves = jax.tree_util.tree_leaves(result.params)
+    assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in leaves)
+    assert np.isfinite(float(result.loss)) and float(result.loss) <= float(start.history[0])
+
+
+def test_jaxopt_backend_runs_the_same_problem():
+    params, data = problem(300)
+    ours = lm.solve(residual, params, data, max_iters=20)
+    theirs = lm.solve(residual, params, data, max_iters=20, backend="jaxopt")
+    assert np.isfinite(float(theirs.loss))
+    assert float(theirs.rmse) < 0.5 and float(ours.rmse) < 0.5
+    with pytest.raises(ValueError, match="unknown LM backend"):
+        lm.solve(residual, params, data, backend="scipy")
