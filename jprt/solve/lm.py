@@ -11,7 +11,8 @@ nu <- 2; otherwise reject and set mu <- mu nu, nu <- 2 nu.
 
 Memory: J^T J (P x P) and J^T r (P) are accumulated over chunks of ``chunk_size`` samples from
 per-sample Jacobians (``vmap(jacrev)``), so the solver holds O(P^2 + chunk_size R P) numbers,
-never the N R x P Jacobian. The linear system is solved by Cholesky in float64 when JAX's x64 mode
+never the N R x P Jacobian; chunks are dynamic slices of the caller's arrays, so the data is not
+copied either (pass JAX arrays to avoid the one host-to-device copy of NumPy inputs). The linear system is solved by Cholesky in float64 when JAX's x64 mode
 is on, and otherwise in float32 with a diagonal jitter; a step that still comes out non-finite is
 treated as rejected, so the returned parameters are never NaN.
 
@@ -72,29 +73,39 @@ class _State(NamedTuple):
     history: jax.Array
 
 
-def _pad_samples(data, mask, chunk_size: int):
-    """Pad the sample axis to a multiple of chunk_size (padding masked out); reshape to chunks."""
+def _check_data(data, mask, sample_axis: int = 0) -> int:
+    """Number of samples; raises a one-line ValueError on inconsistent data or mask."""
     leaves = jax.tree_util.tree_leaves(data)
     if not leaves:
         raise ValueError("LM needs data with a leading sample axis")
-    n = leaves[0].shape[0]
-    if any(leaf.shape[0] != n for leaf in leaves):
+    n = leaves[0].shape[sample_axis]
+    if any(leaf.shape[sample_axis] != n for leaf in leaves):
         raise ValueError("all data arrays need the same number of samples on their first axis")
     if n == 0:
         raise ValueError("LM needs at least one sample")
-    mask = jnp.ones((n,), jnp.float32) if mask is None else jnp.asarray(mask, jnp.float32)
-    chunk = min(chunk_size, n)
-    pad = (-n) % chunk
+    if mask is not None and jnp.shape(mask)[sample_axis] != n:
+        raise ValueError(f"mask has {jnp.shape(mask)[sample_axis]} entries for {n} samples")
+    return n
 
-    def pad_and_split(a):
-        a = jnp.asarray(a)
-        if pad:
-            a = jnp.concatenate([a, jnp.repeat(a[:1], pad, axis=0)], axis=0)
-        return a.reshape((-1, chunk) + a.shape[1:])
 
-    chunks = jax.tree_util.tree_map(pad_and_split, data)
-    mask = jnp.concatenate([mask, jnp.zeros((pad,), mask.dtype)]).reshape(-1, chunk)
-    return chunks, mask
+def _chunked(fn: Callable, init, data, mask, chunk: int):
+    """Fold ``fn(acc, chunk_data, chunk_mask)`` over consecutive chunks of the samples.
+
+    Chunks are dynamic slices of the caller's arrays (no padded or reshaped copy of the data, so
+    memory does not grow with N); a shorter tail chunk is handled by a second, static slice.
+    """
+    n = jax.tree_util.tree_leaves(data)[0].shape[0]
+    n_full, tail = divmod(n, chunk)
+
+    def take(start, size):
+        part = jax.tree_util.tree_map(lambda a: jax.lax.dynamic_slice_in_dim(a, start, size), data)
+        m = jnp.ones((size,), jnp.float32) if mask is None else jax.lax.dynamic_slice_in_dim(mask, start, size)
+        return part, m
+
+    acc = jax.lax.fori_loop(0, n_full, lambda i, acc: fn(acc, *take(i * chunk, chunk)), init)
+    if tail:
+        acc = fn(acc, *take(n_full * chunk, tail))
+    return acc
 
 
 def _per_sample_fn(residual_fn: Callable, unravel: Callable) -> Callable:
@@ -104,53 +115,58 @@ def _per_sample_fn(residual_fn: Callable, unravel: Callable) -> Callable:
     return per_sample
 
 
-def _normal_pass(per_sample: Callable, flat, chunks, mask):
+def _normal_pass(per_sample: Callable, flat, data, mask, chunk: int):
     """(J^T J, J^T r, sum r^2) accumulated chunk by chunk from per-sample Jacobians."""
     p = flat.shape[0]
 
-    def body(acc, xs):
+    def body(acc, chunk_data, m):
         jtj, jtr, loss = acc
-        chunk, m = xs
-        r = jax.vmap(per_sample, in_axes=(None, 0))(flat, chunk)  # (C, R)
-        jac = jax.vmap(jax.jacrev(per_sample), in_axes=(None, 0))(flat, chunk)  # (C, R, P)
-        jac = jac * jnp.sqrt(m)[:, None, None]
-        rm = r * jnp.sqrt(m)[:, None]
+        r = jax.vmap(per_sample, in_axes=(None, 0))(flat, chunk_data)  # (C, R)
+        jac = jax.vmap(jax.jacrev(per_sample), in_axes=(None, 0))(flat, chunk_data)  # (C, R, P)
+        w = jnp.sqrt(m).astype(flat.dtype)
+        jac = jac * w[:, None, None]
+        rm = r * w[:, None]
         jtj = jtj + jnp.einsum("crp,crq->pq", jac, jac)
         jtr = jtr + jnp.einsum("crp,cr->p", jac, rm)
-        return (jtj, jtr, loss + jnp.sum(jnp.square(rm))), None
+        return jtj, jtr, loss + jnp.sum(jnp.square(rm))
 
     init = (jnp.zeros((p, p), flat.dtype), jnp.zeros((p,), flat.dtype), jnp.zeros((), flat.dtype))
-    (jtj, jtr, loss), _ = jax.lax.scan(body, init, (chunks, mask))
-    return jtj, jtr, loss
+    return _chunked(body, init, data, mask, chunk)
+
+
+def _residual_pass(per_sample: Callable, flat, data, mask, chunk: int):
+    """sum_i m_i ||r_i||^2, chunk by chunk."""
+
+    def body(acc, chunk_data, m):
+        r = jax.vmap(per_sample, in_axes=(None, 0))(flat, chunk_data)
+        return acc + jnp.sum(m.astype(flat.dtype)[:, None] * jnp.square(r))
+
+    return _chunked(body, jnp.zeros((), flat.dtype), data, mask, chunk)
 
 
 def normal_equations(residual_fn: Callable, params, data, *, mask=None, chunk_size: int = 2048):
     """(J^T J (P, P), J^T r (P,), E) at ``params`` over flattened parameters (``ravel_pytree``
     order), accumulated in chunks exactly as the solver does (diagnostics and tests)."""
     flat, unravel = ravel_pytree(params)
-    chunks, chunk_mask = _pad_samples(data, mask, chunk_size)
-    return jax.jit(lambda f, c, m: _normal_pass(_per_sample_fn(residual_fn, unravel), f, c, m))(flat, chunks,
-                                                                                                  chunk_mask)
+    n = _check_data(data, mask)
+    data = jax.tree_util.tree_map(jnp.asarray, data)
+    mask = None if mask is None else jnp.asarray(mask, jnp.float32)
+    per_sample = _per_sample_fn(residual_fn, unravel)
+    return jax.jit(lambda f, d, m: _normal_pass(per_sample, f, d, m, min(chunk_size, n)))(flat, data, mask)
 
 
 @functools.lru_cache(maxsize=64)
 def _build(residual_fn: Callable, unravel_key, max_iters: int, loss_threshold: float, rtol: float, damping: float,
-           jitter: float):
+           jitter: float, chunk: int):
     """The pure solver for one residual function and config (cached, so repeated calls reuse the
     compiled program)."""
     per_sample = _per_sample_fn(residual_fn, unravel_key.unravel)
 
-    def residual_pass(flat, chunks, mask):
-        def body(acc, xs):
-            chunk, m = xs
-            r = jax.vmap(per_sample, in_axes=(None, 0))(flat, chunk)  # (C, R)
-            return acc + jnp.sum(m[:, None] * jnp.square(r)), None
+    def residual_pass(flat, data, mask):
+        return _residual_pass(per_sample, flat, data, mask, chunk)
 
-        loss, _ = jax.lax.scan(body, jnp.zeros((), flat.dtype), (chunks, mask))
-        return loss
-
-    def normal_pass(flat, chunks, mask):
-        return _normal_pass(per_sample, flat, chunks, mask)
+    def normal_pass(flat, data, mask):
+        return _normal_pass(per_sample, flat, data, mask, chunk)
 
     def step_direction(jtj, jtr, mu):
         solve_dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
@@ -165,8 +181,8 @@ def _build(residual_fn: Callable, unravel_key, max_iters: int, loss_threshold: f
         delta = -jax.scipy.linalg.cho_solve((chol, True), g)
         return delta.astype(jtr.dtype)
 
-    def solver(flat0, chunks, mask):
-        jtj, jtr, loss = normal_pass(flat0, chunks, mask)
+    def solver(flat0, data, mask):
+        jtj, jtr, loss = normal_pass(flat0, data, mask)
         state = _State(flat0, jtj, jtr, loss, jnp.asarray(damping, flat0.dtype), jnp.asarray(2.0, flat0.dtype),
                        jnp.zeros((), jnp.int32), jnp.where(loss <= loss_threshold, 1, 0).astype(jnp.int32),
                        jnp.full((max_iters,), loss, flat0.dtype))
@@ -177,13 +193,13 @@ def _build(residual_fn: Callable, unravel_key, max_iters: int, loss_threshold: f
         def body(s):
             delta = step_direction(s.jtj, s.jtr, s.mu)
             trial = s.flat + delta
-            new_loss = residual_pass(trial, chunks, mask)
+            new_loss = residual_pass(trial, data, mask)
             predicted = -(2.0 * jnp.dot(delta, s.jtr) + jnp.dot(delta, s.jtj @ delta))
             actual = s.loss - new_loss
             finite = jnp.all(jnp.isfinite(delta)) & jnp.isfinite(new_loss)
             rho = jnp.where(finite & (predicted > 0), actual / jnp.maximum(predicted, 1e-30), -1.0)
             accept = finite & (rho > 0)
-            jtj, jtr, loss = jax.lax.cond(accept, lambda: normal_pass(trial, chunks, mask),
+            jtj, jtr, loss = jax.lax.cond(accept, lambda: normal_pass(trial, data, mask),
                                           lambda: (s.jtj, s.jtr, s.loss))
             flat = jnp.where(accept, trial, s.flat)
             mu = jnp.where(accept, s.mu * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), s.mu * s.nu)
@@ -199,8 +215,9 @@ def _build(residual_fn: Callable, unravel_key, max_iters: int, loss_threshold: f
 
         s = jax.lax.while_loop(cond, body, state)
         reason = jnp.where(s.reason == 0, 3, s.reason).astype(jnp.int32)
-        residual_size = per_sample(flat0, jax.tree_util.tree_map(lambda a: a[0, 0], chunks)).shape[0]
-        count = jnp.maximum(jnp.sum(mask) * residual_size, 1.0)
+        residual_size = per_sample(flat0, jax.tree_util.tree_map(lambda a: a[0], data)).shape[0]
+        n_real = jax.tree_util.tree_leaves(data)[0].shape[0] if mask is None else jnp.sum(mask)
+        count = jnp.maximum(n_real * residual_size, 1.0)
         return s.flat, s.loss, jnp.sqrt(s.loss / count), s.iteration, s.history, reason
 
     return solver
@@ -244,20 +261,26 @@ def solve(residual_fn: Callable, params, data, *, mask=None, max_iters: int = 10
         raise ValueError(f"max_iters must be >= 1, got {max_iters}")
     key = _UnravelKey(params)
     flat0, _ = ravel_pytree(params)
-    chunks, chunk_mask = _pad_samples(data, mask, chunk_size)
-    solver = _jitted(residual_fn, key, max_iters, float(loss_threshold), float(rtol), float(damping), float(jitter))
-    flat, loss, rmse, iterations, history, reason = solver(flat0, chunks, chunk_mask)
+    n = _check_data(data, mask)
+    data = jax.tree_util.tree_map(jnp.asarray, data)
+    mask = None if mask is None else jnp.asarray(mask, jnp.float32)
+    solver = _jitted(residual_fn, key, max_iters, float(loss_threshold), float(rtol), float(damping), float(jitter),
+                     min(int(chunk_size), n))
+    flat, loss, rmse, iterations, history, reason = solver(flat0, data, mask)
     return LMResult(key.unravel(flat), loss, rmse, iterations, history, reason)
 
 
 @functools.lru_cache(maxsize=64)
-def _jitted(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter):
-    return jax.jit(_build(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter))
+def _jitted(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter, chunk):
+    return jax.jit(_build(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter, chunk))
 
 
 @functools.lru_cache(maxsize=64)
-def _jitted_batched(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter):
-    return jax.jit(jax.vmap(_build(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter)))
+def _jitted_batched(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter, chunk, has_mask):
+    solver = _build(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter, chunk)
+    if has_mask:
+        return jax.jit(jax.vmap(solver))
+    return jax.jit(jax.vmap(lambda f, d: solver(f, d, None)))
 
 
 def solve_batched(residual_fn: Callable, params, data, *, mask=None, max_iters: int = 100,
@@ -272,13 +295,12 @@ def solve_batched(residual_fn: Callable, params, data, *, mask=None, max_iters: 
     first = jax.tree_util.tree_map(lambda a: a[0], params)
     key = _UnravelKey(first)
     flat0 = jax.vmap(lambda p: ravel_pytree(p)[0])(params)
-    b = flat0.shape[0]
-    n = jax.tree_util.tree_leaves(data)[0].shape[1]
-    mask = jnp.ones((b, n), jnp.float32) if mask is None else jnp.asarray(mask, jnp.float32)
-    chunks, chunk_mask = jax.vmap(lambda d, m: _pad_samples(d, m, chunk_size))(data, mask)
+    n = _check_data(data, mask, sample_axis=1)
+    data = jax.tree_util.tree_map(jnp.asarray, data)
     solver = _jitted_batched(residual_fn, key, max_iters, float(loss_threshold), float(rtol), float(damping),
-                             float(jitter))
-    flat, loss, rmse, iterations, history, reason = solver(flat0, chunks, chunk_mask)
+                             float(jitter), min(int(chunk_size), n), mask is not None)
+    args = (flat0, data) if mask is None else (flat0, data, jnp.asarray(mask, jnp.float32))
+    flat, loss, rmse, iterations, history, reason = solver(*args)
     return LMResult(jax.vmap(key.unravel)(flat), loss, rmse, iterations, history, reason)
 
 

@@ -1,4 +1,9 @@
-"""Every jprt.sphere function runs under jax.jit and jax.vmap; differentiable ones pass check_grads."""
+"""jprt.sphere functions run under jax.jit and jax.vmap; differentiable ones pass check_grads.
+
+Not listed: functions of static sizes only (texel_directions, solid angles, support areas, ...),
+which are constants under jit, and the mixture fitters (fit_gd, fit_em, peak_axes), which run
+NumPy initialisation and jit their own inner loops.
+"""
 
 import jax
 import jax.numpy as jnp
@@ -33,7 +38,21 @@ REGISTRY = {
     "sg.inner_product": (lambda u, lam: sg.inner_product(u, lam, 1.0, jnp.array([0.0, 0.0, 1.0]), 3.0, 2.0),
                          (D, jnp.array([1.0, 5.0, 50.0])), (1,)),
     "sg.convolve_sg_asg": (lambda n, v, r: sg.convolve_sg_asg(n, 20.0, 1.0, sg.warp_ndf_to_asg(n, v, r)), ASG_ARGS, (2,)),
+    "cubemap.sample_cubemap_nearest": (lambda d: cubemap.sample_cubemap_nearest(CUBE[0], d), (D,), ()),
+    "haar.flat_index": (lambda f, i: haar.flat_index(f, 1, haar.BAND_D, i, 1, 4), (jnp.array([0, 3, 5]),
+                                                                                   jnp.array([0, 1, 1])), ()),
+    "sh.project_cubemap": (lambda c: sh.project_cubemap(c, 2), (CUBE[:3],), (0,)),
+    "sh.reconstruct": (lambda c, d: sh.reconstruct(c, d), (jnp.ones((3, 16)), D), (0, 1)),
+    "sg.product": (lambda u, lam: sg.product(u, lam, 1.0, jnp.array([0.0, 0.0, 1.0]), 2.0, 3.0).amplitude,
+                   (D, jnp.array([1.0, 5.0, 50.0])), (1,)),
+    "sg.mixture_evaluate": (lambda d, a: sg.mixture_evaluate(d, jnp.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
+                                                             jnp.array([3.0, 8.0]), a),
+                            (D, jnp.ones((3, 2, 3))), (0, 1)),
+    "sg.asg_evaluate": (lambda v, r: sg.asg_evaluate(v, sg.warp_ndf_to_asg(jnp.array([0.0, 0.0, 1.0]),
+                                                                           jnp.array([0.6, 0.0, 0.8]), r)),
+                        (D, jnp.array([0.2, 0.5, 0.9])), (0, 1)),
     "octahedral.encode": (octahedral.encode, (D,), (0,)),
+    "octahedral.direction_to_texel": (lambda d: octahedral.direction_to_texel(d, 8), (D,), ()),
     "octahedral.decode": (octahedral.decode, (jnp.array([[0.1, 0.2], [0.5, -0.3], [-0.8, 0.7]]),), (0,)),
 }
 
