@@ -61,19 +61,6 @@ def bench_haar(cube: np.ndarray, repeats: int) -> dict:
             "haar_pywt_max_roundtrip_error": err_peer}
 
 
-def _scipy_real_sh(d: np.ndarray, degree: int) -> np.ndarray:
-    import scipy.special as ss
-
-    theta = np.arccos(np.clip(d[:, 2], -1, 1))
-    phi = np.arctan2(d[:, 1], d[:, 0])
-    out = []
-    for l in range(degree + 1):
-        for m in range(-l, l + 1):
-            c = ss.sph_harm_y(l, abs(m), theta, phi)
-            out.append(c.real if m == 0 else np.sqrt(2) * (-1) ** m * (c.real if m > 0 else c.imag))
-    return np.stack(out, -1)
-
-
 def bench_sh(cube: np.ndarray, repeats: int, degree: int = 8) -> dict:
     n = cube.shape[1]
     x = jnp.asarray(cube)
@@ -84,7 +71,7 @@ def bench_sh(cube: np.ndarray, repeats: int, degree: int = 8) -> dict:
     flat = cube.reshape(-1, cube.shape[3]).astype(np.float64)
 
     def numpy_project():
-        return (_scipy_real_sh(d, degree) * w[:, None]).T @ flat
+        return (quadrature.scipy_real_sh(d, degree) * w[:, None]).T @ flat
 
     peer = median_ms(numpy_project, max(3, repeats // 4))
     diff = float(np.abs(np.asarray(project(x)) - numpy_project()).max())

@@ -1,5 +1,6 @@
-"""Reference spherical quadrature in NumPy float64: polar grids dense around a pole, for checking
-closed forms of sharp lobes (SG integrals, products, convolutions) in tests and benchmarks."""
+"""Independent NumPy/SciPy references for tests and benchmarks: float64 polar-grid quadrature
+dense around a pole (closed forms of sharp lobes: SG integrals, products, convolutions) and real
+spherical harmonics built from ``scipy.special.sph_harm_y``."""
 
 import numpy as np
 
@@ -29,3 +30,20 @@ def polar_grid(pole, n_theta=1500, n_phi=400):
 def integrate(f, pole, **grid):
     d, w = polar_grid(pole, **grid)
     return float(np.sum(np.asarray(f(d), np.float64) * w))
+
+
+def scipy_real_sh(d, degree: int) -> np.ndarray:
+    """Real SH (jprt's convention: no Condon-Shortley phase, polar axis +Z, index l^2 + l + m)
+    of unit directions d (N, 3), from SciPy's complex spherical harmonics -> (N, (degree + 1)^2)."""
+    import scipy.special as ss
+
+    d = np.asarray(d, np.float64)
+    theta = np.arccos(np.clip(d[:, 2], -1, 1))
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    out = []
+    for l in range(degree + 1):
+        for m in range(-l, l + 1):
+            c = ss.sph_harm_y(l, abs(m), theta, phi)
+            # SciPy includes the Condon-Shortley phase (-1)^m; undo it.
+            out.append(c.real if m == 0 else np.sqrt(2) * (-1) ** m * (c.real if m > 0 else c.imag))
+    return np.stack(out, -1)
