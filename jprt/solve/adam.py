@@ -95,9 +95,9 @@ def train(loss_fn: Callable, params, sampler: Callable, *, key, steps: int, lear
     if stop_after is not None:
         todo = min(todo, stop_after)
     losses = np.empty((todo,), np.float32)
-    log = open(log_path, "a") if log_path else None
     if log_path:
         os.makedirs(os.path.dirname(os.path.abspath(log_path)), exist_ok=True)
+    log = open(log_path, "a") if log_path else None
     bar = tqdm(total=steps, initial=resumed_from, desc="adam", unit="step", disable=not progress, file=sys.stderr,
                dynamic_ncols=True)
     t0 = last_t = time.perf_counter()

@@ -33,12 +33,13 @@ def test_resume_at_step_50_of_100_is_bit_identical(tmp_path):
                        checkpoint_every=25, stop_after=50, progress=False)
     assert int(first.state.step) == 50
     resumed = adam.train(loss_fn, params, sampler, key=key, steps=100, learning_rate=schedule, checkpoint_path=ckpt,
-                         checkpoint_every=25, progress=False, log_path=str(tmp_path / "metrics.jsonl"), log_every=10)
+                         checkpoint_every=25, progress=False, log_path=str(tmp_path / "logs" / "metrics.jsonl"),
+                         log_every=10)
     assert resumed.resumed_from == 50 and int(resumed.state.step) == 100
     jax.tree_util.tree_map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)),
                            full.state.params, resumed.state.params)
     np.testing.assert_array_equal(np.concatenate([first.losses, resumed.losses]), full.losses)
-    lines = [json.loads(line) for line in open(tmp_path / "metrics.jsonl")]
+    lines = [json.loads(line) for line in open(tmp_path / "logs" / "metrics.jsonl")]  # folder created
     assert [line["step"] for line in lines] == [60, 70, 80, 90, 100]
     assert all(line["samples_per_s"] > 0 for line in lines)
     assert full.losses[-10:].mean() < full.losses[:10].mean()
