@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.jprt-installed
 
-.PHONY: setup llvm test test-slow demo bench clean
+.PHONY: setup llvm test test-slow demo bench bench-rrf clean
 
 setup: llvm $(STAMP)
 
@@ -33,10 +33,13 @@ test-slow: setup
 	$(PY) -m pytest -q -m slow tests
 
 demo: setup
-	$(PY) -m jprt.cli run experiments/cornell_gt.py
+	$(PY) -m jprt.cli run experiments/rrf_cornell.py --preset demo
 
 bench: setup
 	$(PY) benchmarks/sphere.py
+
+bench-rrf: setup
+	$(PY) benchmarks/rrf_cornell.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

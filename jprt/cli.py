@@ -26,6 +26,9 @@ def load_experiment(path: str) -> ModuleType:
     if not os.path.isfile(path):
         raise FileNotFoundError(f"experiment file not found: {path}")
     name = "jprt_experiment_" + os.path.splitext(os.path.basename(path))[0]
+    folder = os.path.dirname(os.path.abspath(path))
+    if folder not in sys.path:  # sibling modules (shared experiment pipelines) import as in `python file.py`
+        sys.path.insert(0, folder)
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module

@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["Camera", "look_at", "orbit", "helix", "random_in_box", "to_sensor_dict", "camera_rays"]
+__all__ = ["Camera", "look_at", "orbit", "helix", "random_in_box", "to_sensor_dict", "camera_rays", "random_rays"]
 
 
 class Camera(NamedTuple):
@@ -118,14 +118,9 @@ def to_sensor_dict(camera: Camera, spp: int, mi) -> dict:
     }
 
 
-def camera_rays(camera: Camera, offset=None) -> tuple[np.ndarray, np.ndarray]:
-    """Primary rays (origins, unit directions), each (H, W, 3), in NumPy.
-
-    ``offset`` is the position inside each pixel in [0, 1)^2 (x right, y down): None for the
-    pixel centre (0.5, 0.5), or an (H, W, 2) array (e.g. uniform jitter, which makes the mean
-    over many offsets the box-filtered pixel value). Same geometry as Mitsuba's perspective
-    sensor with ``fov_axis='smaller'``: row 0 is the top of the image, column 0 its left.
-    """
+def _film_directions(camera: Camera, px, py) -> np.ndarray:
+    """Unit directions through film positions (px, py) in pixels (x right, y down, origin at the
+    top-left corner), same geometry as Mitsuba's perspective sensor with ``fov_axis='smaller'``."""
     o = np.asarray(camera.origin, np.float64)
     f = np.asarray(camera.target, np.float64) - o
     f /= np.linalg.norm(f)
@@ -134,9 +129,33 @@ def camera_rays(camera: Camera, offset=None) -> tuple[np.ndarray, np.ndarray]:
     up = np.cross(f, left)
     w, h = camera.width, camera.height
     half = np.tan(np.radians(camera.fov) / 2.0) / min(w, h)
+    xs = (np.asarray(px, np.float64) - w / 2.0) * 2.0 * half
+    ys = (np.asarray(py, np.float64) - h / 2.0) * 2.0 * half
+    d = f - xs[..., None] * left - ys[..., None] * up
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def camera_rays(camera: Camera, offset=None) -> tuple[np.ndarray, np.ndarray]:
+    """Primary rays (origins, unit directions), each (H, W, 3), in NumPy.
+
+    ``offset`` is the position inside each pixel in [0, 1)^2 (x right, y down): None for the
+    pixel centre (0.5, 0.5), or an (H, W, 2) array (e.g. uniform jitter, which makes the mean
+    over many offsets the box-filtered pixel value). Same geometry as Mitsuba's perspective
+    sensor with ``fov_axis='smaller'``: row 0 is the top of the image, column 0 its left.
+    """
+    w, h = camera.width, camera.height
     off = np.full((h, w, 2), 0.5) if offset is None else np.broadcast_to(np.asarray(offset, np.float64), (h, w, 2))
-    xs = (np.arange(w)[None, :] + off[..., 0] - w / 2.0) * 2.0 * half
-    ys = (np.arange(h)[:, None] + off[..., 1] - h / 2.0) * 2.0 * half
-    d = f[None, None] - xs[..., None] * left[None, None] - ys[..., None] * up[None, None]
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    return np.broadcast_to(o, d.shape).copy(), d
+    d = _film_directions(camera, np.arange(w)[None, :] + off[..., 0], np.arange(h)[:, None] + off[..., 1])
+    return np.broadcast_to(np.asarray(camera.origin, np.float64), d.shape).copy(), d
+
+
+def random_rays(camera: Camera, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` primary rays (origins, unit directions), each (n, 3), through uniformly random film
+    positions of ``camera`` (Ren et al. 2013, Appendix A: "randomly shoot N_r rays from the
+    viewpoint")."""
+    if int(n) < 0:
+        raise ValueError(f"number of rays must be >= 0, got {n}")
+    px = rng.random(int(n)) * camera.width
+    py = rng.random(int(n)) * camera.height
+    d = _film_directions(camera, px, py)
+    return np.broadcast_to(np.asarray(camera.origin, np.float64), d.shape).copy(), d

@@ -24,7 +24,7 @@ import numpy as np
 from jprt.render.cameras import Camera, to_sensor_dict
 from jprt.render.scenes import SceneHandle
 
-__all__ = ["GBuffer", "gbuffer", "object_materials"]
+__all__ = ["GBuffer", "gbuffer", "gbuffer_rays", "object_materials"]
 
 
 class GBuffer(NamedTuple):
@@ -87,6 +87,54 @@ def object_materials(handle: SceneHandle) -> tuple[np.ndarray, np.ndarray, np.nd
     return np.stack(specular).astype(np.float32), np.asarray(roughness, np.float32), np.asarray(has_diffuse)
 
 
+def _hits(handle: SceneHandle, ray, n: int) -> dict:
+    """Flat (n, ...) first-hit attributes of a Dr.Jit ray batch (see ``GBuffer`` for the fields)."""
+    mi = handle.mi
+    import drjit as dr
+
+    si = handle.scene.ray_intersect(ray)
+    valid = si.is_valid()
+    nrm = si.sh_frame.n
+    v = -ray.d
+    flip = dr.select(dr.dot(nrm, v) < 0, -1.0, 1.0)
+    nrm = nrm * flip
+    ndotv = dr.dot(nrm, v)
+    r = 2.0 * ndotv * nrm - v
+    albedo = si.bsdf(ray).eval_diffuse_reflectance(si, valid)
+    object_id = dr.full(mi.Int32, -1, n)
+    for k, shape in enumerate(handle.shapes()):
+        object_id = dr.select(valid & (si.shape == mi.ShapePtr(shape)), k, object_id)
+
+    def arr(value, c):
+        a = np.array(value, dtype=np.float32)
+        a = a.T if a.ndim == 2 else a
+        return a.reshape(n, c) if c > 1 else a.reshape(n)
+
+    valid_np = np.array(valid, dtype=bool).reshape(n)
+    mask = valid_np[:, None]
+    object_np = np.array(object_id, dtype=np.int32).reshape(n)
+    specular_table, roughness_table, diffuse_table = object_materials(handle)
+    safe_ids = np.maximum(object_np, 0)
+    has_diffuse = (valid_np & diffuse_table[safe_ids])[:, None]
+
+    def unit(a):
+        norm = np.linalg.norm(a, axis=-1, keepdims=True)
+        return np.where(mask, a / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
+
+    return dict(
+        position=np.where(mask, arr(si.p, 3), 0.0).astype(np.float32),
+        normal=unit(arr(nrm, 3)),
+        view=unit(arr(v, 3)),
+        reflected=unit(arr(r, 3)),
+        uv=np.where(mask, arr(si.uv, 2), 0.0).astype(np.float32),
+        diffuse_albedo=np.where(has_diffuse, arr(albedo, 3), 0.0).astype(np.float32),
+        specular_albedo=np.where(mask, specular_table[safe_ids], 0.0).astype(np.float32),
+        roughness=np.where(valid_np, roughness_table[safe_ids], 0.0).astype(np.float32),
+        object_id=object_np,
+        valid=valid_np,
+    )
+
+
 def gbuffer(handle: SceneHandle, camera: Camera) -> GBuffer:
     """Exact pixel-centre G-buffer of ``camera`` in the scene of ``handle``."""
     mi = handle.mi
@@ -99,51 +147,22 @@ def gbuffer(handle: SceneHandle, camera: Camera) -> GBuffer:
     y = mi.Float(idx // w) + 0.5
     film_pos = mi.Point2f(x / w, y / h)
     ray, _ = sensor.sample_ray(mi.Float(0.0), mi.Float(0.5), film_pos, mi.Point2f(0.5, 0.5))
-    si = handle.scene.ray_intersect(ray)
-    valid = si.is_valid()
+    flat = _hits(handle, ray, w * h)
+    return GBuffer(**{k: v.reshape((h, w) + v.shape[1:]) for k, v in flat.items()})
 
-    n = si.sh_frame.n
-    v = -ray.d
-    flip = dr.select(dr.dot(n, v) < 0, -1.0, 1.0)
-    n = n * flip
-    ndotv = dr.dot(n, v)
-    r = 2.0 * ndotv * n - v
 
-    bsdf = si.bsdf(ray)
-    albedo = bsdf.eval_diffuse_reflectance(si, valid)
-
-    object_id = dr.full(mi.Int32, -1, w * h)
-    for k, shape in enumerate(handle.shapes()):
-        object_id = dr.select(valid & (si.shape == mi.ShapePtr(shape)), k, object_id)
-
-    def arr(value, c):
-        a = np.array(value, dtype=np.float32)
-        a = a.T if a.ndim == 2 else a
-        return a.reshape(h, w, c) if c > 1 else a.reshape(h, w)
-
-    valid_np = np.array(valid, dtype=bool).reshape(h, w)
-    mask3 = valid_np[..., None]
-    object_np = np.array(object_id, dtype=np.int32).reshape(h, w)
-
-    specular_table, roughness_table, diffuse_table = object_materials(handle)
-    safe_ids = np.maximum(object_np, 0)
-    has_diffuse = (valid_np & diffuse_table[safe_ids])[..., None]
-    specular = np.where(mask3, specular_table[safe_ids], 0.0).astype(np.float32)
-    roughness = np.where(valid_np, roughness_table[safe_ids], 0.0).astype(np.float32)
-
-    def unit(a):
-        norm = np.linalg.norm(a, axis=-1, keepdims=True)
-        return np.where(mask3, a / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
-
-    return GBuffer(
-        position=np.where(mask3, arr(si.p, 3), 0.0).astype(np.float32),
-        normal=unit(arr(n, 3)),
-        view=unit(arr(v, 3)),
-        reflected=unit(arr(r, 3)),
-        uv=np.where(mask3, arr(si.uv, 2), 0.0).astype(np.float32),
-        diffuse_albedo=np.where(has_diffuse, arr(albedo, 3), 0.0).astype(np.float32),
-        specular_albedo=specular,
-        roughness=roughness,
-        object_id=object_np,
-        valid=valid_np,
-    )
+def gbuffer_rays(handle: SceneHandle, origins, directions) -> GBuffer:
+    """First-hit attributes of arbitrary rays: a ``GBuffer`` whose fields are (N, ...) instead of
+    (H, W, ...) (training samples of Ren et al. 2013, Appendix A: attributes at the first
+    intersection of random viewing rays). ``view`` is minus the ray direction."""
+    mi = handle.mi
+    o = np.asarray(origins, np.float32).reshape(-1, 3)
+    d = np.asarray(directions, np.float32).reshape(-1, 3)
+    if o.shape != d.shape:
+        raise ValueError(f"origins {o.shape} and directions {d.shape} differ")
+    norms = np.linalg.norm(d, axis=1, keepdims=True)
+    if not (np.isfinite(o).all() and np.isfinite(d).all()) or np.any(norms == 0):
+        raise ValueError("ray origins/directions must be finite with non-zero directions")
+    d = d / norms
+    ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
+    return GBuffer(**_hits(handle, ray, o.shape[0]))

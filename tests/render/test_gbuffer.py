@@ -90,3 +90,35 @@ def test_positions_agree_with_mitsuba_aov_on_planar_interiors(mi, cornell):
     footprint = distance * pixel_angle / np.maximum(np.sum(gb.normal * gb.view, axis=-1), 1e-3)
     error = np.linalg.norm(aov - gb.position, axis=-1)
     assert (error[planar] <= 0.1 * footprint[planar]).all(), np.max(error[planar] / footprint[planar])
+
+
+def test_gbuffer_rays_match_pixel_centres(cornell):
+    """The ray-batch G-buffer (RRF training samples) sees what the image G-buffer sees when given
+    the same pixel-centre rays (NumPy camera model == Mitsuba's sensor)."""
+    from jprt.render.gbuffer import gbuffer_rays
+
+    handle, camera, gb = cornell
+    o, d = cameras.camera_rays(camera)
+    rays = gbuffer_rays(handle, o.reshape(-1, 3), d.reshape(-1, 3))
+    valid = rays.valid.reshape(gb.valid.shape)
+    assert (valid == gb.valid).mean() > 0.99  # silhouette pixels may flip by rounding
+    both = valid & gb.valid
+    np.testing.assert_allclose(rays.position.reshape(gb.position.shape)[both], gb.position[both], atol=2e-3)
+    same = both & (rays.object_id.reshape(gb.object_id.shape) == gb.object_id)
+    assert same.sum() > 0.98 * both.sum()
+    np.testing.assert_allclose(rays.normal.reshape(gb.normal.shape)[same], gb.normal[same], atol=1e-4)
+    np.testing.assert_allclose(rays.diffuse_albedo.reshape(gb.diffuse_albedo.shape)[same], gb.diffuse_albedo[same],
+                               atol=1e-5)
+    with pytest.raises(ValueError, match="non-zero"):
+        gbuffer_rays(handle, np.zeros((2, 3)), np.zeros((2, 3)))
+
+
+def test_random_rays_inside_the_frustum():
+    camera = cameras.look_at((0, 0, 3.9), (0, 0, 0), width=40, height=20, fov=30.0)
+    o, d = cameras.random_rays(camera, 2000, np.random.default_rng(0))
+    assert o.shape == d.shape == (2000, 3)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
+    # fov is along the smaller (vertical) axis: |y/z| <= tan(15 deg), |x/z| <= 2 tan(15 deg).
+    t = np.tan(np.radians(15.0))
+    assert np.all(np.abs(d[:, 1] / d[:, 2]) <= t + 1e-9) and np.abs(d[:, 1] / d[:, 2]).max() > 0.95 * t
+    assert np.all(np.abs(d[:, 0] / d[:, 2]) <= 2 * t + 1e-9) and np.abs(d[:, 0] / d[:, 2]).max() > 1.9 * t

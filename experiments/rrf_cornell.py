@@ -1,0 +1,59 @@
+"""Radiance Regression Functions on the built-in Cornell box (Ren et al. 2013, §5, Table 3, Fig. 6-7).
+
+    jprt run experiments/rrf_cornell.py                   # the `small` config (~20k training samples)
+    jprt run experiments/rrf_cornell.py --preset demo     # < 5 min end to end (make demo)
+    jprt run experiments/rrf_cornell.py --preset paper    # the paper's sizes (needs an accelerator)
+
+Point lights move inside the box (light box below), the viewpoint moves in front of its opening.
+The report (summary.json with every number, side-by-side images, error plots) goes to
+results/rrf_cornell/<config hash>/.
+"""
+
+from rrf_common import EVAL_DEFAULTS, run
+
+from jprt.config import merge
+from jprt.methods.rrf import DEFAULT_CONFIG
+
+CONFIG = merge({**DEFAULT_CONFIG, "eval": EVAL_DEFAULTS, "output": {"dir": "results/rrf_cornell"}}, {
+    "scene": {"name": "cornell_box", "area_light": False},
+})
+
+PRESETS = {
+    # The default CONFIG: trains in minutes on a 2-core CPU.
+    "small": {},
+    # make demo: renders, trains, evaluates and reports within 5 minutes.
+    "demo": {
+        "data": {"n_lights": 10, "n_views": 10, "n_rays": 60, "spp": 256},
+        "tree": {"max_depth": 1, "min_samples": 800, "max_leaves": 10},
+        "train": {"max_iters": 25, "trial_iters": 6, "trial_samples": 512},
+        "eval": {"n_views": 2, "n_lights": 2, "resolution": 64, "reference_spp": 1024, "ablations": False,
+                 "robustness": 0, "sizes": [], "train_spp": [], "timing_repeats": 5, "pathtrace_repeats": 1,
+                 "equal_error_spp": [1, 2, 4, 8, 16, 32, 64, 128, 256]},
+    },
+    # Ren et al. 2013: ~10M training samples (N_l = N_v = 200), 4096 spp training data, 20 x 20
+    # held-out pairs at 512 x 512 against 16384-spp references; kd-tree leaves with >= 10x their
+    # weights in samples.
+    "paper": {
+        "data": {"n_lights": 200, "n_views": 200, "n_rays": 250, "spp": 4096},
+        "tree": {"max_depth": 12, "min_samples": 6500, "max_leaves": 4096},
+        "train": {"max_iters": 200, "trial_iters": 200, "trial_samples": 0},
+        "eval": {"n_views": 20, "n_lights": 20, "resolution": 512, "reference_spp": 16384,
+                 "sizes": [0.01, 0.1, 0.3], "train_spp": [256, 1024, 16384],
+                 "equal_error_spp": [2 ** k for k in range(15)]},
+    },
+    # Smoke test (tests/test_experiments.py).
+    "test": {
+        "data": {"n_lights": 3, "n_views": 3, "n_rays": 40, "spp": 8},
+        "model": {"hidden": [6, 4]},
+        "tree": {"max_depth": 1, "min_samples": 40, "max_leaves": 10},
+        "train": {"max_iters": 3, "trial_iters": 1, "trial_samples": 64, "progress": False},
+        "eval": {"n_views": 1, "n_lights": 2, "resolution": 12, "reference_spp": 16, "robustness": 2,
+                 "sizes": [0.5], "train_spp": [4], "equal_error_spp": [1, 4], "timing_resolution": 16,
+                 "timing_repeats": 2, "pathtrace_repeats": 1, "single_mlp_steps": 20, "images": 1},
+    },
+}
+
+
+def main(config):
+    """Render, fit, evaluate and report (see rrf_common.run)."""
+    return run(config)

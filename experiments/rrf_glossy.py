@@ -1,0 +1,58 @@
+"""Radiance Regression Functions on a scene with glossy interreflection and a caustic
+(``glossy_cornell``: GGX floor, near-mirror metal sphere focusing the light, checker back wall),
+plus the material-editing variant of Ren et al. 2013, Appendix B (fixed view; the floor's
+roughness and albedo replace the view direction as inputs).
+
+    jprt run experiments/rrf_glossy.py                    # `small`: the RRF report + the material demo
+    jprt run experiments/rrf_glossy.py --preset paper     # the paper's sizes (needs an accelerator)
+"""
+
+from rrf_common import EVAL_DEFAULTS, material_demo, run
+
+from jprt.config import merge
+from jprt.methods.rrf import DEFAULT_CONFIG
+
+CONFIG = merge({**DEFAULT_CONFIG, "eval": EVAL_DEFAULTS, "output": {"dir": "results/rrf_glossy"}}, {
+    "scene": {"name": "glossy_cornell", "floor_roughness": 0.15, "sphere_roughness": 0.02},
+    "eval": {"robustness": 0, "sizes": [], "train_spp": []},
+})
+CONFIG["material_demo"] = {
+    "enabled": True,
+    "edits": [[0.05, 0.2], [0.2, 0.5], [0.45, 0.8]],   # (floor GGX alpha, floor albedo)
+    "reference_spp": 1024,
+    "data": {"n_lights": 12, "n_rays": 400, "spp": 256,
+             "material": {"object": "floor", "roughness": [0.05, 0.5], "albedo": [0.1, 0.8], "n_materials": 12}},
+}
+
+PRESETS = {
+    "small": {},
+    "paper": {
+        "data": {"n_lights": 200, "n_views": 200, "n_rays": 250, "spp": 4096},
+        "tree": {"max_depth": 12, "min_samples": 6500, "max_leaves": 4096},
+        "train": {"max_iters": 200, "trial_iters": 200, "trial_samples": 0},
+        "eval": {"n_views": 20, "n_lights": 20, "resolution": 512, "reference_spp": 16384, "robustness": 10,
+                 "equal_error_spp": [2 ** k for k in range(15)]},
+        "material_demo": {"reference_spp": 16384, "data": {"n_lights": 100, "n_rays": 20000, "spp": 4096,
+                                                           "material": {"n_materials": 100}}},
+    },
+    "test": {
+        "data": {"n_lights": 2, "n_views": 2, "n_rays": 30, "spp": 4},
+        "model": {"hidden": [4, 2]},
+        "tree": {"max_depth": 0},
+        "train": {"max_iters": 2, "progress": False},
+        "eval": {"n_views": 1, "n_lights": 1, "resolution": 10, "reference_spp": 8, "ablations": False,
+                 "equal_error_spp": [1, 2], "timing_resolution": 12, "timing_repeats": 1, "pathtrace_repeats": 1,
+                 "images": 1},
+        "material_demo": {"edits": [[0.1, 0.5]], "reference_spp": 4,
+                          "data": {"n_lights": 2, "n_rays": 20, "spp": 2, "material": {"n_materials": 2}}},
+    },
+}
+
+
+def main(config):
+    """The RRF report on the glossy scene, then the material-editing demo."""
+    summary = run({k: v for k, v in config.items() if k != "material_demo"})
+    demo = config["material_demo"]
+    if demo["enabled"]:
+        summary["material_edit"] = material_demo(merge(config, {"data": demo["data"]}))
+    return summary

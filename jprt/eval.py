@@ -1,0 +1,157 @@
+"""Evaluation protocol shared by the methods: errors against path-traced references, timings,
+the equal-error sample count, and the figures of a report.
+
+Pure NumPy/JAX: anything that renders is passed in as a callback, so this module never imports
+Mitsuba (DESIGN.md: only ``jprt/render`` does).
+
+Conventions (Ren et al. 2013, §5 "Method Validation"): the error of a method over a test set of
+(view, light) pairs is the RMSE over all valid pixels and RGB channels of all images together,
+i.e. sqrt(mean over images of the per-image mean squared error), each image weighted by its
+number of valid pixels.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from typing import Callable, Sequence
+
+import numpy as np
+
+from jprt import io
+from jprt.metrics import error_map
+
+__all__ = ["set_rmse", "time_call", "equal_error_spp", "side_by_side", "plot_series"]
+
+
+def set_rmse(predictions: Sequence, references: Sequence, valids: Sequence | None = None) -> float:
+    """RMSE over all valid pixels and channels of a set of (H, W, 3) images (module docstring)."""
+    if len(predictions) != len(references) or not len(predictions):
+        raise ValueError(f"need equally many (>0) predictions and references, got {len(predictions)} and "
+                         f"{len(references)}")
+    total, count = 0.0, 0
+    for k, (p, r) in enumerate(zip(predictions, references)):
+        p, r = np.asarray(p, np.float64), np.asarray(r, np.float64)
+        if p.shape != r.shape:
+            raise ValueError(f"image {k}: prediction {p.shape} and reference {r.shape} differ")
+        m = np.ones(p.shape[:2], bool) if valids is None else np.asarray(valids[k], bool)
+        total += float(np.sum(np.square(p - r)[m]))
+        count += int(m.sum()) * p.shape[-1]
+    return float(np.sqrt(total / max(count, 1)))
+
+
+def time_call(fn: Callable, *args, repeats: int = 10, warmup: int = 2) -> dict:
+    """Wall time of ``fn(*args)`` in milliseconds: median (and min, all) of ``repeats`` runs after
+    ``warmup`` runs; JAX results are waited for with ``block_until_ready``."""
+
+    def run():
+        out = fn(*args)
+        for leaf in _leaves(out):
+            if hasattr(leaf, "block_until_ready"):
+                leaf.block_until_ready()
+        return out
+
+    for _ in range(max(0, int(warmup))):
+        run()
+    times = []
+    for _ in range(max(1, int(repeats))):
+        t0 = time.perf_counter()
+        run()
+        times.append(1e3 * (time.perf_counter() - t0))
+    return {"median_ms": statistics.median(times), "min_ms": min(times), "times_ms": times}
+
+
+def _leaves(out):
+    if isinstance(out, (tuple, list)):
+        for o in out:
+            yield from _leaves(o)
+    elif isinstance(out, dict):
+        for o in out.values():
+            yield from _leaves(o)
+    else:
+        yield out
+
+
+def equal_error_spp(render_at: Callable[[int], Sequence], references: Sequence, target_rmse: float,
+                    spp_list: Sequence[int], valids: Sequence | None = None, progress: Callable | None = None) -> dict:
+    """The smallest sample count whose path-traced images are at least as accurate as a method.
+
+    Args:
+      render_at: spp -> list of images for the test pairs (independent of the reference's seed).
+      references: the high-spp reference images.
+      target_rmse: the method's ``set_rmse`` against the same references.
+      spp_list: increasing sample counts to try; the search stops at the first one that reaches
+        the target.
+
+    Returns {"spp": int or None (not reached within spp_list), "tried": [{"spp", "rmse"}, ...]}.
+    """
+    tried = []
+    for spp in sorted(int(s) for s in spp_list):
+        rmse = set_rmse(render_at(spp), references, valids)
+        tried.append({"spp": spp, "rmse": rmse})
+        if progress:
+            progress(f"path tracing at {spp} spp: RMSE {rmse:.5f} (target {target_rmse:.5f})")
+        if rmse <= target_rmse:
+            return {"spp": spp, "tried": tried}
+    return {"spp": None, "tried": tried}
+
+
+def side_by_side(path: str, rows: Sequence[tuple], *, exposure: float = 0.0, diff_scale: float | None = None,
+                 titles: Sequence[str] = ("reference", "method", "|difference|")) -> None:
+    """A PNG grid, one row per (label, reference, prediction[, valid]): reference, prediction
+    (tonemapped at ``exposure``) and the absolute difference (colour-mapped; ``diff_scale`` the
+    value shown as full scale, default the 99th percentile over all rows)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    diffs = [np.abs(np.asarray(r[2]) - np.asarray(r[1])).mean(axis=-1) for r in rows]
+    vmax = diff_scale or float(np.percentile(np.concatenate([d.ravel() for d in diffs]), 99)) or 1.0
+    fig, axes = plt.subplots(len(rows), 3, figsize=(8.4, 2.8 * len(rows)), squeeze=False)
+    for i, row in enumerate(rows):
+        label, ref, pred = row[:3]
+        for j, image in enumerate((io.tonemap(np.asarray(ref), exposure=exposure),
+                                   io.tonemap(np.asarray(pred), exposure=exposure),
+                                   error_map(pred, ref, vmax=vmax))):
+            ax = axes[i, j]
+            ax.imshow(np.clip(image, 0, 1), interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_title(f"{label}: {titles[j]}" if j == 0 else titles[j], fontsize=8)
+    fig.suptitle(f"difference full scale = {vmax:.3g}", fontsize=8)
+    fig.tight_layout()
+    with io.atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
+
+
+def plot_series(path: str, series: dict, *, xlabel: str, ylabel: str, title: str = "", logx: bool = False,
+                logy: bool = False, hlines: dict | None = None) -> None:
+    """A line plot of named series {label: (xs, ys)} with optional horizontal reference lines
+    {label: y}, saved as PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.4))
+    for label, (xs, ys) in series.items():
+        ax.plot(xs, ys, marker="o", label=label)
+    for label, y in (hlines or {}).items():
+        ax.axhline(y, linestyle="--", color="gray")
+        ax.annotate(label, (0.02, y), xycoords=("axes fraction", "data"), fontsize=7, va="bottom")
+    if logx:
+        ax.set_xscale("log", base=2)
+    if logy:
+        ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=9)
+    ax.grid(True, alpha=0.3)
+    if series:
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    with io.atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)

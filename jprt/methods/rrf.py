@@ -1,0 +1,797 @@
+"""Radiance Regression Functions (Ren, Wang, Gong, Lin, Tong, Guo 2013).
+
+The indirect radiance s+(x_p, v, l) of a static scene lit by a unit point light at l is regressed
+by small tanh networks Phi_N (Eq. 8: two hidden layers, 20 and 10 nodes) of the *augmented*
+attributes x = (x_p, v, l, n, a) (Eq. 4: position, unit view direction, light position, normal,
+BRDF parameters), trained by Levenberg–Marquardt on path-traced samples (Eq. 6, Eq. 10) and
+partitioned per object by an error-driven kd-tree (§4, ``jprt.methods.kdtree``). Rendering is
+linear in the light colours (Eq. 9):
+
+    indirect(pixel) = sum_k c_k Phi(x_p, v, l_k, n, a).
+
+Contract (DESIGN.md): ``make_dataset(scene, config)`` -> ``RRFData`` (rendered once, cached on
+disk by content hash), ``fit(data, config)`` -> params pytree, ``evaluator(params, config)`` ->
+``evaluate(gbuffer, lights)`` -> (H, W, 3) indirect image.
+
+Training data (Appendix A): N_l light positions and N_v viewpoints by Latin hypercube sampling in
+user boxes; N_r random primary rays per (light, view) pair; attributes at the first hit and the
+path-traced indirect radiance (full minus direct, same seed). A 70/30 split into training and
+validation samples; every node scales its inputs and outputs to [-1, 1] by their ranges and keeps
+the scale factors with its weights (Appendix A, Beale et al.'s mapminmax).
+
+Material editing (Appendix B, ``data.mode = "material"``): the viewpoint is fixed and the view
+direction inputs are replaced by the roughness and albedo of one object; training samples vary
+them by Latin hypercube sampling, and ``evaluate(gbuffer, lights, edit=(roughness, albedo))``
+renders any edit.
+
+Deviations, stated: candidate children are warm-started from their parent (its weights mapped
+exactly into the child's input/output scaling) and, when every axis is tried, fitted for
+``train.trial_iters`` iterations on at most ``train.trial_samples`` of their training samples
+before the chosen pair is refined on all its samples to ``train.max_iters``; the paper fits every
+candidate from scratch to convergence, which costs ~D times more here.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+import sys
+import time
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jprt.config import merge, stable_hash
+from jprt.methods import kdtree
+from jprt.solve.lm import solve_batched
+
+__all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "make_dataset", "features", "fit", "fit_arrays",
+           "evaluator", "evaluator_arguments", "refit_leaves", "model_bytes", "parameter_count", "light_box", "FitInfo"]
+
+#: Inputs of Phi for each attribute set (Ren et al. Fig. 3: basic vs augmented attributes).
+ATTRIBUTE_SETS = {
+    "basic": ("position", "view", "light"),
+    "basic+a": ("position", "view", "light", "brdf"),
+    "augmented": ("position", "view", "light", "normal", "brdf"),
+}
+_WIDTHS = {"position": 3, "view": 3, "light": 3, "normal": 3, "brdf": 7}
+
+DEFAULT_CONFIG: dict = {
+    "scene": {"name": "cornell_box", "area_light": False},
+    "data": {
+        "mode": "view",  # "view" (x_p, v, l, ...) or "material" (Appendix B: v replaced by an edit)
+        "light_lo": [-0.6, 0.3, -0.6],
+        "light_hi": [0.6, 0.9, 0.6],
+        "view_lo": [-0.6, -0.4, 2.8],
+        "view_hi": [0.6, 0.4, 3.9],
+        "view_target": [0.0, 0.0, 0.0],
+        "target_jitter": 0.15,
+        "fov": 39.3077,
+        "n_lights": 20,
+        "n_views": 20,
+        "n_rays": 100,
+        "spp": 512,
+        "seed": 0,
+        "val_fraction": 0.3,
+        "material": {"object": "floor", "roughness": [0.05, 0.5], "albedo": [0.1, 0.8], "n_materials": 8,
+                     "view_origin": [0.0, 0.0, 3.9]},
+    },
+    "model": {"hidden": [20, 10], "attributes": "augmented"},
+    "tree": {"threshold": 0.05, "axis": "all", "expand": 0.1, "max_depth": 6, "min_samples": 1500, "max_leaves": 64},
+    "train": {"max_iters": 40, "trial_iters": 10, "trial_samples": 1024, "rtol": 1e-6, "damping": 1e-3, "chunk_size": 1024, "seed": 0,
+              "subset": 1.0, "progress": True},
+}
+
+
+def _cfg(config: dict | None) -> dict:
+    """DEFAULT_CONFIG merged with the RRF sections of ``config`` (other sections, e.g. an
+    experiment's ``eval`` or ``output``, are ignored here; unknown keys inside RRF sections are
+    errors)."""
+    config = config or {}
+    return merge(DEFAULT_CONFIG, {k: v for k, v in config.items() if k in DEFAULT_CONFIG})
+
+
+# --------------------------------------------------------------------------------------------
+# Training data (Appendix A)
+
+
+class RRFData(NamedTuple):
+    """Per-sample training data (N samples).
+
+    Fields: position, view (unit, surface to camera), light (light position), normal (unit,
+    facing the viewer), brdf (diffuse rgb, specular rgb, GGX alpha), edit ((N, 2) roughness and
+    albedo of the edited object in material mode, (N, 0) otherwise), object_id (N,), direct and
+    indirect (N, 3) radiance for a unit white light, pair (N,) index of the (light, view or
+    material) pair, and ``meta`` (a dict: boxes, object names, spp, seed).
+    """
+
+    position: np.ndarray
+    view: np.ndarray
+    light: np.ndarray
+    normal: np.ndarray
+    brdf: np.ndarray
+    edit: np.ndarray
+    object_id: np.ndarray
+    direct: np.ndarray
+    indirect: np.ndarray
+    pair: np.ndarray
+    meta: dict
+
+    def __len__(self) -> int:
+        return int(self.position.shape[0])
+
+    def subset(self, index) -> "RRFData":
+        """The samples at ``index`` (bool mask or integer indices)."""
+        return RRFData(*(np.asarray(a)[index] for a in self[:-1]), self.meta)
+
+
+def _brdf_vector(gb) -> np.ndarray:
+    return np.concatenate([gb.diffuse_albedo, gb.specular_albedo, np.asarray(gb.roughness)[..., None]], axis=-1)
+
+
+def _edit_description(desc: dict, obj: str, roughness: float, albedo: float) -> dict:
+    desc = copy.deepcopy(desc)
+    material = dict(desc["materials"][obj])
+    if "roughness" in material or material["type"] in ("glossy", "metal"):
+        material["roughness"] = float(roughness)
+    key = "specular" if material["type"] == "metal" else "albedo"
+    material[key] = [float(albedo)] * 3
+    desc["materials"][obj] = material
+    return desc
+
+
+def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = None,
+                 progress: bool = True) -> RRFData:
+    """Render the RRF training samples of ``scene`` (Appendix A), cached by content hash.
+
+    ``config`` is a full RRF config (``DEFAULT_CONFIG`` layout); only ``data`` matters here. The
+    cache entry ``$JPRT_CACHE/rrf/<hash>.npz`` (checksummed, written atomically) is reused when the
+    scene description and the ``data`` section are unchanged.
+    """
+    from jprt.render import cameras as cams
+    from jprt.render.dataset import _entry_state, _save_npz, cache_root
+    from jprt.render.sampling import check_box, latin_hypercube
+    from jprt.render.scenes import describe
+
+    cfg = _cfg(config)
+    data_cfg = cfg["data"]
+    desc = describe(scene)
+    if desc.get("area_light") or desc.get("keep_emitters"):
+        raise ValueError("RRF training needs a scene without emitters of its own (area_light=False, or "
+                         "keep_emitters=False for XML): Eq. 9 is linear in the point lights only")
+    mode = data_cfg["mode"]
+    if mode not in ("view", "material"):
+        raise ValueError(f"data.mode must be 'view' or 'material', got {mode!r}")
+    check_box(data_cfg["light_lo"], data_cfg["light_hi"], "data.light_lo/light_hi")
+    for key in ("n_lights", "n_views", "n_rays", "spp"):
+        if int(data_cfg[key]) <= 0:
+            raise ValueError(f"data.{key} must be positive, got {data_cfg[key]}")
+    spec = {"format": 1, "scene": desc, "data": {k: v for k, v in data_cfg.items() if k != "val_fraction"}}
+    if mode == "view":
+        spec["data"].pop("material")
+    folder = os.path.join(cache_dir or cache_root(), "rrf")
+    path = os.path.join(folder, stable_hash(spec) + ".npz")
+    if _entry_state(path) == "ok":
+        with np.load(path, allow_pickle=False) as f:
+            arrays = {k: f[k] for k in f.files}
+        return RRFData(**arrays, meta=_meta(spec, arrays))
+    os.makedirs(folder, exist_ok=True)
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(int(data_cfg["seed"]))
+    lights = latin_hypercube(rng, data_cfg["n_lights"], data_cfg["light_lo"], data_cfg["light_hi"])
+    if mode == "view":
+        check_box(data_cfg["view_lo"], data_cfg["view_hi"], "data.view_lo/view_hi")
+        origins = latin_hypercube(rng, data_cfg["n_views"], data_cfg["view_lo"], data_cfg["view_hi"])
+        targets = np.asarray(data_cfg["view_target"]) + data_cfg["target_jitter"] * (
+            2.0 * rng.random((len(origins), 3)) - 1.0)
+        setups = [(desc, cams.look_at(o, t, fov=data_cfg["fov"]), None) for o, t in zip(origins, targets)]
+    else:
+        mat = data_cfg["material"]
+        if mat["object"] not in desc.get("materials", {}):
+            raise ValueError(f"data.material.object {mat['object']!r} is not an object of this scene "
+                             f"({sorted(desc.get('materials', {}))})")
+        edits = latin_hypercube(rng, mat["n_materials"], [mat["roughness"][0], mat["albedo"][0]],
+                                [mat["roughness"][1], mat["albedo"][1]])
+        camera = cams.look_at(mat["view_origin"], data_cfg["view_target"], fov=data_cfg["fov"])
+        setups = [(_edit_description(desc, mat["object"], r, a), camera, (r, a)) for r, a in edits]
+    arrays = _render_samples(desc, setups, lights, data_cfg, rng, progress)
+    _save_npz(path, arrays)
+    arrays = {k: v for k, v in arrays.items()}
+    if progress:
+        print(f"rrf: rendered {len(arrays['position'])} samples in {time.perf_counter() - t0:.1f} s -> {path}",
+              file=sys.stderr)
+    return RRFData(**arrays, meta=_meta(spec, arrays))
+
+
+def _meta(spec: dict, arrays: dict) -> dict:
+    data = spec["data"]
+    return {"light_lo": list(map(float, data["light_lo"])), "light_hi": list(map(float, data["light_hi"])),
+            "spp": int(data["spp"]), "mode": data["mode"], "scene": spec["scene"], "hash": stable_hash(spec),
+            "material_object": data.get("material", {}).get("object")}
+
+
+def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
+    from tqdm import tqdm
+
+    from jprt.render import cameras as cams
+    from jprt.render.gbuffer import gbuffer_rays
+    from jprt.render.images import indirect_rays
+    from jprt.render.lights import PointLights
+    from jprt.render.scenes import SceneHandle
+
+    n_rays, spp, seed = int(data_cfg["n_rays"]), int(data_cfg["spp"]), int(data_cfg["seed"])
+    # The same rays for each setup's G-buffer pass; fresh random rays for every (light, setup) pair.
+    rays = [[cams.random_rays(cam, n_rays, rng) for _ in lights] for _, cam, _ in setups]
+    base = SceneHandle(base_desc, PointLights.create([lights[0]], [1.0, 1.0, 1.0]))
+    out: dict[str, list] = {k: [] for k in ("position", "view", "light", "normal", "brdf", "edit", "object_id",
+                                            "direct", "indirect", "pair")}
+    bar = tqdm(total=len(setups) * len(lights), desc="rrf samples", unit="pair", disable=not progress, leave=False)
+    for s, (desc, _, edit) in enumerate(setups):
+        handle = base if edit is None else SceneHandle(desc, PointLights.create([lights[0]], [1.0, 1.0, 1.0]))
+        o = np.concatenate([r[0] for r in rays[s]])
+        d = np.concatenate([r[1] for r in rays[s]])
+        gb = gbuffer_rays(handle, o, d)
+        gb_attr = gb if edit is None else gbuffer_rays(base, o, d)  # material mode: a from the base scene
+        for li, light in enumerate(lights):
+            sl = slice(li * n_rays, (li + 1) * n_rays)
+            keep = gb.valid[sl]
+            handle.set_lighting(PointLights.create([light], [1.0, 1.0, 1.0]))
+            rad = indirect_rays(handle, o[sl][keep], d[sl][keep], spp=spp, seed=seed * 100003 + s * 1009 + li)
+            out["position"].append(gb.position[sl][keep])
+            out["view"].append(gb.view[sl][keep])
+            out["normal"].append(gb.normal[sl][keep])
+            out["brdf"].append(_brdf_vector(gb_attr)[sl][keep])
+            out["object_id"].append(gb.object_id[sl][keep])
+            out["light"].append(np.broadcast_to(light, (int(keep.sum()), 3)))
+            out["edit"].append(np.broadcast_to(np.asarray(edit if edit is not None else [], np.float32),
+                                               (int(keep.sum()), 0 if edit is None else 2)))
+            out["direct"].append(rad.direct)
+            out["indirect"].append(rad.indirect)
+            out["pair"].append(np.full(int(keep.sum()), s * len(lights) + li, np.int32))
+            bar.update(1)
+    bar.close()
+    arrays = {k: np.concatenate(v).astype(np.int32 if k in ("object_id", "pair") else np.float32)
+              for k, v in out.items()}
+    if len(arrays["position"]) == 0:
+        raise ValueError("no training ray hit the scene: check data.view_lo/view_hi and view_target")
+    return arrays
+
+
+# --------------------------------------------------------------------------------------------
+# Attributes
+
+
+def features(attributes: str, position, view, light, normal, brdf, edit=None):
+    """The input vector x of Phi for an attribute set (``ATTRIBUTE_SETS``), last axis features.
+
+    In material mode (``edit`` given, (..., 2)) the edit parameters take the place of ``view``
+    (Appendix B). Works on NumPy and JAX arrays of any batch shape.
+    """
+    if attributes not in ATTRIBUTE_SETS:
+        raise ValueError(f"unknown attribute set {attributes!r}; use one of {sorted(ATTRIBUTE_SETS)}")
+    parts = {"position": position, "view": view if edit is None else edit, "light": light, "normal": normal,
+             "brdf": brdf}
+    return jnp.concatenate([jnp.asarray(parts[name], jnp.float32) for name in ATTRIBUTE_SETS[attributes]], axis=-1)
+
+
+def _data_features(data: RRFData, attributes: str) -> np.ndarray:
+    edit = data.edit if data.meta.get("mode") == "material" else None
+    return np.asarray(features(attributes, data.position, data.view, data.light, data.normal, data.brdf, edit))
+
+
+def input_size(attributes: str, mode: str = "view") -> int:
+    """Number of inputs of Phi for an attribute set (and data mode)."""
+    widths = dict(_WIDTHS, view=2 if mode == "material" else 3)
+    return sum(widths[name] for name in ATTRIBUTE_SETS[attributes])
+
+
+# --------------------------------------------------------------------------------------------
+# Fitting (Eq. 6, Eq. 10, §4)
+
+
+class FitInfo(NamedTuple):
+    """Side results of ``fit``: timings, the kd-tree build report, per-leaf errors, split masks."""
+
+    train_s: float
+    report: Any
+    leaf_train_error: np.ndarray
+    leaf_val_error: np.ndarray
+    is_train: np.ndarray
+    n_samples: int
+
+
+def _ranges(a: np.ndarray, eps: float = 1e-8) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = a.min(axis=0), a.max(axis=0)
+    half = 0.5 * (hi - lo)
+    return 0.5 * (hi + lo), np.where(half > eps, half, 1.0)
+
+
+def _rescale(layers, src: dict, dst: dict):
+    """Express a network trained under scaling ``src`` under scaling ``dst`` (same function):
+    x_src = x_dst * h_dst / h_src + (c_dst - c_src) / h_src folds into the first layer, and the
+    output map into the last."""
+    layers = [dict(layer) for layer in layers]
+    a = dst["in_halfrange"] / src["in_halfrange"]
+    shift = (dst["in_center"] - src["in_center"]) / src["in_halfrange"]
+    w0 = layers[0]["w"]
+    layers[0]["b"] = layers[0]["b"] + shift @ w0
+    layers[0]["w"] = a[:, None] * w0
+    ratio = src["out_halfrange"] / dst["out_halfrange"]
+    last = layers[-1]
+    last["b"] = (last["b"] * src["out_halfrange"] + src["out_center"] - dst["out_center"]) / dst["out_halfrange"]
+    last["w"] = last["w"] * ratio[None, :]
+    return layers
+
+
+def _residual(layers, sample):
+    """Eq. 6 residual of one sample in the node's scaled output space: Phi_N(x) - y."""
+    x, y = sample
+    return _forward(layers, x[None, :])[0] - y
+
+
+def _forward(layers, x):
+    h = x
+    for i, layer in enumerate(layers):
+        h = h @ layer["w"] + layer["b"][None, :]
+        if i < len(layers) - 1:
+            h = jnp.tanh(h)
+    return h
+
+
+def _forward_np(layers, x: np.ndarray) -> np.ndarray:
+    """NumPy twin of ``_forward`` for host-side error estimates (no per-shape compilation)."""
+    h = np.asarray(x, np.float32)
+    for i, layer in enumerate(layers):
+        h = h @ np.asarray(layer["w"]) + np.asarray(layer["b"])
+        if i < len(layers) - 1:
+            h = np.tanh(h)
+    return h
+
+
+def _bucket(n: int, minimum: int = 256) -> int:
+    """Padded sample count: steps of sqrt(2) rounded up to multiples of 256 (few compiled shapes,
+    at most ~40 % padding)."""
+    size = minimum
+    while size < n:
+        size = int(math.ceil(size * math.sqrt(2.0) / 256.0) * 256)
+    return size
+
+
+class _NodeFitter:
+    """The kd-tree's ``fit_nodes``: fits many nodes at once with ``solve_batched`` (problems
+    grouped by padded sample count), returns weights + scaling and relative errors."""
+
+    def __init__(self, x, y, sizes, cfg, seed: int, say):
+        self.x, self.y, self.sizes, self.cfg, self.say = x, y, tuple(sizes), cfg, say
+        self.rng = np.random.default_rng(seed)
+        self.calls = 0
+
+    def init_layers(self) -> list:
+        """Weights uniform in [-1, 1] (Appendix A), drawn on the host."""
+        return [{"w": self.rng.uniform(-1.0, 1.0, (a, b)).astype(np.float32),
+                 "b": self.rng.uniform(-1.0, 1.0, (b,)).astype(np.float32)}
+                for a, b in zip(self.sizes[:-1], self.sizes[1:])]
+
+    def __call__(self, problems, iters: int | None = None):
+        t = self.cfg["train"]
+        iters = int(iters or t["max_iters"])
+        out: list = [None] * len(problems)
+        groups: dict[int, list[int]] = {}
+        for i, p in enumerate(problems):
+            groups.setdefault(_bucket(len(p.train)), []).append(i)
+        for npad, members in sorted(groups.items()):
+            results = self._fit_group([problems[i] for i in members], npad, iters)
+            for i, r in zip(members, results):
+                out[i] = r
+        self.calls += 1
+        return out
+
+    def errors(self, problem) -> tuple[float, float]:
+        """(train, val) relative errors of ``problem.init`` (a payload) on the problem's samples."""
+        s, layers = problem.init["scaling"], problem.init["layers"]
+
+        def err(idx):
+            xv = (self.x[idx] - s["in_center"]) / s["in_halfrange"]
+            yv = _forward_np(layers, xv) * s["out_halfrange"] + s["out_center"]
+            return _relative_error(yv, self.y[idx])
+
+        train = err(problem.train)
+        return train, (err(problem.val) if len(problem.val) else train)
+
+    def _fit_group(self, problems, npad, iters):
+        t = self.cfg["train"]
+        d, r = self.x.shape[1], self.y.shape[1]
+        b = len(problems)
+        xs = np.zeros((b, npad, d), np.float32)
+        ys = np.zeros((b, npad, r), np.float32)
+        mask = np.zeros((b, npad), np.float32)
+        scalings, inits = [], []
+        for j, p in enumerate(problems):
+            xi, yi = self.x[p.train], self.y[p.train]
+            ic, ih = _ranges(xi)
+            oc, oh = _ranges(yi)
+            scaling = {"in_center": ic, "in_halfrange": ih, "out_center": oc, "out_halfrange": oh}
+            scalings.append(scaling)
+            n = len(p.train)
+            xs[j, :n] = (xi - ic) / ih
+            ys[j, :n] = (yi - oc) / oh
+            mask[j, :n] = 1.0
+            if p.init is not None:
+                layers = _rescale([{k: np.asarray(v) for k, v in layer.items()} for layer in p.init["layers"]],
+                                  {k: np.asarray(v) for k, v in p.init["scaling"].items()}, scaling)
+            else:
+                layers = self.init_layers()
+            inits.append(layers)
+        params = jax.tree_util.tree_map(lambda *a: np.stack(a).astype(np.float32), *inits)
+        res = solve_batched(_residual, params, (jnp.asarray(xs), jnp.asarray(ys)),
+                            mask=jnp.asarray(mask), max_iters=iters, rtol=float(t["rtol"]),
+                            damping=float(t["damping"]), chunk_size=int(t["chunk_size"]))
+        layers = jax.tree_util.tree_map(np.asarray, res.params)
+        fits = []
+        for j, p in enumerate(problems):
+            s = scalings[j]
+            n = len(p.train)
+            node_layers = [{k: v[j] for k, v in layer.items()} for layer in layers]
+            yhat = _forward_np(node_layers, xs[j, :n]) * s["out_halfrange"] + s["out_center"]
+            train_err = _relative_error(yhat, self.y[p.train])
+            val_err = train_err
+            if len(p.val):
+                xv = (self.x[p.val] - s["in_center"]) / s["in_halfrange"]
+                yv = _forward_np(node_layers, xv) * s["out_halfrange"] + s["out_center"]
+                val_err = _relative_error(yv, self.y[p.val])
+            fits.append(kdtree.NodeFit({"layers": node_layers, "scaling": s}, train_err, val_err))
+        return fits
+
+
+def _relative_error(pred, ref) -> float:
+    """sqrt(sum ||pred - ref||^2 / sum ||ref||^2) (§4: the 5 % relative error)."""
+    return float(np.sqrt(np.sum(np.square(pred - ref)) / max(float(np.sum(np.square(ref))), 1e-30)))
+
+
+def _split(n: int, val_fraction: float, seed: int) -> np.ndarray:
+    if not (0.0 <= val_fraction < 1.0):
+        raise ValueError(f"data.val_fraction must be in [0, 1), got {val_fraction}")
+    rng = np.random.default_rng(seed + 7)
+    is_train = np.ones(n, bool)
+    is_train[rng.permutation(n)[: int(round(val_fraction * n))]] = False
+    return is_train
+
+
+def fit(data: RRFData, config: dict | None = None, *, is_train=None):
+    """Fit the kd-tree of RRFs to ``data`` (§4, Appendix A). Returns ``(params, info)``.
+
+    ``params`` is a pytree of arrays (kd-tree, per-object input boxes, stacked leaf networks with
+    their scaling, the trained light box) for ``evaluator``; ``info`` a ``FitInfo``.
+    ``is_train`` overrides the seeded 70/30 split; ``train.subset`` < 1 keeps that random
+    fraction of the training samples (the Table 3 / Fig. 6 experiments).
+    """
+    cfg = _cfg(config)
+    x = _data_features(data, cfg["model"]["attributes"])
+    if is_train is None:
+        is_train = _split(len(data), float(cfg["data"]["val_fraction"]), int(cfg["train"]["seed"]))
+    is_train = np.asarray(is_train, bool).copy()
+    subset = float(cfg["train"]["subset"])
+    if not (0.0 < subset <= 1.0):
+        raise ValueError(f"train.subset must be in (0, 1], got {subset}")
+    if subset < 1.0:
+        rng = np.random.default_rng(int(cfg["train"]["seed"]) + 13)
+        train_idx = np.flatnonzero(is_train)
+        drop = rng.permutation(train_idx)[int(round(subset * len(train_idx))):]
+        keep = np.ones(len(data), bool)
+        keep[drop] = False
+        x, data, is_train = x[keep], data.subset(keep), is_train[keep]
+    params, info = fit_arrays(x, data.indirect, data.object_id, cfg, is_train=is_train)
+    params["light_lo"] = jnp.asarray(data.meta["light_lo"], jnp.float32)
+    params["light_hi"] = jnp.asarray(data.meta["light_hi"], jnp.float32)
+    return params, info
+
+
+def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None):
+    """Fit the partitioned RRF to arbitrary inputs ``x`` (N, D) and outputs ``y`` (N, R).
+
+    The generic core of ``fit`` (synthetic targets in tests use it directly). Returns
+    ``(params, info)``; ``params`` has no light box (add ``light_lo``/``light_hi`` for rendering).
+    """
+    cfg = _cfg(config)
+    x = np.asarray(x, np.float32)
+    y = np.asarray(y, np.float32)
+    object_id = np.asarray(object_id, np.int32)
+    if x.ndim != 2 or y.ndim != 2 or len(x) != len(y) or object_id.shape != (len(x),):
+        raise ValueError(f"need x (N, D), y (N, R), object_id (N,); got {x.shape}, {y.shape}, {object_id.shape}")
+    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+        raise ValueError("RRF training data contains NaN or infinite values")
+    if is_train is None:
+        is_train = _split(len(x), float(cfg["data"]["val_fraction"]), int(cfg["train"]["seed"]))
+    t = cfg["train"]
+    tree_cfg = cfg["tree"]
+    sizes = (x.shape[1], *cfg["model"]["hidden"], y.shape[1])
+    say = (lambda msg: print(f"rrf: {msg}", file=sys.stderr)) if t["progress"] else (lambda msg: None)
+    t0 = time.perf_counter()
+
+    # Per-object normalisation of the input box to the unit hypercube (§4, Fig. 4 c-d).
+    n_obj = int(object_id.max()) + 1
+    obj_lo = np.zeros((n_obj, x.shape[1]), np.float32)
+    obj_hi = np.ones((n_obj, x.shape[1]), np.float32)
+    for o in np.unique(object_id):
+        if o < 0:
+            continue
+        sel = x[object_id == o]
+        obj_lo[o], obj_hi[o] = sel.min(axis=0), sel.max(axis=0)
+    span = np.where(obj_hi - obj_lo > 1e-8, obj_hi - obj_lo, 1.0)
+    safe = np.maximum(object_id, 0)
+    xn = (x - obj_lo[safe]) / span[safe]
+
+    fitter = _NodeFitter(x, y, sizes, cfg, int(t["seed"]), say)
+    max_iters = int(t["max_iters"])
+    trial_iters = min(int(t["trial_iters"]), max_iters) if tree_cfg["axis"] == "all" else max_iters
+
+    def fit_nodes(problems, stage):
+        if stage == "root":
+            say(f"fitting {len(problems)} root RRF(s) on {int(is_train.sum())} training samples")
+            return fitter(problems, max_iters)
+        if stage == "candidate":
+            cap = int(t["trial_samples"])
+            if cap > 0:  # compare axes on a random subsample of each candidate's training samples
+                rng = np.random.default_rng(int(t["seed"]) + 17)
+                problems = [p._replace(train=np.sort(rng.permutation(p.train)[:cap])) if len(p.train) > cap else p
+                            for p in problems]
+            return fitter(problems, trial_iters)
+        if trial_iters >= max_iters:  # candidates were fitted to the full budget already
+            return [kdtree.NodeFit(p.init, *fitter.errors(p)) for p in problems]
+        return fitter(problems, max_iters - trial_iters)
+
+    tree, payloads, report = kdtree.build(
+        xn, object_id, is_train, fit_nodes, threshold=float(tree_cfg["threshold"]), axis=tree_cfg["axis"],
+        expand=float(tree_cfg["expand"]), max_depth=int(tree_cfg["max_depth"]),
+        min_samples=int(tree_cfg["min_samples"]), max_leaves=int(tree_cfg["max_leaves"]), seed=int(t["seed"]),
+        progress=say)
+    leaf_payloads = payloads
+    params = _pack(tree, obj_lo, obj_hi, leaf_payloads)
+    train_err, val_err = _leaf_errors(params, xn, x, y, object_id, is_train)
+    info = FitInfo(time.perf_counter() - t0, report, train_err, val_err, is_train, len(x))
+    say(f"{tree.n_leaves} leaves, max depth {tree.max_depth}, {info.train_s:.1f} s; leaf relative error "
+        f"train median {np.median(train_err):.3f} / val median {np.median(val_err):.3f}")
+    return params, info
+
+
+def _leaf_problem(xn, object_id, is_train, obj, lo, hi, expand, init):
+    idx = np.flatnonzero(object_id == obj)
+    train = kdtree.node_samples(xn, lo, hi, expand, idx[is_train[idx]])
+    sub = xn[idx[~is_train[idx]]]
+    val = idx[~is_train[idx]][np.all((sub >= lo) & (sub < hi), axis=1)]
+    payload = init.payload if isinstance(init, kdtree.NodeFit) else init
+    return kdtree.Problem(train, val, payload)
+
+
+def _pack(tree: kdtree.KDTree, obj_lo, obj_hi, payloads) -> dict:
+    stack = lambda *a: jnp.asarray(np.stack([np.asarray(v) for v in a]), jnp.float32)  # noqa: E731
+    leaves = jax.tree_util.tree_map(stack, *payloads)
+    return {"tree": {k: jnp.asarray(v) for k, v in tree._asdict().items()},
+            "obj_lo": jnp.asarray(obj_lo), "obj_hi": jnp.asarray(obj_hi), "leaves": leaves}
+
+
+def _tree(params) -> kdtree.KDTree:
+    return kdtree.KDTree(**params["tree"])
+
+
+def _leaf_errors(params, xn, x, y, object_id, is_train):
+    """Per-leaf relative errors on the samples routed to each leaf (training / validation)."""
+    tree = kdtree.KDTree(*(np.asarray(a) for a in _tree(params)))
+    leaf = kdtree.traverse(tree, object_id, xn, xp=np)
+    leaves = jax.tree_util.tree_map(np.asarray, params["leaves"])
+    n_leaves = leaves["layers"][0]["w"].shape[0]
+    tr, va = np.full(n_leaves, np.nan), np.full(n_leaves, np.nan)
+    for i in range(n_leaves):
+        layers = [{k: v[i] for k, v in layer.items()} for layer in leaves["layers"]]
+        s = {k: v[i] for k, v in leaves["scaling"].items()}
+        for out, sel in ((tr, (leaf == i) & is_train), (va, (leaf == i) & ~is_train)):
+            if sel.any():
+                pred = _forward_np(layers, (x[sel] - s["in_center"]) / s["in_halfrange"])
+                out[i] = _relative_error(pred * s["out_halfrange"] + s["out_center"], y[sel])
+    return tr, va
+
+
+# --------------------------------------------------------------------------------------------
+# Evaluation (Eq. 8, Eq. 9)
+
+
+def _predict(params, x, object_id, block: int = 512):
+    """Phi(x) for samples x (N, D) of objects ``object_id`` (N,); 0 for samples of objects without
+    a tree (or object_id < 0).
+
+    kd-tree traversal gives each sample a leaf; samples are then sorted by leaf into a padded
+    layout where every leaf owns whole blocks of ``block`` samples, so each block is one small
+    dense matrix product with its leaf's weights (the "one network per partition" kernels of
+    Ren et al. §4, with no loop over leaves and only N + (L + 1) x block padded rows)."""
+    n, d = x.shape
+    leaves = params["leaves"]
+    n_leaves = leaves["layers"][0]["w"].shape[0]
+    obj = jnp.clip(object_id, 0, params["obj_lo"].shape[0] - 1)
+    lo, hi = params["obj_lo"][obj], params["obj_hi"][obj]
+    xn = (x - lo) / jnp.where(hi - lo > 1e-8, hi - lo, 1.0)
+    leaf = kdtree.traverse(_tree(params), object_id, xn)
+    group = jnp.where(leaf >= 0, leaf, n_leaves)  # group n_leaves: no network, output 0
+    counts = jnp.bincount(group, length=n_leaves + 1)
+    padded = (counts + block - 1) // block * block
+    ends = jnp.cumsum(padded)
+    starts = ends - padded
+    order = jnp.argsort(group, stable=True)
+    g_sorted = group[order]
+    rank = jnp.arange(n) - (jnp.cumsum(counts) - counts)[g_sorted]
+    dest = starts[g_sorted] + rank
+    n_blocks = -(-(n + (n_leaves + 1) * block) // block)
+    xp = jnp.zeros((n_blocks * block, d), x.dtype).at[dest].set(x[order])
+    block_group = jnp.searchsorted(ends, jnp.arange(n_blocks) * block, side="right")
+    has_net = block_group < n_leaves
+    bl = jnp.minimum(block_group, n_leaves - 1)
+    s = jax.tree_util.tree_map(lambda a: a[bl], leaves["scaling"])
+    h = (xp.reshape(n_blocks, block, d) - s["in_center"][:, None, :]) / s["in_halfrange"][:, None, :]
+    layers = leaves["layers"]
+    for i, layer in enumerate(layers):
+        h = jnp.einsum("kbi,kio->kbo", h, layer["w"][bl]) + layer["b"][bl][:, None, :]
+        if i < len(layers) - 1:
+            h = jnp.tanh(h)
+    y = h * s["out_halfrange"][:, None, :] + s["out_center"][:, None, :]
+    y = jnp.where(has_net[:, None, None], y, 0.0).reshape(n_blocks * block, -1)
+    return jnp.zeros((n, y.shape[-1]), y.dtype).at[order].set(y[dest])
+
+
+def light_box(params) -> tuple[np.ndarray, np.ndarray]:
+    """The light-position box the model was trained on (lo, hi)."""
+    return np.asarray(params["light_lo"]), np.asarray(params["light_hi"])
+
+
+def evaluator(params, config: dict | None = None, *, extrapolation: str = "error", tolerance: float = 0.02,
+              block: int = 512):
+    """The RRF renderer: ``evaluate(gbuffer, lights, edit=None) -> (H, W, 3)`` indirect radiance.
+
+    Args:
+      params: from ``fit``.
+      config: the config used to fit (attribute set, data mode).
+      extrapolation: lights outside the trained light box (grown by ``tolerance`` of its size):
+        "error" raises ValueError (default), "clamp" moves them onto the box, "allow" evaluates
+        anyway (RRFs extrapolate poorly, Ren et al. §7).
+      block: samples per leaf block in ``_predict`` (one dense product per block).
+
+    ``gbuffer`` is a ``jprt.render.gbuffer.GBuffer`` (H, W, ...) or any object with its fields;
+    ``lights`` a ``PointLights`` (K positions, K RGB intensities). Eq. 9: sum over lights of
+    colour times Phi. Invalid pixels are 0; an all-invalid G-buffer gives a zero image; an empty
+    (0-pixel) G-buffer, NaN attributes at valid pixels or NaN lights raise ValueError (checks run on
+    concrete inputs; under an outer ``jax.jit`` they are skipped and NaN inputs give NaN pixels).
+    One compiled program per (image size, number of lights); ``evaluate.traces`` counts traces.
+    ``evaluate.core(arrays..., positions, colours)`` is the pure array function (for
+    ``jax.export``).
+    """
+    cfg = _cfg(config)
+    attributes = cfg["model"]["attributes"]
+    material = cfg["data"]["mode"] == "material"
+    if extrapolation not in ("error", "clamp", "allow"):
+        raise ValueError(f"extrapolation must be 'error', 'clamp' or 'allow', got {extrapolation!r}")
+    lo, hi = light_box(params)
+    margin = tolerance * (hi - lo)
+    traces = [0]
+
+    def core(position, view, normal, diffuse, specular, roughness, object_id, valid, light_pos, light_rgb,
+             edit):
+        traces[0] += 1
+        h, w = object_id.shape
+        if extrapolation == "clamp":
+            light_pos = jnp.clip(light_pos, params["light_lo"][None, :], params["light_hi"][None, :])
+        brdf = jnp.concatenate([diffuse, specular, roughness[..., None]], axis=-1).reshape(-1, 7)
+        k = light_pos.shape[0]
+        p = h * w
+
+        def per_light(lp):
+            e = None if not material else jnp.broadcast_to(edit, (p, 2))
+            return features(attributes, position.reshape(-1, 3), view.reshape(-1, 3), jnp.broadcast_to(lp, (p, 3)),
+                            normal.reshape(-1, 3), brdf, e)
+
+        x = jax.vmap(per_light)(light_pos).reshape(k * p, -1)
+        obj = jnp.where(valid.reshape(-1), object_id.reshape(-1), -1)
+        y = _predict(params, x, jnp.tile(obj, k), block).reshape(k, p, -1)
+        out = jnp.einsum("kpc,kc->pc", y, light_rgb)
+        return out.reshape(h, w, -1)
+
+    jitted = jax.jit(core)
+
+    def evaluate(gbuffer, lights, edit=None):
+        if material and edit is None:
+            raise ValueError("this RRF was trained for material editing: pass edit=(roughness, albedo)")
+        args = evaluator_arguments(gbuffer, lights, edit)
+        if not isinstance(args[8], jax.core.Tracer):
+            _check_inputs(gbuffer, np.asarray(args[8]), np.asarray(args[9]), lo, hi, margin, extrapolation)
+        return jitted(*args)
+
+    evaluate.core = core
+    evaluate.jitted = jitted
+    evaluate.traces = traces
+    return evaluate
+
+
+def evaluator_arguments(gbuffer, lights, edit=None) -> tuple:
+    """The array arguments of ``evaluate.jitted`` / ``evaluate.core`` for a G-buffer, point
+    lights and an optional material edit (for ``jax.export`` and timing without checks)."""
+    return (jnp.asarray(gbuffer.position, jnp.float32), jnp.asarray(gbuffer.view, jnp.float32),
+            jnp.asarray(gbuffer.normal, jnp.float32), jnp.asarray(gbuffer.diffuse_albedo, jnp.float32),
+            jnp.asarray(gbuffer.specular_albedo, jnp.float32), jnp.asarray(gbuffer.roughness, jnp.float32),
+            jnp.asarray(gbuffer.object_id, jnp.int32), jnp.asarray(gbuffer.valid, bool),
+            jnp.asarray(lights.position, jnp.float32).reshape(-1, 3),
+            jnp.asarray(lights.intensity, jnp.float32).reshape(-1, 3),
+            jnp.zeros((2,), jnp.float32) if edit is None else jnp.asarray(edit, jnp.float32).reshape(2))
+
+
+def _check_inputs(gbuffer, light_pos, light_rgb, lo, hi, margin, extrapolation):
+    valid = np.asarray(gbuffer.valid, bool)
+    if valid.ndim != 2 or valid.size == 0:
+        raise ValueError(f"empty G-buffer (valid mask of shape {valid.shape}); need H x W > 0 pixels")
+    if light_pos.shape[0] == 0:
+        raise ValueError("need at least one light")
+    if not (np.isfinite(light_pos).all() and np.isfinite(light_rgb).all()):
+        raise ValueError("light positions or colours contain NaN or infinite values")
+    for name in ("position", "view", "normal", "diffuse_albedo", "specular_albedo", "roughness"):
+        a = np.asarray(getattr(gbuffer, name))
+        bad = ~np.isfinite(a[valid])
+        if bad.any():
+            raise ValueError(f"G-buffer field {name!r} has {int(bad.reshape(bad.shape[0], -1).any(-1).sum())} "
+                             f"valid pixel(s) with NaN or infinite values")
+    if extrapolation == "error":
+        outside = np.any((light_pos < lo - margin) | (light_pos > hi + margin), axis=1)
+        if outside.any():
+            k = int(np.flatnonzero(outside)[0])
+            raise ValueError(f"light {k} at {light_pos[k].tolist()} is outside the trained light box "
+                             f"lo={lo.tolist()} hi={hi.tolist()}; RRFs do not extrapolate "
+                             f"(use extrapolation='clamp' or 'allow')")
+
+
+# --------------------------------------------------------------------------------------------
+# Robustness (Table 3): refit the leaves of a fixed tree
+
+
+def refit_leaves(params, data: RRFData, config: dict | None, info: FitInfo, variants: list[dict]):
+    """Refit every leaf of ``params``'s kd-tree for several variants in one batched LM solve.
+
+    Each variant is {"seed": int, "subset": float}: fresh random weights from ``seed`` and a
+    random ``subset`` fraction of each leaf's training samples. The tree stays fixed (Table 3
+    measures the spread due to the data subset and the initial weights). Returns a list of params.
+    """
+    cfg = _cfg(config)
+    x = _data_features(data, cfg["model"]["attributes"])
+    y, object_id = data.indirect, data.object_id
+    obj = np.maximum(object_id, 0)
+    xn = (x - np.asarray(params["obj_lo"])[obj]) / np.where(
+        np.asarray(params["obj_hi"] - params["obj_lo"])[obj] > 1e-8, np.asarray(params["obj_hi"] - params["obj_lo"])[obj], 1.0)
+    objs, lo, hi = kdtree.leaf_cells(_tree(params))
+    sizes = (x.shape[1], *cfg["model"]["hidden"], y.shape[1])
+    problems = []
+    for v in variants:
+        rng = np.random.default_rng(int(v["seed"]) + 101)
+        for i in range(len(objs)):
+            p = _leaf_problem(xn, object_id, info.is_train, objs[i], lo[i], hi[i], float(cfg["tree"]["expand"]), None)
+            train = p.train
+            if float(v.get("subset", 1.0)) < 1.0:
+                train = np.sort(rng.permutation(train)[: max(1, int(round(v["subset"] * len(train))))])
+            problems.append(kdtree.Problem(train, p.val, None))
+    fitter = _NodeFitter(x, y, sizes, cfg, sum(int(v["seed"]) * 7919 for v in variants), lambda m: None)
+    fits = fitter(problems, int(cfg["train"]["max_iters"]))
+    out = []
+    n = len(objs)
+    for j in range(len(variants)):
+        payloads = [f.payload for f in fits[j * n:(j + 1) * n]]
+        new = dict(params)
+        new["leaves"] = jax.tree_util.tree_map(lambda *a: jnp.asarray(np.stack([np.asarray(v) for v in a])),
+                                               *payloads)
+        out.append(new)
+    return out
+
+
+def parameter_count(params) -> int:
+    """Trainable weights over all leaves."""
+    return int(sum(np.asarray(leaf).size for leaf in jax.tree_util.tree_leaves(params["leaves"]["layers"])))
+
+
+def model_bytes(params) -> int:
+    """Bytes of every array the evaluator needs (weights, scalings, tree, boxes)."""
+    return int(sum(np.asarray(leaf).nbytes for leaf in jax.tree_util.tree_leaves(params)))

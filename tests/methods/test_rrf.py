@@ -1,0 +1,250 @@
+"""Radiance Regression Functions (Ren et al. 2013): fitting, Eq. 9 evaluation, bad input, data."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jprt.methods import kdtree, rrf
+from jprt.render.gbuffer import GBuffer
+from jprt.render.lights import PointLights
+
+TINY = {"model": {"hidden": [6, 4]}, "train": {"max_iters": 3, "trial_iters": 1, "progress": False},
+        "tree": {"threshold": 1e-6, "max_depth": 2, "min_samples": 30, "axis": "random"}}
+
+
+def _fake_gbuffer(h=6, w=5, seed=0, n_objects=2):
+    rng = np.random.default_rng(seed)
+    unit = lambda a: a / np.linalg.norm(a, axis=-1, keepdims=True)  # noqa: E731
+    valid = rng.random((h, w)) > 0.2
+    return GBuffer(
+        position=rng.uniform(-1, 1, (h, w, 3)).astype(np.float32),
+        normal=unit(rng.normal(size=(h, w, 3))).astype(np.float32),
+        view=unit(rng.normal(size=(h, w, 3))).astype(np.float32),
+        reflected=np.zeros((h, w, 3), np.float32), uv=np.zeros((h, w, 2), np.float32),
+        diffuse_albedo=rng.random((h, w, 3)).astype(np.float32),
+        specular_albedo=np.zeros((h, w, 3), np.float32), roughness=np.ones((h, w), np.float32),
+        object_id=np.where(valid, rng.integers(0, n_objects, (h, w)), -1).astype(np.int32), valid=valid)
+
+
+@pytest.fixture(scope="module")
+def model():
+    """A (poorly trained, multi-leaf) RRF over random augmented attributes: Eq. 9 and the
+    evaluator's contracts do not depend on fit quality."""
+    rng = np.random.default_rng(1)
+    n = 600
+    x = np.concatenate([rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3)), rng.uniform([-0.5, 0.3, -0.5],
+                        [0.5, 0.9, 0.5], (n, 3)), rng.normal(size=(n, 3)), rng.random((n, 7))], axis=1)
+    y = np.abs(np.sin(x[:, :3] + x[:, 6:9]))
+    obj = rng.integers(0, 2, n)
+    params, info = rrf.fit_arrays(x, y, obj, TINY)
+    params["light_lo"] = jnp.asarray([-0.5, 0.3, -0.5])
+    params["light_hi"] = jnp.asarray([0.5, 0.9, 0.5])
+    return params, info
+
+
+def test_smooth_target_single_leaf():
+    rng = np.random.default_rng(0)
+    x = rng.random((1500, 3)).astype(np.float32)
+    y = np.stack([1.0 + 0.5 * np.sin(2.0 * x[:, 0]) + 0.3 * x[:, 1] * x[:, 2]] * 3, axis=1)
+    cfg = {"model": {"hidden": [8, 4]}, "train": {"max_iters": 40, "progress": False}, "tree": {"min_samples": 50}}
+    params, info = rrf.fit_arrays(x, y, np.zeros(len(x), np.int32), cfg)
+    assert kdtree.KDTree(**params["tree"]).n_leaves == 1
+    assert info.leaf_val_error[0] < 0.01  # stated: a smooth target is fit below 1 % relative error
+    test = rng.random((500, 3)).astype(np.float32)
+    ref = 1.0 + 0.5 * np.sin(2.0 * test[:, 0]) + 0.3 * test[:, 1] * test[:, 2]
+    pred = np.asarray(rrf._predict(params, jnp.asarray(test), jnp.zeros(500, jnp.int32)))
+    assert rrf._relative_error(pred[:, 0], ref) < 0.01
+
+
+def test_rescale_is_exact():
+    rng = np.random.default_rng(0)
+    layers = [{"w": rng.normal(size=(3, 5)), "b": rng.normal(size=5)}, {"w": rng.normal(size=(5, 2)),
+                                                                     "b": rng.normal(size=2)}]
+    src = {"in_center": rng.normal(size=3), "in_halfrange": rng.random(3) + 0.5,
+           "out_center": rng.normal(size=2), "out_halfrange": rng.random(2) + 0.5}
+    dst = {"in_center": rng.normal(size=3), "in_halfrange": rng.random(3) + 0.5,
+           "out_center": rng.normal(size=2), "out_halfrange": rng.random(2) + 0.5}
+    x = rng.normal(size=(20, 3))
+    f = lambda ls, s: np.asarray(rrf._forward(ls, (x - s["in_center"]) / s["in_halfrange"])) * s["out_halfrange"] \
+        + s["out_center"]  # noqa: E731
+    np.testing.assert_allclose(f(rrf._rescale(layers, src, dst), dst), f(layers, src), rtol=1e-4, atol=1e-5)
+
+
+def test_eq9_linearity(model):
+    params, _ = model
+    assert kdtree.KDTree(**params["tree"]).n_leaves > 2
+    evaluate = rrf.evaluator(params)
+    gb = _fake_gbuffer()
+    a = PointLights.create([[0.1, 0.5, 0.0]], [1.0, 0.5, 2.0])
+    b = PointLights.create([[-0.3, 0.8, 0.2]], [0.3, 1.0, 0.7])
+    both = PointLights.create([[0.1, 0.5, 0.0], [-0.3, 0.8, 0.2]], [[1.0, 0.5, 2.0], [0.3, 1.0, 0.7]])
+    ia, ib, iab = (np.asarray(evaluate(gb, lights)) for lights in (a, b, both))
+    np.testing.assert_allclose(iab, ia + ib, rtol=1e-5, atol=1e-6)
+    assert np.abs(ia).max() > 0
+    twice = PointLights.create([[0.1, 0.5, 0.0]], [2.0, 1.0, 4.0])
+    np.testing.assert_allclose(np.asarray(evaluate(gb, twice)), 2 * ia, rtol=1e-5, atol=1e-6)
+    assert np.all(ia[~gb.valid] == 0)
+
+
+def test_no_recompile_for_same_light_count(model):
+    params, _ = model
+    evaluate = rrf.evaluator(params)
+    gb = _fake_gbuffer()
+    for k in range(3):
+        evaluate(gb, PointLights.create([[0.1 * k, 0.5, 0.0], [0.0, 0.6, 0.1 * k]], [1.0, 1.0, 1.0]))
+    assert evaluate.traces[0] == 1
+    evaluate(gb, PointLights.create([[0.0, 0.5, 0.0]], [1.0, 1.0, 1.0]))
+    assert evaluate.traces[0] == 2
+
+
+def test_traversal_in_evaluator_matches_brute_force(model):
+    params, _ = model
+    rng = np.random.default_rng(3)
+    x = rng.random((300, 19)).astype(np.float32)
+    obj = rng.integers(-1, 3, 300)  # includes no-tree and out-of-range objects
+    tree = kdtree.KDTree(**{k: np.asarray(v) for k, v in params["tree"].items()})
+    np.testing.assert_array_equal(np.asarray(kdtree.traverse(tree, obj, x)), kdtree.brute_force_lookup(tree, obj, x))
+
+
+def test_bad_input(model):
+    params, _ = model
+    evaluate = rrf.evaluator(params)
+    gb = _fake_gbuffer()
+    inside = PointLights.create([[0.5, 0.9, 0.5]], [1.0, 1.0, 1.0])
+    outside = PointLights.create([[2.0, 0.5, 0.0]], [1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match="outside the trained light box"):
+        evaluate(gb, outside)
+    clamped = rrf.evaluator(params, extrapolation="clamp")(gb, outside)
+    np.testing.assert_allclose(np.asarray(clamped), np.asarray(evaluate(gb, PointLights.create(
+        [[0.5, 0.5, 0.0]], [1.0, 1.0, 1.0]))), rtol=1e-6, atol=1e-7)
+    rrf.evaluator(params, extrapolation="allow")(gb, outside)  # documented: evaluates anyway
+    empty = GBuffer(*(np.asarray(a)[:0] for a in gb))
+    with pytest.raises(ValueError, match="empty G-buffer"):
+        evaluate(empty, inside)
+    none_valid = gb._replace(valid=np.zeros_like(gb.valid), object_id=np.full_like(gb.object_id, -1))
+    assert np.all(np.asarray(evaluate(none_valid, inside)) == 0)  # documented: all-invalid -> zeros
+    bad = gb._replace(normal=np.where(gb.valid[..., None], np.nan, gb.normal))
+    with pytest.raises(ValueError, match="'normal' has .* NaN"):
+        evaluate(bad, inside)
+    ok_nan = gb._replace(normal=np.where(~gb.valid[..., None], np.nan, gb.normal))  # NaN at invalid pixels only
+    assert np.all(np.isfinite(np.asarray(evaluate(ok_nan, inside))))
+    with pytest.raises(ValueError, match="extrapolation"):
+        rrf.evaluator(params, extrapolation="extrapolate")
+    with pytest.raises(ValueError, match="NaN"):
+        rrf.fit_arrays(np.full((10, 3), np.nan), np.ones((10, 3)), np.zeros(10, int), TINY)
+
+
+def test_export_roundtrip(model):
+    from jprt.export import export_function, load_function
+
+    params, _ = model
+    evaluate = rrf.evaluator(params)
+    gb = _fake_gbuffer()
+    lights = PointLights.create([[0.1, 0.5, 0.0], [0.2, 0.7, -0.1]], [[1.0, 0.5, 2.0], [1, 1, 1]])
+    args = rrf.evaluator_arguments(gb, lights)
+    blob = export_function(evaluate.jitted, *args)
+    loaded = load_function(blob)
+    np.testing.assert_allclose(np.asarray(loaded(*args)), np.asarray(evaluate(gb, lights)), rtol=1e-6, atol=1e-7)
+
+
+def test_refit_leaves_variants(model):
+    params, info = model
+    rng = np.random.default_rng(1)
+    n = info.n_samples
+    data = rrf.RRFData(position=rng.uniform(-1, 1, (n, 3)), view=rng.normal(size=(n, 3)),
+                       light=rng.uniform([-0.5, 0.3, -0.5], [0.5, 0.9, 0.5], (n, 3)), normal=rng.normal(size=(n, 3)),
+                       brdf=rng.random((n, 7)), edit=np.zeros((n, 0)), object_id=rng.integers(0, 2, n),
+                       direct=np.zeros((n, 3)), indirect=rng.random((n, 3)), pair=np.zeros(n, int),
+                       meta={"mode": "view"})
+    variants = rrf.refit_leaves(params, data, TINY, info, [{"seed": 1, "subset": 0.7}, {"seed": 2, "subset": 1.0}])
+    assert len(variants) == 2
+    for v in variants:
+        assert v["tree"] is params["tree"]
+        assert v["leaves"]["layers"][0]["w"].shape == params["leaves"]["layers"][0]["w"].shape
+    assert not np.allclose(variants[0]["leaves"]["layers"][0]["w"], variants[1]["leaves"]["layers"][0]["w"])
+
+
+def test_make_dataset_tiny(mi, tmp_path):
+    from jprt.render.images import RENDER_STATS
+
+    cfg = {"data": {"n_lights": 3, "n_views": 2, "n_rays": 24, "spp": 4}}
+    data = rrf.make_dataset({"name": "cornell_box", "area_light": False}, cfg, cache_dir=str(tmp_path),
+                            progress=False)
+    assert 0.8 * 3 * 2 * 24 <= len(data) <= 3 * 2 * 24
+    assert data.brdf.shape == (len(data), 7) and data.edit.shape == (len(data), 0)
+    np.testing.assert_allclose(np.linalg.norm(data.normal, axis=1), 1.0, atol=1e-4)
+    np.testing.assert_allclose(np.linalg.norm(data.view, axis=1), 1.0, atol=1e-4)
+    assert np.all(np.abs(data.position) <= 1.0 + 1e-3)  # first hits inside the Cornell box
+    assert data.indirect.min() > -1e-4 and data.indirect.mean() > 0
+    # Latin hypercube: one light per stratum along every axis of the light box.
+    lights = np.unique(data.light, axis=0)
+    lo, hi = np.array(rrf.DEFAULT_CONFIG["data"]["light_lo"]), np.array(rrf.DEFAULT_CONFIG["data"]["light_hi"])
+    strata = np.floor((lights - lo) / (hi - lo) * 3).astype(int)
+    assert all(sorted(strata[:, a]) == [0, 1, 2] for a in range(3))
+    before = dict(RENDER_STATS)
+    again = rrf.make_dataset({"name": "cornell_box", "area_light": False}, cfg, cache_dir=str(tmp_path),
+                             progress=False)
+    assert dict(RENDER_STATS) == before
+    np.testing.assert_array_equal(again.indirect, data.indirect)
+    x = rrf._data_features(data, "augmented")
+    assert x.shape == (len(data), rrf.input_size("augmented")) and rrf.input_size("basic") == 9
+
+
+def test_make_dataset_material_mode(mi, tmp_path):
+    cfg = {"data": {"mode": "material", "n_lights": 2, "n_rays": 16, "spp": 2,
+                    "material": {"object": "floor", "n_materials": 2}}}
+    data = rrf.make_dataset("glossy_cornell", cfg, cache_dir=str(tmp_path), progress=False)
+    assert data.edit.shape == (len(data), 2)
+    assert len(np.unique(data.edit[:, 0])) == 2
+    assert rrf._data_features(data, "augmented").shape[1] == rrf.input_size("augmented", "material")
+    with pytest.raises(ValueError, match="without emitters"):
+        rrf.make_dataset("cornell_box", cfg, cache_dir=str(tmp_path), progress=False)  # has its area light
+    with pytest.raises(ValueError, match="not an object"):
+        rrf.make_dataset("glossy_cornell", {"data": {"mode": "material", "material": {"object": "teapot"}}},
+                         cache_dir=str(tmp_path), progress=False)
+
+
+def test_blocked_prediction_matches_per_leaf_numpy(model):
+    """The sorted-block evaluation equals evaluating each sample's own leaf network directly."""
+    params, _ = model
+    rng = np.random.default_rng(7)
+    n = 1000
+    x = np.concatenate([rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3)), rng.uniform([-0.5, 0.3, -0.5],
+                        [0.5, 0.9, 0.5], (n, 3)), rng.normal(size=(n, 3)), rng.random((n, 7))], axis=1).astype(np.float32)
+    obj = rng.integers(-1, 3, n)  # -1 and 2: no tree -> 0
+    got = np.asarray(rrf._predict(params, jnp.asarray(x), jnp.asarray(obj), block=16))
+    tree = kdtree.KDTree(**{k: np.asarray(v) for k, v in params["tree"].items()})
+    safe = np.clip(obj, 0, 1)
+    lo, hi = np.asarray(params["obj_lo"])[safe], np.asarray(params["obj_hi"])[safe]
+    leaf = kdtree.brute_force_lookup(tree, obj, (x - lo) / np.where(hi - lo > 1e-8, hi - lo, 1.0))
+    leaves = jax.tree_util.tree_map(np.asarray, params["leaves"])
+    want = np.zeros((n, 3), np.float32)
+    for i in np.flatnonzero(leaf >= 0):
+        s = {k: v[leaf[i]] for k, v in leaves["scaling"].items()}
+        layers = [{k: v[leaf[i]] for k, v in layer.items()} for layer in leaves["layers"]]
+        want[i] = rrf._forward_np(layers, ((x[i] - s["in_center"]) / s["in_halfrange"])[None])[0] \
+            * s["out_halfrange"] + s["out_center"]
+    assert np.any(leaf < 0) and np.all(got[leaf < 0] == 0)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+
+
+def test_discontinuity_splits_only_near_it():
+    """An affine target with a step at x0 = 0.3: the RRF kd-tree splits only cells that contain
+    the step (along x0), and the other leaves fit below the 1 % threshold."""
+    rng = np.random.default_rng(0)
+    x = rng.random((2000, 2)).astype(np.float32)
+    y = (1 + 0.3 * x[:, 0] + 0.2 * x[:, 1] + np.where(x[:, 0] < 0.3, 0.0, 1.0))[:, None]
+    cfg = {"model": {"hidden": [3]}, "tree": {"min_samples": 40, "max_depth": 3, "threshold": 0.01, "expand": 0.0},
+           "train": {"max_iters": 30, "trial_iters": 30, "progress": False}}
+    params, info = rrf.fit_arrays(x, y, np.zeros(len(x), np.int32), cfg)
+    tree = kdtree.KDTree(**{k: np.asarray(v) for k, v in params["tree"].items()})
+    internal = np.flatnonzero(tree.axis >= 0)
+    assert len(internal) >= 2
+    assert np.all(tree.axis[internal] == 0)
+    lo = np.where(np.isfinite(tree.cell_lo), tree.cell_lo, 0.0)[internal, 0]
+    hi = np.where(np.isfinite(tree.cell_hi), tree.cell_hi, 1.0)[internal, 0]
+    assert np.all((lo <= 0.3) & (hi > 0.3))
+    _, leaf_lo, leaf_hi = kdtree.leaf_cells(tree)
+    away = (np.nan_to_num(leaf_hi[:, 0], posinf=1.0) <= 0.3) | (np.nan_to_num(leaf_lo[:, 0], neginf=0.0) > 0.3)
+    assert away.sum() == tree.n_leaves - 1 and np.all(info.leaf_val_error[away] < 0.01)

@@ -1,0 +1,45 @@
+"""Evaluation protocol helpers: set RMSE, equal-error search, timing, report figures."""
+
+import os
+
+import numpy as np
+import pytest
+
+from jprt import eval as jeval
+
+
+def test_set_rmse_weights_pixels_not_images():
+    a = [np.zeros((2, 2, 3)), np.zeros((1, 4, 3))]
+    b = [np.ones((2, 2, 3)), np.full((1, 4, 3), 3.0)]
+    assert jeval.set_rmse(a, b) == pytest.approx(np.sqrt((12 * 1 + 12 * 9) / 24))
+    valid = [np.array([[True, False], [False, False]]), np.zeros((1, 4), bool)]
+    assert jeval.set_rmse(a, b, valid) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="differ"):
+        jeval.set_rmse([np.zeros((2, 2, 3))], [np.zeros((2, 3, 3))])
+    with pytest.raises(ValueError, match="equally many"):
+        jeval.set_rmse([], [])
+
+
+def test_equal_error_spp_stops_at_first_success():
+    rng = np.random.default_rng(0)
+    ref = [np.ones((8, 8, 3))]
+    calls = []
+
+    def render_at(spp):  # Monte Carlo-like: error ~ 1 / sqrt(spp)
+        calls.append(spp)
+        return [ref[0] + rng.normal(size=(8, 8, 3)) / np.sqrt(spp)]
+
+    result = jeval.equal_error_spp(render_at, ref, 0.2, [64, 1, 4, 16, 256, 1024])
+    assert result["spp"] in (16, 64) and calls == [1, 4, 16, 64][: len(calls)]
+    assert all(t["rmse"] > 0.2 for t in result["tried"][:-1]) and result["tried"][-1]["rmse"] <= 0.2
+    assert jeval.equal_error_spp(render_at, ref, 1e-6, [1, 2])["spp"] is None
+
+
+def test_time_call_and_figures(tmp_path):
+    t = jeval.time_call(lambda: np.ones(10).sum(), repeats=3, warmup=1)
+    assert len(t["times_ms"]) == 3 and t["min_ms"] <= t["median_ms"]
+    img = np.random.default_rng(0).random((6, 5, 3))
+    jeval.side_by_side(str(tmp_path / "s.png"), [("a", img, img * 1.1), ("b", img, img)])
+    jeval.plot_series(str(tmp_path / "p.png"), {"x": ([1, 2, 4], [3.0, 2.0, 1.0])}, xlabel="spp", ylabel="rmse",
+                      logx=True, logy=True, hlines={"RRF": 1.5})
+    assert os.path.getsize(tmp_path / "s.png") > 0 and os.path.getsize(tmp_path / "p.png") > 0

@@ -1,0 +1,45 @@
+"""The RRF experiments end to end at tiny sizes (``test`` presets): every stage runs and writes its
+report; the numbers are checked for consistency, not for accuracy (that is the benchmark's job)."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from jprt.cli import main as cli_main
+
+pytestmark = pytest.mark.mitsuba
+
+
+def test_rrf_cornell_test_preset(mi, tmp_path, capsys):
+    out = str(tmp_path / "out")
+    assert cli_main(["run", "experiments/rrf_cornell.py", "--preset", "test", "--set", f"output.dir={out}"]) == 0
+    (folder,) = os.listdir(out)
+    folder = os.path.join(out, folder)
+    with open(os.path.join(folder, "summary.json")) as f:
+        s = json.load(f)
+    for key in ("indirect_rmse", "reference_spp", "equal_error_spp", "pathtrace_ms_equal_error", "eval_ms_512_1light",
+                "eval_ms_512_4lights", "speedup_equal_error", "n_leaves", "model_bytes", "train_s",
+                "rmse_basic_attributes", "rmse_augmented", "rmse_single_mlp_same_params", "std_subsets", "std_inits"):
+        assert key in s, key
+    assert s["rmse_augmented"] == s["indirect_rmse"] > 0
+    assert np.isclose(s["speedup_equal_error"], s["pathtrace_ms_equal_error"] / s["eval_ms_512_1light"])
+    assert len(s["robustness"]["rmse_subsets"]) == 2 and s["std_subsets"] >= 0
+    assert s["fig6_training_size"]["n_train"][-1] > s["fig6_training_size"]["n_train"][0]
+    assert s["fig7_training_spp"]["spp"] == [4, 8]
+    for name in ("side_by_side.png", "equal_error.png", "fig6_training_size.png", "fig7_training_spp.png",
+                 "model.npz", "config.json"):
+        assert os.path.isfile(os.path.join(folder, name)), name
+    assert folder in capsys.readouterr().out  # says where the report is
+
+
+def test_rrf_glossy_test_preset_with_material_edit(mi, tmp_path):
+    out = str(tmp_path / "out")
+    assert cli_main(["run", "experiments/rrf_glossy.py", "--preset", "test", "--set", f"output.dir={out}"]) == 0
+    found = [os.path.join(r, f) for r, _, fs in os.walk(out) for f in fs]
+    assert any(p.endswith(os.path.join("material_edit", "material_edit.png")) for p in found)
+    (summary,) = [p for p in found if p.endswith(os.path.join("material_edit", "summary.json"))]
+    with open(summary) as f:
+        s = json.load(f)
+    assert len(s["edits"]) == 1 and s["edits"][0]["rmse"] >= 0
