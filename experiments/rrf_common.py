@@ -49,6 +49,18 @@ EVAL_DEFAULTS = {
     "single_mlp_steps": 3000,
 }
 
+# Ren et al. 2013: ~10M training samples (N_l = N_v = 200), 4096-spp training data, 20 x 20
+# held-out pairs at 512 x 512 against 16384-spp references, leaves with >= 10x their weights in
+# samples, every candidate fitted to convergence. For a machine with an accelerator.
+PAPER_PRESET = {
+    "data": {"n_lights": 200, "n_views": 200, "n_rays": 250, "spp": 4096},
+    "tree": {"max_depth": 12, "min_samples": 6500, "max_leaves": 4096},
+    "train": {"max_iters": 200, "trial_iters": 200, "trial_samples": 0},
+    "eval": {"n_views": 20, "n_lights": 20, "resolution": 512, "reference_spp": 16384, "robustness": 10,
+             "sizes": [0.01, 0.1, 0.3], "train_spp": [256, 1024, 16384],
+             "equal_error_spp": [2 ** k for k in range(15)]},
+}
+
 
 def _say(msg: str) -> None:
     print(f"[rrf] {msg}", file=sys.stderr, flush=True)

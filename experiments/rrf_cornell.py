@@ -9,7 +9,7 @@ The report (summary.json with every number, side-by-side images, error plots) go
 results/rrf_cornell/<config hash>/.
 """
 
-from rrf_common import EVAL_DEFAULTS, run
+from rrf_common import EVAL_DEFAULTS, PAPER_PRESET, run
 
 from jprt.config import merge
 from jprt.methods.rrf import DEFAULT_CONFIG
@@ -30,17 +30,7 @@ PRESETS = {
                  "robustness": 0, "sizes": [], "train_spp": [], "timing_repeats": 5, "pathtrace_repeats": 1,
                  "equal_error_spp": [1, 2, 4, 8, 16, 32, 64, 128, 256]},
     },
-    # Ren et al. 2013: ~10M training samples (N_l = N_v = 200), 4096 spp training data, 20 x 20
-    # held-out pairs at 512 x 512 against 16384-spp references; kd-tree leaves with >= 10x their
-    # weights in samples.
-    "paper": {
-        "data": {"n_lights": 200, "n_views": 200, "n_rays": 250, "spp": 4096},
-        "tree": {"max_depth": 12, "min_samples": 6500, "max_leaves": 4096},
-        "train": {"max_iters": 200, "trial_iters": 200, "trial_samples": 0},
-        "eval": {"n_views": 20, "n_lights": 20, "resolution": 512, "reference_spp": 16384,
-                 "sizes": [0.01, 0.1, 0.3], "train_spp": [256, 1024, 16384],
-                 "equal_error_spp": [2 ** k for k in range(15)]},
-    },
+    "paper": PAPER_PRESET,
     # Smoke test (tests/test_experiments.py).
     "test": {
         "data": {"n_lights": 3, "n_views": 3, "n_rays": 40, "spp": 8},

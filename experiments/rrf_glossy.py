@@ -7,7 +7,7 @@ roughness and albedo replace the view direction as inputs).
     jprt run experiments/rrf_glossy.py --preset paper     # the paper's sizes (needs an accelerator)
 """
 
-from rrf_common import EVAL_DEFAULTS, material_demo, run
+from rrf_common import EVAL_DEFAULTS, PAPER_PRESET, material_demo, run
 
 from jprt.config import merge
 from jprt.methods.rrf import DEFAULT_CONFIG
@@ -27,11 +27,7 @@ CONFIG["material_demo"] = {
 PRESETS = {
     "small": {},
     "paper": {
-        "data": {"n_lights": 200, "n_views": 200, "n_rays": 250, "spp": 4096},
-        "tree": {"max_depth": 12, "min_samples": 6500, "max_leaves": 4096},
-        "train": {"max_iters": 200, "trial_iters": 200, "trial_samples": 0},
-        "eval": {"n_views": 20, "n_lights": 20, "resolution": 512, "reference_spp": 16384, "robustness": 10,
-                 "equal_error_spp": [2 ** k for k in range(15)]},
+        **merge(PAPER_PRESET, {"eval": {"sizes": [], "train_spp": []}}),
         "material_demo": {"reference_spp": 16384, "data": {"n_lights": 100, "n_rays": 20000, "spp": 4096,
                                                            "material": {"n_materials": 100}}},
     },

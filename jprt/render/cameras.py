@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["Camera", "look_at", "orbit", "helix", "random_in_box", "to_sensor_dict", "camera_rays", "random_rays"]
+__all__ = ["Camera", "look_at", "orbit", "helix", "random_in_box", "to_sensor_dict", "camera_rays", "random_rays", "check_rays"]
 
 
 class Camera(NamedTuple):
@@ -147,6 +147,19 @@ def camera_rays(camera: Camera, offset=None) -> tuple[np.ndarray, np.ndarray]:
     off = np.full((h, w, 2), 0.5) if offset is None else np.broadcast_to(np.asarray(offset, np.float64), (h, w, 2))
     d = _film_directions(camera, np.arange(w)[None, :] + off[..., 0], np.arange(h)[:, None] + off[..., 1])
     return np.broadcast_to(np.asarray(camera.origin, np.float64), d.shape).copy(), d
+
+
+def check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
+    """Ray batches as float32 (N, 3) origins and unit directions, or a one-line ValueError
+    (shape mismatch, non-finite values, zero directions)."""
+    o = np.asarray(origins, np.float32).reshape(-1, 3)
+    d = np.asarray(directions, np.float32).reshape(-1, 3)
+    if o.shape != d.shape:
+        raise ValueError(f"origins {o.shape} and directions {d.shape} differ")
+    norms = np.linalg.norm(d, axis=1, keepdims=True)
+    if not (np.isfinite(o).all() and np.isfinite(d).all()) or np.any(norms == 0):
+        raise ValueError("ray origins/directions must be finite with non-zero directions")
+    return o, d / norms
 
 
 def random_rays(camera: Camera, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jprt.render.cameras import Camera, to_sensor_dict
+from jprt.render.cameras import Camera, check_rays, to_sensor_dict
 from jprt.render.scenes import SceneHandle
 
 __all__ = ["GBuffer", "gbuffer", "gbuffer_rays", "object_materials"]
@@ -156,13 +156,6 @@ def gbuffer_rays(handle: SceneHandle, origins, directions) -> GBuffer:
     (H, W, ...) (training samples of Ren et al. 2013, Appendix A: attributes at the first
     intersection of random viewing rays). ``view`` is minus the ray direction."""
     mi = handle.mi
-    o = np.asarray(origins, np.float32).reshape(-1, 3)
-    d = np.asarray(directions, np.float32).reshape(-1, 3)
-    if o.shape != d.shape:
-        raise ValueError(f"origins {o.shape} and directions {d.shape} differ")
-    norms = np.linalg.norm(d, axis=1, keepdims=True)
-    if not (np.isfinite(o).all() and np.isfinite(d).all()) or np.any(norms == 0):
-        raise ValueError("ray origins/directions must be finite with non-zero directions")
-    d = d / norms
+    o, d = check_rays(origins, directions)
     ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
     return GBuffer(**_hits(handle, ray, o.shape[0]))

@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jprt.render.cameras import Camera, to_sensor_dict
+from jprt.render.cameras import Camera, check_rays, to_sensor_dict
 from jprt.render.scenes import SceneHandle
 
 __all__ = ["Radiance", "RENDER_STATS", "check_spp", "render", "direct_indirect", "indirect_rays", "radiance_rays"]
@@ -79,14 +79,7 @@ def radiance_rays(handle: SceneHandle, origins, directions, *, spp: int, seed: i
     mi = handle.mi
     import drjit as dr
 
-    origins = np.asarray(origins, np.float32).reshape(-1, 3)
-    directions = np.asarray(directions, np.float32).reshape(-1, 3)
-    if origins.shape != directions.shape:
-        raise ValueError(f"origins {origins.shape} and directions {directions.shape} differ")
-    norms = np.linalg.norm(directions, axis=1, keepdims=True)
-    if not (np.isfinite(origins).all() and np.isfinite(directions).all()) or np.any(norms == 0):
-        raise ValueError("ray origins/directions must be finite with non-zero directions")
-    directions = directions / norms
+    origins, directions = check_rays(origins, directions)
     integrator = _integrator(mi, max_depth)
     n = origins.shape[0]
     per_chunk = max(1, chunk_rays // spp)
