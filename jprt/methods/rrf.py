@@ -24,6 +24,10 @@ direction inputs are replaced by the roughness and albedo of one object; trainin
 them by Latin hypercube sampling, and ``evaluate(gbuffer, lights, edit=(roughness, albedo))``
 renders any edit.
 
+Training stops early on each node's validation samples (Beale et al.'s trainlm, which Appendix A
+follows: the parameters with the lowest validation error are kept; ``train.max_fail`` accepted
+steps without improvement end the fit; 0 disables it).
+
 Deviations, stated: candidate children are warm-started from their parent (its weights mapped
 exactly into the child's input/output scaling) and, when every axis is tried, fitted for
 ``train.trial_iters`` iterations on at most ``train.trial_samples`` of their training samples
@@ -81,7 +85,7 @@ DEFAULT_CONFIG: dict = {
     },
     "model": {"hidden": [20, 10], "attributes": "augmented"},
     "tree": {"threshold": 0.05, "axis": "all", "expand": 0.1, "max_depth": 6, "min_samples": 1500, "max_leaves": 64},
-    "train": {"max_iters": 40, "trial_iters": 10, "trial_samples": 1024, "rtol": 1e-6, "damping": 1e-3, "chunk_size": 1024, "seed": 0,
+    "train": {"max_iters": 40, "trial_iters": 10, "trial_samples": 1024, "max_fail": 6, "rtol": 1e-6, "damping": 1e-3, "chunk_size": 1024, "seed": 0,
               "subset": 1.0, "progress": True},
 }
 
@@ -408,6 +412,10 @@ class _NodeFitter:
         xs = np.zeros((b, npad, d), np.float32)
         ys = np.zeros((b, npad, r), np.float32)
         mask = np.zeros((b, npad), np.float32)
+        nv = _bucket(max(len(p.val) if len(p.val) else len(p.train) for p in problems), 64)
+        xv = np.zeros((b, nv, d), np.float32)
+        yv = np.zeros((b, nv, r), np.float32)
+        mask_v = np.zeros((b, nv), np.float32)
         scalings, inits = [], []
         for j, p in enumerate(problems):
             xi, yi = self.x[p.train], self.y[p.train]
@@ -419,6 +427,10 @@ class _NodeFitter:
             xs[j, :n] = (xi - ic) / ih
             ys[j, :n] = (yi - oc) / oh
             mask[j, :n] = 1.0
+            val = p.val if len(p.val) else p.train  # no validation samples: no early stopping
+            xv[j, :len(val)] = (self.x[val] - ic) / ih
+            yv[j, :len(val)] = (self.y[val] - oc) / oh
+            mask_v[j, :len(val)] = 1.0
             if p.init is not None:
                 layers = _rescale([{k: np.asarray(v) for k, v in layer.items()} for layer in p.init["layers"]],
                                   {k: np.asarray(v) for k, v in p.init["scaling"].items()}, scaling)
@@ -428,7 +440,10 @@ class _NodeFitter:
         params = jax.tree_util.tree_map(lambda *a: np.stack(a).astype(np.float32), *inits)
         res = solve_batched(_residual, params, (jnp.asarray(xs), jnp.asarray(ys)),
                             mask=jnp.asarray(mask), max_iters=iters, rtol=float(t["rtol"]),
-                            damping=float(t["damping"]), chunk_size=int(t["chunk_size"]))
+                            damping=float(t["damping"]), chunk_size=int(t["chunk_size"]),
+                            val_data=(jnp.asarray(xv), jnp.asarray(yv)) if t["max_fail"] > 0 else None,
+                            val_mask=jnp.asarray(mask_v) if t["max_fail"] > 0 else None,
+                            max_fail=max(int(t["max_fail"]), 1))
         layers = jax.tree_util.tree_map(np.asarray, res.params)
         fits = []
         for j, p in enumerate(problems):

@@ -38,7 +38,7 @@ from jax.flatten_util import ravel_pytree
 
 __all__ = ["LMResult", "solve", "solve_batched", "normal_equations", "STOP_REASONS"]
 
-STOP_REASONS = ("running", "loss_threshold", "relative_decrease", "max_iters", "damping_overflow")
+STOP_REASONS = ("running", "loss_threshold", "relative_decrease", "max_iters", "damping_overflow", "validation")
 
 
 class LMResult(NamedTuple):
@@ -62,6 +62,9 @@ class LMResult(NamedTuple):
 
 
 class _State(NamedTuple):
+    best: jax.Array
+    best_val: jax.Array
+    fails: jax.Array
     flat: jax.Array
     jtj: jax.Array
     jtr: jax.Array
@@ -157,7 +160,7 @@ def normal_equations(residual_fn: Callable, params, data, *, mask=None, chunk_si
 
 @functools.lru_cache(maxsize=64)
 def _build(residual_fn: Callable, unravel_key, max_iters: int, loss_threshold: float, rtol: float, damping: float,
-           jitter: float, chunk: int):
+           jitter: float, chunk: int, max_fail: int = 6):
     """The pure solver for one residual function and config (cached, so repeated calls reuse the
     compiled program)."""
     per_sample = _per_sample_fn(residual_fn, unravel_key.unravel)
@@ -181,9 +184,15 @@ def _build(residual_fn: Callable, unravel_key, max_iters: int, loss_threshold: f
         delta = -jax.scipy.linalg.cho_solve((chol, True), g)
         return delta.astype(jtr.dtype)
 
-    def solver(flat0, data, mask):
+    def solver(flat0, data, mask, val_data=None, val_mask=None):
+        has_val = val_data is not None
+        if has_val:
+            n_val = jax.tree_util.tree_leaves(val_data)[0].shape[0]
+            val_loss = lambda f: _residual_pass(per_sample, f, val_data, val_mask, min(chunk, n_val))  # noqa: E731
+        else:
+            val_loss = lambda f: jnp.zeros((), f.dtype)  # noqa: E731
         jtj, jtr, loss = normal_pass(flat0, data, mask)
-        state = _State(flat0, jtj, jtr, loss, jnp.asarray(damping, flat0.dtype), jnp.asarray(2.0, flat0.dtype),
+        state = _State(flat0, val_loss(flat0), jnp.zeros((), jnp.int32), flat0, jtj, jtr, loss, jnp.asarray(damping, flat0.dtype), jnp.asarray(2.0, flat0.dtype),
                        jnp.zeros((), jnp.int32), jnp.where(loss <= loss_threshold, 1, 0).astype(jnp.int32),
                        jnp.full((max_iters,), loss, flat0.dtype))
 
@@ -207,18 +216,30 @@ def _build(residual_fn: Callable, unravel_key, max_iters: int, loss_threshold: f
             rel = actual / jnp.maximum(s.loss, 1e-30)
             reason = jnp.where(loss <= loss_threshold, 1,
                                jnp.where(accept & (rel < rtol), 2, jnp.where(mu > 1e16, 4, 0))).astype(jnp.int32)
+            # Early stopping on validation data (Beale et al.'s trainlm, max_fail): after each
+            # accepted step, keep the best parameters on the validation set; stop after max_fail
+            # accepted steps without improvement.
+            v = jax.lax.cond(accept, lambda: val_loss(flat), lambda: s.best_val)
+            better = accept & (v < s.best_val)
+            best = jnp.where(better, flat, s.best)
+            best_val = jnp.where(better, v, s.best_val)
+            fails = jnp.where(better, 0, jnp.where(accept, s.fails + 1, s.fails)).astype(jnp.int32)
+            if has_val:
+                reason = jnp.where((reason == 0) & (fails >= max_fail), 5, reason).astype(jnp.int32)
             iteration = s.iteration + 1
             reason = jnp.where((reason == 0) & (iteration >= max_iters), 3, reason).astype(jnp.int32)
             history = jax.lax.dynamic_update_slice(s.history, loss[None], (s.iteration,))
             history = jnp.where(jnp.arange(max_iters) > s.iteration, loss, history)
-            return _State(flat, jtj, jtr, loss, mu, nu, iteration, reason, history)
+            return _State(best, best_val, fails, flat, jtj, jtr, loss, mu, nu, iteration, reason, history)
 
         s = jax.lax.while_loop(cond, body, state)
         reason = jnp.where(s.reason == 0, 3, s.reason).astype(jnp.int32)
         residual_size = per_sample(flat0, jax.tree_util.tree_map(lambda a: a[0], data)).shape[0]
         n_real = jax.tree_util.tree_leaves(data)[0].shape[0] if mask is None else jnp.sum(mask)
         count = jnp.maximum(n_real * residual_size, 1.0)
-        return s.flat, s.loss, jnp.sqrt(s.loss / count), s.iteration, s.history, reason
+        # With validation data: the best parameters on it, and their training loss.
+        flat, loss = (s.best, residual_pass(s.best, data, mask)) if has_val else (s.flat, s.loss)
+        return flat, loss, jnp.sqrt(loss / count), s.iteration, s.history, reason
 
     return solver
 
@@ -276,30 +297,48 @@ def _jitted(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter, 
 
 
 @functools.lru_cache(maxsize=64)
-def _jitted_batched(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter, chunk, has_mask):
-    solver = _build(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter, chunk)
-    if has_mask:
+def _jitted_batched(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter, chunk, has_mask,
+                    has_val=False, max_fail=6):
+    solver = _build(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter, chunk, max_fail)
+    if has_val:
         return jax.jit(jax.vmap(solver))
+    if has_mask:
+        return jax.jit(jax.vmap(lambda f, d, m: solver(f, d, m)))
     return jax.jit(jax.vmap(lambda f, d: solver(f, d, None)))
 
 
 def solve_batched(residual_fn: Callable, params, data, *, mask=None, max_iters: int = 100,
                   loss_threshold: float = 0.0, rtol: float = 1e-7, damping: float = 1e-3, chunk_size: int = 2048,
-                  jitter: float = 1e-7) -> LMResult:
+                  jitter: float = 1e-7, val_data=None, val_mask=None, max_fail: int = 6) -> LMResult:
     """Solve B independent problems of equal shape in one vmapped call.
 
     ``params`` and ``data`` carry a leading batch axis B (data: (B, N, ...)); ``mask`` (B, N)
     marks each problem's real samples, so problems with fewer samples are padded. Every
     ``LMResult`` field gets the leading B axis.
+
+    ``val_data`` (B, Nv, ...) with ``val_mask`` (B, Nv) turns on early stopping (Beale et al.'s
+    trainlm, used by Ren et al. 2013 Appendix A): each problem returns its parameters with the
+    lowest validation loss and stops (reason "validation") after ``max_fail`` accepted steps
+    without improving it.
     """
     first = jax.tree_util.tree_map(lambda a: a[0], params)
     key = _UnravelKey(first)
     flat0 = jax.vmap(lambda p: ravel_pytree(p)[0])(params)
     n = _check_data(data, mask, sample_axis=1)
     data = jax.tree_util.tree_map(jnp.asarray, data)
+    has_val = val_data is not None
+    if has_val:
+        _check_data(val_data, val_mask, sample_axis=1)
+        val_data = jax.tree_util.tree_map(jnp.asarray, val_data)
+        val_mask = jnp.ones(jax.tree_util.tree_leaves(val_data)[0].shape[:2], jnp.float32) if val_mask is None \
+            else jnp.asarray(val_mask, jnp.float32)
+        if mask is None:
+            mask = jnp.ones(jax.tree_util.tree_leaves(data)[0].shape[:2], jnp.float32)
     solver = _jitted_batched(residual_fn, key, max_iters, float(loss_threshold), float(rtol), float(damping),
-                             float(jitter), min(int(chunk_size), n), mask is not None)
+                             float(jitter), min(int(chunk_size), n), mask is not None, has_val, int(max_fail))
     args = (flat0, data) if mask is None else (flat0, data, jnp.asarray(mask, jnp.float32))
+    if has_val:
+        args = args + (val_data, val_mask)
     flat, loss, rmse, iterations, history, reason = solver(*args)
     return LMResult(jax.vmap(key.unravel)(flat), loss, rmse, iterations, history, reason)
 

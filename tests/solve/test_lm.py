@@ -126,3 +126,31 @@ def test_jaxopt_backend_runs_the_same_problem():
     assert float(theirs.rmse) < 0.5 and float(ours.rmse) < 0.5
     with pytest.raises(ValueError, match="unknown LM backend"):
         lm.solve(residual, params, data, backend="scipy")
+
+
+def test_early_stopping_keeps_the_best_validation_parameters():
+    """A polynomial with as many coefficients as noisy training points overfits; with validation
+    data the solver returns the iterate with the lowest validation loss and says so."""
+    rng = np.random.default_rng(0)
+    deg = 12
+    xt = np.linspace(-1, 1, 14)
+    xv = np.linspace(-0.97, 0.97, 40)
+    f = lambda x: np.sin(2 * x)  # noqa: E731
+    yt = f(xt) + 0.3 * rng.normal(size=xt.shape)
+
+    def residual(p, s):
+        x, y = s
+        return jnp.polyval(p["c"], x)[None] - y[None]
+
+    params = {"c": jnp.zeros((1, deg + 1))}
+    data = (jnp.asarray(xt[None], jnp.float32), jnp.asarray(yt[None], jnp.float32))
+    val = (jnp.asarray(xv[None], jnp.float32), jnp.asarray(f(xv)[None], jnp.float32))
+
+    def val_loss(c):
+        return float(np.sum((np.polyval(np.asarray(c[0]), xv) - f(xv)) ** 2))
+
+    plain = lm.solve_batched(residual, params, data, max_iters=60, rtol=0.0)
+    early = lm.solve_batched(residual, params, data, max_iters=60, rtol=0.0, val_data=val, max_fail=3)
+    assert lm.STOP_REASONS[int(early.reason[0])] == "validation"
+    assert val_loss(early.params["c"]) < val_loss(plain.params["c"])
+    assert float(early.loss[0]) >= float(plain.loss[0])  # worse on training data, better on validation
