@@ -12,6 +12,7 @@ from jprt.cli import main as cli_main
 pytestmark = pytest.mark.mitsuba
 
 
+@pytest.mark.slow  # ~40 s: every stage of the Cornell pipeline (ablations, Table 3, Fig. 6-7)
 def test_rrf_cornell_test_preset(mi, tmp_path, capsys):
     out = str(tmp_path / "out")
     assert cli_main(["run", "experiments/rrf_cornell.py", "--preset", "test", "--set", f"output.dir={out}"]) == 0
