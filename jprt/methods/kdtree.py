@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["KDTree", "Problem", "NodeFit", "BuildReport", "build", "traverse", "brute_force_lookup",
-           "leaf_cells", "leaf_stats", "node_samples"]
+           "leaf_cells", "leaf_stats", "node_samples", "cell_members"]
 
 
 class KDTree(NamedTuple):
@@ -175,7 +175,8 @@ class _Node:
         self.axis, self.threshold, self.children = -1, 0.0, None
 
 
-def _cell_members(x, lo, hi, candidates):
+def cell_members(x, lo, hi, candidates: np.ndarray) -> np.ndarray:
+    """Indices among ``candidates`` whose x lies in the half-open cell [lo, hi)."""
     sub = x[candidates]
     return candidates[np.all((sub >= lo) & (sub < hi), axis=1)]
 
@@ -229,7 +230,7 @@ def build(x, object_id, is_train, fit_nodes: Callable[[Sequence[Problem], str], 
     def problem(obj, lo, hi, init=None):
         idx = by_object[obj]
         train = node_samples(x, lo, hi, expand, idx[is_train[idx]])
-        val = _cell_members(x, lo, hi, idx[~is_train[idx]])
+        val = cell_members(x, lo, hi, idx[~is_train[idx]])
         return Problem(train, val, init)
 
     roots = []
@@ -257,7 +258,7 @@ def build(x, object_id, is_train, fit_nodes: Callable[[Sequence[Problem], str], 
         candidates, problems = [], []
         for n in want:
             idx = by_object[n.obj]
-            sub = x[_cell_members(x, n.lo, n.hi, idx)]
+            sub = x[cell_members(x, n.lo, n.hi, idx)]
             box_lo = np.where(np.isfinite(n.lo), n.lo, 0.0)
             box_hi = np.where(np.isfinite(n.hi), n.hi, 1.0)
             axes = [a for a in range(d) if sub.size and np.ptp(sub[:, a]) > 1e-9]

@@ -535,9 +535,7 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None):
             continue
         sel = x[object_id == o]
         obj_lo[o], obj_hi[o] = sel.min(axis=0), sel.max(axis=0)
-    span = np.where(obj_hi - obj_lo > 1e-8, obj_hi - obj_lo, 1.0)
-    safe = np.maximum(object_id, 0)
-    xn = (x - obj_lo[safe]) / span[safe]
+    xn = _normalise(x, object_id, obj_lo, obj_hi)
 
     fitter = _NodeFitter(x, y, sizes, cfg, int(t["seed"]), say)
     max_iters = int(t["max_iters"])
@@ -563,8 +561,7 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None):
         expand=float(tree_cfg["expand"]), max_depth=int(tree_cfg["max_depth"]),
         min_samples=int(tree_cfg["min_samples"]), max_leaves=int(tree_cfg["max_leaves"]), seed=int(t["seed"]),
         progress=say)
-    leaf_payloads = payloads
-    params = _pack(tree, obj_lo, obj_hi, leaf_payloads)
+    params = _pack(tree, obj_lo, obj_hi, payloads)
     train_err, val_err = _leaf_errors(params, xn, x, y, object_id, is_train)
     info = FitInfo(time.perf_counter() - t0, report, train_err, val_err, is_train, len(x))
     say(f"{tree.n_leaves} leaves, max depth {tree.max_depth}, {info.train_s:.1f} s; leaf relative error "
@@ -572,13 +569,18 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None):
     return params, info
 
 
-def _leaf_problem(xn, object_id, is_train, obj, lo, hi, expand, init):
+def _leaf_problem(xn, object_id, is_train, obj, lo, hi, expand):
+    """A leaf's training samples (cell grown by ``expand``) and validation samples (the cell)."""
     idx = np.flatnonzero(object_id == obj)
     train = kdtree.node_samples(xn, lo, hi, expand, idx[is_train[idx]])
-    sub = xn[idx[~is_train[idx]]]
-    val = idx[~is_train[idx]][np.all((sub >= lo) & (sub < hi), axis=1)]
-    payload = init.payload if isinstance(init, kdtree.NodeFit) else init
-    return kdtree.Problem(train, val, payload)
+    return kdtree.Problem(train, kdtree.cell_members(xn, lo, hi, idx[~is_train[idx]]))
+
+
+def _normalise(x, object_id, obj_lo, obj_hi) -> np.ndarray:
+    """Inputs mapped to each object's unit box (§4, Fig. 4 c-d); constant features map to 0."""
+    safe = np.maximum(object_id, 0)
+    span = np.asarray(obj_hi)[safe] - np.asarray(obj_lo)[safe]
+    return (x - np.asarray(obj_lo)[safe]) / np.where(span > 1e-8, span, 1.0)
 
 
 def _pack(tree: kdtree.KDTree, obj_lo, obj_hi, payloads) -> dict:
@@ -775,16 +777,14 @@ def refit_leaves(params, data: RRFData, config: dict | None, info: FitInfo, vari
     cfg = _cfg(config)
     x = _data_features(data, cfg["model"]["attributes"])
     y, object_id = data.indirect, data.object_id
-    obj = np.maximum(object_id, 0)
-    xn = (x - np.asarray(params["obj_lo"])[obj]) / np.where(
-        np.asarray(params["obj_hi"] - params["obj_lo"])[obj] > 1e-8, np.asarray(params["obj_hi"] - params["obj_lo"])[obj], 1.0)
+    xn = _normalise(x, object_id, params["obj_lo"], params["obj_hi"])
     objs, lo, hi = kdtree.leaf_cells(_tree(params))
     sizes = (x.shape[1], *cfg["model"]["hidden"], y.shape[1])
     problems = []
     for v in variants:
         rng = np.random.default_rng(int(v["seed"]) + 101)
         for i in range(len(objs)):
-            p = _leaf_problem(xn, object_id, info.is_train, objs[i], lo[i], hi[i], float(cfg["tree"]["expand"]), None)
+            p = _leaf_problem(xn, object_id, info.is_train, objs[i], lo[i], hi[i], float(cfg["tree"]["expand"]))
             train = p.train
             if float(v.get("subset", 1.0)) < 1.0:
                 train = np.sort(rng.permutation(train)[: max(1, int(round(v["subset"] * len(train))))])
