@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.jprt-installed
 
-.PHONY: setup llvm test test-slow demo bench bench-rrf clean
+.PHONY: setup llvm test test-slow demo bench bench-rrf bench-datadriven clean
 
 setup: llvm $(STAMP)
 
@@ -40,6 +40,9 @@ bench: setup
 
 bench-rrf: setup
 	$(PY) benchmarks/rrf_cornell.py
+
+bench-datadriven: setup
+	$(PY) benchmarks/datadriven.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -35,6 +35,7 @@ def test_rrf_cornell_test_preset(mi, tmp_path, capsys):
     assert folder in capsys.readouterr().out  # says where the report is
 
 
+@pytest.mark.slow  # ~20 s (suite budget); the LM and material-edit paths are unit-tested in tests/methods
 def test_rrf_glossy_test_preset_with_material_edit(mi, tmp_path):
     out = str(tmp_path / "out")
     assert cli_main(["run", "experiments/rrf_glossy.py", "--preset", "test", "--set", f"output.dir={out}"]) == 0
@@ -44,3 +45,21 @@ def test_rrf_glossy_test_preset_with_material_edit(mi, tmp_path):
     with open(summary) as f:
         s = json.load(f)
     assert len(s["edits"]) == 1 and s["edits"][0]["rmse"] >= 0
+
+
+def test_datadriven_test_preset(mi, tmp_path):
+    """Every stage of the data-driven PRT experiment at tiny size: summary keys are finite."""
+    out = str(tmp_path / "out")
+    assert cli_main(["run", "experiments/datadriven.py", "--preset", "test", "--set", f"output.dir={out}"]) == 0
+    (summary,) = [os.path.join(r, f) for r, _, fs in os.walk(out) for f in fs if f == "summary.json"]
+    with open(summary) as f:
+        s = json.load(f)
+    for key in ("rmse", "projection_rmse", "transfer_us", "frame_ms", "bake_s", "direct_measure_ms", "rmse_gamma"):
+        assert np.isfinite(s[key]) and s[key] >= 0, key
+    assert set(s["rmse_by_basis"]) == set(s["projection_rmse_by_basis"]) == {"2", "4"}
+    assert set(s["rmse_out_of_scenario"]) >= {"point", "directional"}
+    assert set(s["rmse_sh_prt"]) == {"2"}
+    assert s["lambda"] in s["lambda_cv"]["lambdas"]
+    folder = os.path.dirname(summary)
+    for name in ("fig14_basis.png", "side_by_side.png", "basis_mean_and_first7.png", "lambda_sweep.png"):
+        assert os.path.isfile(os.path.join(folder, name)), name

@@ -136,6 +136,8 @@ def _lighting_arrays(lighting: Lighting) -> dict:
     if isinstance(lighting, PointLights):
         return {"kind": np.array("point"), "position": np.asarray(lighting.position, np.float32),
                 "intensity": np.asarray(lighting.intensity, np.float32)}
+    if not isinstance(lighting, EnvMap):
+        raise TypeError(f"image datasets store point lights or environment maps, not {type(lighting).__name__}")
     return {"kind": np.array("envmap"), "radiance": np.asarray(lighting.radiance, np.float32)}
 
 

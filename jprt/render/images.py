@@ -89,7 +89,7 @@ def radiance_rays(handle: SceneHandle, origins, directions, *, spp: int, seed: i
         stop = min(n, start + per_chunk)
         m = stop - start
         sampler = mi.load_dict({"type": "independent", "sample_count": spp})
-        sampler.seed(int(seed) * 7919 + c, m * spp)
+        sampler.seed((int(seed) * 7919 + c) % (1 << 32), m * spp)
         rep = lambda a: np.repeat(a[start:stop], spp, axis=0)  # noqa: E731
         o, d = rep(origins), rep(directions)
         ray = mi.RayDifferential3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))

@@ -29,6 +29,8 @@ import numpy as np
 
 __all__ = [
     "PointLights",
+    "SpotLights",
+    "DirectionalLights",
     "EnvMap",
     "Lighting",
     "equirect_directions",
@@ -73,6 +75,85 @@ class PointLights(NamedTuple):
         return int(self.position.shape[0])
 
 
+def _rows(name: str, value, k: int | None, width: int | None) -> np.ndarray:
+    """``value`` as a float32 (K, width) (or (K,) when width is None) array; one row broadcasts to K."""
+    a = np.asarray(value, np.float32)
+    a = np.atleast_2d(a) if width is not None else np.atleast_1d(a)
+    if k is not None and a.shape[0] == 1 and k > 1:
+        a = np.repeat(a, k, axis=0)
+    if (width is not None and (a.ndim != 2 or a.shape[1] != width)) or (k is not None and a.shape[0] != k):
+        want = f"({k if k is not None else 'K'}{', ' + str(width) if width is not None else ''})"
+        raise ValueError(f"{name} must have shape {want}, got {np.shape(value)}")
+    if not np.isfinite(a).all():
+        raise ValueError(f"{name} contains NaN or inf")
+    return a
+
+
+class SpotLights(NamedTuple):
+    """K spot lights (Mitsuba's ``spot`` emitter: full intensity inside ``beam_deg``, falling
+    off linearly in angle to zero at ``cutoff_deg``).
+
+    Fields:
+      position:   (K, 3) float32 world positions.
+      target:     (K, 3) float32 points the spot axes aim at.
+      intensity:  (K, 3) float32 RGB radiant intensity on the axis (W/sr per channel).
+      cutoff_deg: (K,) float32 half-angle of the cone, in degrees, in (0, 90].
+      beam_deg:   (K,) float32 half-angle of the fully lit core, in degrees, <= cutoff_deg.
+    """
+
+    position: np.ndarray
+    target: np.ndarray
+    intensity: np.ndarray
+    cutoff_deg: np.ndarray
+    beam_deg: np.ndarray
+
+    @classmethod
+    def create(cls, position, target, intensity, cutoff_deg=30.0, beam_deg=None) -> "SpotLights":
+        """Validated constructor; one light may be given as (3,) arrays. ``beam_deg`` defaults to
+        three quarters of ``cutoff_deg``."""
+        position = _rows("spot position", position, None, 3)
+        k = position.shape[0]
+        target = _rows("spot target", target, k, 3)
+        intensity = _rows("spot intensity", intensity, k, 3)
+        cutoff = _rows("spot cutoff_deg", cutoff_deg, k, None)
+        beam = _rows("spot beam_deg", 0.75 * cutoff if beam_deg is None else beam_deg, k, None)
+        if np.any(np.linalg.norm(target - position, axis=1) < 1e-6):
+            raise ValueError("spot light target coincides with its position (no axis direction)")
+        if np.any((cutoff <= 0) | (cutoff > 90)) or np.any((beam <= 0) | (beam > cutoff)):
+            raise ValueError(f"spot angles need 0 < beam_deg <= cutoff_deg <= 90, got beam {beam} and cutoff {cutoff}")
+        return cls(position, target, intensity, cutoff, beam)
+
+    @property
+    def count(self) -> int:
+        return int(self.position.shape[0])
+
+
+class DirectionalLights(NamedTuple):
+    """K distant (directional) lights.
+
+    Fields:
+      direction:  (K, 3) float32 unit directions the light *travels* (from the light to the scene).
+      irradiance: (K, 3) float32 RGB irradiance on a surface facing the light (W/m^2 per channel).
+    """
+
+    direction: np.ndarray
+    irradiance: np.ndarray
+
+    @classmethod
+    def create(cls, direction, irradiance) -> "DirectionalLights":
+        """Validated constructor; one light may be given as (3,) arrays; directions are normalised."""
+        direction = _rows("directional light direction", direction, None, 3)
+        norm = np.linalg.norm(direction, axis=1, keepdims=True)
+        if np.any(norm < 1e-12):
+            raise ValueError("directional light direction has zero length")
+        irradiance = _rows("directional light irradiance", irradiance, direction.shape[0], 3)
+        return cls((direction / norm).astype(np.float32), irradiance)
+
+    @property
+    def count(self) -> int:
+        return int(self.direction.shape[0])
+
+
 class EnvMap(NamedTuple):
     """An environment map in jprt's equirect layout (see the module docstring).
 
@@ -105,7 +186,7 @@ class EnvMap(NamedTuple):
         return cls.create(np.array(bitmap))
 
 
-Lighting = Union[PointLights, EnvMap, None]
+Lighting = Union[PointLights, SpotLights, DirectionalLights, EnvMap, None]
 
 
 def validate_envmap(radiance) -> np.ndarray:
@@ -128,6 +209,10 @@ def validate_lighting(lighting: Lighting) -> Lighting:
         return None
     if isinstance(lighting, PointLights):
         return PointLights.create(lighting.position, lighting.intensity)
+    if isinstance(lighting, SpotLights):
+        return SpotLights.create(*lighting)
+    if isinstance(lighting, DirectionalLights):
+        return DirectionalLights.create(*lighting)
     if isinstance(lighting, EnvMap):
         return EnvMap.create(lighting.radiance)
     raise TypeError(f"unknown lighting type {type(lighting).__name__}")
@@ -191,6 +276,9 @@ def lighting_description(lighting: Lighting) -> dict:
             "position": np.asarray(lighting.position, np.float32).tolist(),
             "intensity": np.asarray(lighting.intensity, np.float32).tolist(),
         }
+    if isinstance(lighting, (SpotLights, DirectionalLights)):
+        kind = "spot" if isinstance(lighting, SpotLights) else "directional"
+        return {"kind": kind, **{k: np.asarray(v, np.float32).tolist() for k, v in lighting._asdict().items()}}
     if isinstance(lighting, EnvMap):
         return {"kind": "envmap", "shape": list(lighting.radiance.shape), "digest": array_digest(lighting.radiance)}
     raise TypeError(f"unknown lighting type {type(lighting).__name__}")

@@ -5,6 +5,8 @@ A scene *description* is a plain dict (so it hashes into dataset cache keys and 
   {"name": "cornell_box", "area_light": True, "materials": {"floor": {...}, ...}}
   {"name": "glossy_cornell", "floor_roughness": 0.2, "sphere_roughness": 0.05, ...}
   {"name": "xml", "path": "/abs/scene.xml", "sha256": "...", "keep_emitters": True}
+  {"name": "asset_room", "mesh": "/abs/spot.obj", "sha256": "...", "albedo": [...], ...}
+                                             a UV-mapped mesh (object "asset") in an open room corner
   {"name": "empty"}                          no geometry: only the jprt lighting (probes, tests)
 
 Materials (``materials`` entries override the defaults per object):
@@ -30,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from jprt.render.lights import (EnvMap, Lighting, PointLights, mitsuba_envmap_data, to_mitsuba_envmap,
-                               validate_lighting)
+from jprt.render.lights import (DirectionalLights, EnvMap, Lighting, PointLights, SpotLights, mitsuba_envmap_data,
+                               to_mitsuba_envmap, validate_lighting)
 from jprt.render.setup import mitsuba
 
 __all__ = [
@@ -39,6 +41,7 @@ __all__ = [
     "cornell_box",
     "glossy_cornell",
     "xml",
+    "asset_room",
     "describe",
     "SceneHandle",
     "CORNELL_OBJECTS",
@@ -129,6 +132,38 @@ def xml(path: str, *, keep_emitters: bool = True) -> dict:
     return {"name": "xml", "path": path, "sha256": digest, "keep_emitters": bool(keep_emitters)}
 
 
+_ROOM_MATERIALS = {
+    "floor": {"type": "diffuse", "albedo": [0.6, 0.6, 0.6]},
+    "back": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]},
+    "side": {"type": "diffuse", "albedo": [0.65, 0.12, 0.1]},
+}
+
+
+def asset_room(mesh: str, *, albedo=(0.75, 0.6, 0.45), margin: float = 1.0, size: float = 3.0,
+               walls: bool = True) -> dict:
+    """A mesh asset (object ``"asset"``, diffuse ``albedo``) standing on a grey floor in the corner
+    of two walls (a light grey back wall and a red side wall), open to the front and the sky.
+
+    The floor is placed at the bottom of the mesh's bounding box; the walls stand ``margin`` away
+    from it and the floor and walls extend ``size`` past the asset. Open sides let distant lights
+    (directional, environment maps) reach the asset, so classic PRT baselines apply to it too.
+    """
+    path = os.path.abspath(mesh)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"mesh not found: {path}")
+    if not path.lower().endswith((".obj", ".ply")):
+        raise ValueError(f"asset mesh must be .obj or .ply, got {path}")
+    with open(path, "rb") as f:
+        digest = hashlib.sha256(f.read()).hexdigest()
+    albedo = [float(a) for a in np.broadcast_to(np.asarray(albedo, np.float64), (3,))]
+    if not all(0.0 <= a <= 1.0 for a in albedo):
+        raise ValueError(f"asset albedo must lie in [0, 1], got {albedo}")
+    if margin <= 0 or size <= 0:
+        raise ValueError(f"margin and size must be positive, got {margin} and {size}")
+    return {"name": "asset_room", "mesh": path, "sha256": digest, "albedo": albedo, "margin": float(margin),
+            "size": float(size), "walls": bool(walls)}
+
+
 def describe(scene: dict | str) -> dict:
     """Normalise a scene given as a description dict or a name ("cornell_box", "glossy_cornell",
     or a path to an .xml file) into a full description."""
@@ -160,7 +195,10 @@ def describe(scene: dict | str) -> dict:
         return glossy_cornell(**kwargs)
     if name == "xml":
         return xml(scene["path"], keep_emitters=scene.get("keep_emitters", True))
-    raise ValueError(f"unknown scene name {name!r}: use 'empty', 'cornell_box', 'glossy_cornell' or 'xml'")
+    if name == "asset_room":
+        kwargs.pop("sha256", None)
+        return asset_room(**kwargs)
+    raise ValueError(f"unknown scene name {name!r}: use 'empty', 'cornell_box', 'glossy_cornell', 'xml' or 'asset_room'")
 
 
 # --------------------------------------------------------------------------------------------
@@ -222,6 +260,8 @@ def _base_dict(desc: dict, mi) -> dict:
         else:
             base.pop("light")  # its quad sits just below the ceiling; without emission it only casts slivers
         return base
+    if name == "asset_room":
+        return _asset_room_dict(desc, mi)
     if name == "xml":
         loaded = mi.load_file(desc["path"], optimize=False)
         base = {"type": "scene"}
@@ -240,6 +280,35 @@ def _base_dict(desc: dict, mi) -> dict:
     raise ValueError(f"unknown scene name {name!r}")
 
 
+def _asset_room_dict(desc: dict, mi) -> dict:
+    kind = "obj" if desc["mesh"].lower().endswith(".obj") else "ply"
+    asset = {"type": kind, "filename": desc["mesh"], "face_normals": False,
+             "bsdf": _bsdf_dict({"type": "diffuse", "albedo": desc["albedo"]}, mi)}
+    box = mi.load_dict(asset).bbox()
+    lo, hi = np.array(box.min, np.float64), np.array(box.max, np.float64)
+    base = {"type": "scene", "asset": asset}
+    if not desc["walls"]:
+        return base
+    m, s = desc["margin"], desc["size"]
+    x0, z0, y0 = lo[0] - m, lo[2] - m, lo[1]
+    x1, z1, y1 = hi[0] + s, hi[2] + s, hi[1] + s
+    T = mi.ScalarTransform4f
+
+    def quad(center, scale, rotate_axis, angle):
+        return T().translate([float(c) for c in center]) @ T().rotate(rotate_axis, angle) @ T().scale(
+            [float(c) for c in scale])
+
+    walls = {
+        # rectangles span [-1, 1]^2 in xy with normal +z: rotate so normals face the asset
+        "floor": quad([(x0 + x1) / 2, y0, (z0 + z1) / 2], [(x1 - x0) / 2, (z1 - z0) / 2, 1], [1, 0, 0], -90),
+        "back": quad([(x0 + x1) / 2, (y0 + y1) / 2, z0], [(x1 - x0) / 2, (y1 - y0) / 2, 1], [0, 1, 0], 0),
+        "side": quad([x0, (y0 + y1) / 2, (z0 + z1) / 2], [(z1 - z0) / 2, (y1 - y0) / 2, 1], [0, 1, 0], 90),
+    }
+    for key, to_world in walls.items():
+        base[key] = {"type": "rectangle", "to_world": to_world, "bsdf": _bsdf_dict(_ROOM_MATERIALS[key], mi)}
+    return base
+
+
 def _lighting_dict(lighting: Lighting, mi) -> dict:
     if lighting is None:
         return {}
@@ -249,9 +318,37 @@ def _lighting_dict(lighting: Lighting, mi) -> dict:
                                 "intensity": _rgb(lighting.intensity[k])}
             for k in range(lighting.count)
         }
+    if isinstance(lighting, SpotLights):
+        return {
+            f"jprt_spot_{k}": {"type": "spot", "to_world": _spot_to_world(lighting.position[k], lighting.target[k], mi),
+                               "intensity": _rgb(lighting.intensity[k]), "cutoff_angle": float(lighting.cutoff_deg[k]),
+                               "beam_width": float(lighting.beam_deg[k])}
+            for k in range(lighting.count)
+        }
+    if isinstance(lighting, DirectionalLights):
+        return {
+            f"jprt_directional_{k}": {"type": "directional", "direction": [float(c) for c in lighting.direction[k]],
+                                      "irradiance": _rgb(lighting.irradiance[k])}
+            for k in range(lighting.count)
+        }
     if isinstance(lighting, EnvMap):
         return {"jprt_envmap": {"type": "envmap", "bitmap": mi.Bitmap(to_mitsuba_envmap(lighting.radiance))}}
     raise TypeError(f"unknown lighting type {type(lighting).__name__}")
+
+
+def _spot_to_world(position, target, mi):
+    """Mitsuba spot frame: +z along the axis from ``position`` to ``target``."""
+    axis = np.asarray(target, np.float64) - np.asarray(position, np.float64)
+    axis /= np.linalg.norm(axis)
+    up = [0.0, 1.0, 0.0] if abs(axis[1]) < 0.99 else [1.0, 0.0, 0.0]
+    return mi.ScalarTransform4f().look_at(origin=[float(c) for c in position], target=[float(c) for c in target], up=up)
+
+
+def _directional_to_world(direction, mi):
+    """Mitsuba directional frame: +z along the travel direction."""
+    d = np.asarray(direction, np.float64)
+    up = [0.0, 1.0, 0.0] if abs(d[1]) < 0.99 else [1.0, 0.0, 0.0]
+    return mi.ScalarTransform4f().look_at(origin=[0.0, 0.0, 0.0], target=[float(c) for c in d], up=up)
 
 
 def _lighting_layout(lighting: Lighting) -> Any:
@@ -259,6 +356,11 @@ def _lighting_layout(lighting: Lighting) -> Any:
         return None
     if isinstance(lighting, PointLights):
         return ("point", lighting.count)
+    if isinstance(lighting, SpotLights):
+        # cone angles are baked into the emitter at construction: a change rebuilds
+        return ("spot", lighting.count, lighting.cutoff_deg.tobytes(), lighting.beam_deg.tobytes())
+    if isinstance(lighting, DirectionalLights):
+        return ("directional", lighting.count)
     return ("envmap", tuple(lighting.radiance.shape))
 
 
@@ -296,7 +398,8 @@ class SceneHandle:
         self._layout = _lighting_layout(lighting)
 
     def set_lighting(self, lighting: Lighting) -> None:
-        """Use ``lighting`` (PointLights, EnvMap or None for the scene's own emitters)."""
+        """Use ``lighting`` (PointLights, SpotLights, DirectionalLights, EnvMap, or None for the
+        scene's own emitters)."""
         lighting = validate_lighting(lighting)
         layout = _lighting_layout(lighting)
         if layout != self._layout:
@@ -307,6 +410,15 @@ class SceneHandle:
                 for k in range(lighting.count):
                     params[f"jprt_point_{k}.position"] = self._mi.Point3f(*map(float, lighting.position[k]))
                     params[f"jprt_point_{k}.intensity.value"] = self._mi.Color3f(*map(float, lighting.intensity[k]))
+            elif isinstance(lighting, SpotLights):
+                for k in range(lighting.count):
+                    params[f"jprt_spot_{k}.to_world"] = _spot_to_world(lighting.position[k], lighting.target[k], self._mi)
+                    params[f"jprt_spot_{k}.intensity.value"] = self._mi.Color3f(*map(float, lighting.intensity[k]))
+            elif isinstance(lighting, DirectionalLights):
+                for k in range(lighting.count):
+                    params[f"jprt_directional_{k}.to_world"] = _directional_to_world(lighting.direction[k], self._mi)
+                    params[f"jprt_directional_{k}.irradiance.value"] = self._mi.Color3f(
+                        *map(float, lighting.irradiance[k]))
             else:
                 params["jprt_envmap.data"] = self._mi.TensorXf(mitsuba_envmap_data(lighting.radiance))
             params.update()

@@ -1,0 +1,832 @@
+"""Data-driven precomputed radiance transfer (Belcour, Deliot, Barbier, Soler 2022).
+
+Indirect light of an asset is predicted from a few measurements of *direct* light:
+
+* **Measurement points** (§4.1): a blue-noise subset of a dense uniform set of surface samples,
+  chosen by weighted sample elimination (Yuksel 2015, ``sample_elimination``). Direct light is
+  measured at ``count * supersample`` points and averaged over the points nearest to each of the
+  ``count`` coarse points (§5.1 "direct illumination downscaling", ``select_points``).
+* **Dataset** (§4.1): N random lighting configurations of one lighting scenario (spot lights by
+  default); column k of D is the direct vector x_k at the measurement points, column k of I the
+  indirect lightmap of the asset (texels of ``jprt.render.lightmap.Atlas``).
+* **Basis** (§3.2, §4.2): every column is divided by the norm of its direct vector (so the
+  method works at any light intensity), the mean m is subtracted, and the SVD of the
+  mean-subtracted indirect matrix is computed through its N x N Gram matrix (Turk and Pentland
+  1991; ``gram_svd``). "n basis elements" means the mean plus n - 1 singular vectors U_n.
+* **Transfer** (§3.1-3.2, Eq. 6, 10, 13, 14): M_n = C_n (D^T D + lambda I)^(-1) D^T, with
+  C_n = U_n^T (I - m 1^T) the coefficients of the (normalised) dataset. Erratum (papers/README):
+  Eq. 13-14 print the P x P Gram matrix D D^T between C_n (n x N) and D^T (N x P), which does not
+  type-check with examples as columns; the push-through identity
+  (D^T D + lambda I_N)^(-1) D^T = D^T (D D^T + lambda I_P)^(-1) makes both orientations equal for
+  lambda > 0, and both tend to the Moore-Penrose pseudo-inverse D^+ as lambda -> 0 (Eq. 13).
+  ``ridge_pinv`` computes it from the SVD of D (filter factors s / (s^2 + lambda)), so an
+  ill-conditioned D gives a warning with its condition number and a finite result.
+* **Runtime** (§4.3): lights -> direct at the fine measurement points (rendered outside JAX,
+  e.g. ``jprt.render.lightmap.radiance_at_points``) -> average to x -> u = M_n x ->
+  lightmap = m |x| + U_n u -> bilinear lookup through the G-buffer's atlas UV. One jit-compiled
+  function (``evaluator``).
+* **Mean** (``basis.mean``): the paper scales the stored mean by |x| at run time (``"norm"``,
+  the default). That makes the model y = m |x| + U_n M_n x non-linear in x, and a linear M_n must
+  then also absorb the constant -U_n^T m of the normalised coefficients; on our data this costs
+  about 1.5x in RMSE at n = 64. ``"linear"`` (not in the paper) keeps the mean as one more basis
+  vector whose coefficient is regressed like the others, so y = B_n M_n x is exactly linear.
+* **Colour** (§5.2): ``channels="mono"`` treats R, G, B as separate examples of one basis with
+  one transfer matrix per channel; ``"multi"`` interleaves the channels in one vector.
+* **Gamma space** (§5.3): with ``gamma > 0`` the dataset, the runtime direct vector and the
+  reconstruction are mapped by g(v) = sign(v) |v|^(1/gamma) and the lightmap is mapped back.
+
+Contract (DESIGN.md): ``make_dataset(scene, config)`` -> ``DDData`` (rendered once, cached),
+``fit(data, config)`` -> params, ``evaluator(params)`` -> ``evaluate(gbuffer, direct)``.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import os
+import sys
+import time
+import warnings
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jprt.config import merge, stable_hash
+
+__all__ = [
+    "DEFAULT_CONFIG",
+    "IllConditionedWarning",
+    "MeasurementPoints",
+    "DDData",
+    "sample_elimination",
+    "select_points",
+    "gamma_encode",
+    "gamma_decode",
+    "gram_svd",
+    "ridge_pinv",
+    "make_dataset",
+    "random_lights",
+    "render_examples",
+    "fit",
+    "fit_arrays",
+    "cross_validate_lambda",
+    "evaluator",
+    "project",
+    "lightmap_rmse",
+    "model_bytes",
+]
+
+DEFAULT_CONFIG: dict[str, Any] = {
+    # the built-in Cornell box lit by spot lights inside it; lightmap over every object
+    "scene": {"name": "cornell_box", "area_light": False},
+    "objects": [],  # object names of the asset; [] = every object of the scene
+    "lightmap": {"resolution": 64},
+    "points": {
+        "candidates": 4096,  # dense uniform surface samples (also the sample-elimination input)
+        "count": 256,  # measurement points P (length of the direct vector per channel)
+        "supersample": 4,  # direct measured at count * supersample points, averaged to count (§5.1)
+        "seed": 0,
+    },
+    "lights": {  # the lighting scenario (§4.1): one spot light per configuration
+        "kind": "spot",
+        "position_lo": [-0.8, -0.7, -0.7],
+        "position_hi": [0.8, 0.9, 0.9],
+        "target_lo": [-0.9, -1.0, -0.9],
+        "target_hi": [0.9, 0.3, 0.3],
+        "cutoff_deg": [20.0, 50.0],
+        "intensity": [1.0, 6.0],  # W/sr on the axis, times a random colour of max channel 1
+        "saturation": 0.6,  # 0 = white lights, 1 = fully random colours
+        "clearance": 0.3,  # positions inside objects or this close to a surface are redrawn
+    },
+    "data": {"n_train": 256, "n_test": 32, "spp": 64, "test_spp": 256, "seed": 0},
+    # mean: "norm" = the paper's mean scaled by |x| at run time (§4.2); "linear" = the mean is one
+    # more basis vector with a regressed coefficient (exactly linear in x; not in the paper)
+    "basis": {"n": 16, "channels": "mono", "gamma": 0.0, "center": True, "mean": "norm"},
+    # lam: Tikhonov lambda of Eq. 14 on unit-norm direct vectors; when lam_cv lists candidates,
+    # lambda is chosen among them by cv_folds-fold cross-validation over the training configurations
+    "transfer": {"lam": 0.1, "lam_cv": [1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0], "cv_folds": 4, "rcond": 1e-12,
+                 "warn_condition": 1e7},
+}
+
+
+def _cfg(config: dict | None) -> dict:
+    """DEFAULT_CONFIG merged with the data-driven sections of ``config`` (other sections, e.g. an
+    experiment's ``eval``, are ignored; unknown keys inside these sections are errors)."""
+    config = config or {}
+    return merge(DEFAULT_CONFIG, {k: v for k, v in config.items() if k in DEFAULT_CONFIG})
+
+
+class IllConditionedWarning(RuntimeWarning):
+    """The direct matrix D is (numerically) rank deficient; the transfer falls back on the
+    regularised pseudo-inverse."""
+
+
+# --------------------------------------------------------------------------------------------
+# Measurement points (§4.1, §5.1)
+
+
+def sample_elimination(points, n: int, *, area: float | None = None, alpha: float = 8.0, beta: float = 0.65,
+                       gamma: float = 1.5) -> np.ndarray:
+    """Indices of ``n`` of ``points`` (M, d) with a blue-noise distribution: weighted sample
+    elimination (Yuksel 2015, §3-4).
+
+    Every sample i has weight w_i = sum_j (1 - d_ij / (2 r_max))^alpha over neighbours closer than
+    2 r_max, with distances below 2 r_min clamped to 2 r_min (weight limiting, §4), where
+    r_max = sqrt(A / (2 sqrt(3) n)) is the maximal Poisson-disk radius of n samples on a surface
+    of area A (d = 3 points on surfaces; in the plane A is the domain area) and
+    r_min = r_max (1 - (n / M)^gamma) beta. The heaviest sample is removed and its neighbours'
+    weights updated until n remain. ``area`` defaults to the area of the points' bounding box
+    (right for samples of a planar domain, too large for curved surfaces: pass it).
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, np.float64)
+    if pts.ndim != 2:
+        raise ValueError(f"points must be (M, d), got shape {pts.shape}")
+    m = pts.shape[0]
+    n = int(n)
+    if not 1 <= n <= m:
+        raise ValueError(f"cannot keep {n} of {m} samples")
+    if n == m:
+        return np.arange(m)
+    if area is None:
+        ext = np.sort(pts.max(0) - pts.min(0))[::-1]
+        area = float(ext[0] * ext[1]) if pts.shape[1] >= 2 else float(ext[0])
+    if not area > 0:
+        raise ValueError(f"area must be positive, got {area}")
+    r_max = math.sqrt(area / (2.0 * math.sqrt(3.0) * n))
+    r_min = r_max * (1.0 - (n / m) ** gamma) * beta
+    tree = cKDTree(pts)
+    pairs = tree.query_pairs(2.0 * r_max, output_type="ndarray")
+    d = np.linalg.norm(pts[pairs[:, 0]] - pts[pairs[:, 1]], axis=1)
+    w = (1.0 - np.maximum(d, 2.0 * r_min) / (2.0 * r_max)) ** alpha
+    weight = np.zeros(m)
+    np.add.at(weight, pairs[:, 0], w)
+    np.add.at(weight, pairs[:, 1], w)
+    order = np.argsort(np.concatenate([pairs[:, 0], pairs[:, 1]]), kind="stable")
+    nbr = np.concatenate([pairs[:, 1], pairs[:, 0]])[order]
+    nbr_w = np.concatenate([w, w])[order]
+    start = np.searchsorted(np.concatenate([pairs[:, 0], pairs[:, 1]])[order], np.arange(m + 1))
+    alive = np.ones(m, bool)
+    heap = [(-weight[i], i) for i in range(m)]
+    heapq.heapify(heap)
+    remaining = m
+    while remaining > n:
+        negw, i = heapq.heappop(heap)
+        if not alive[i] or -negw != weight[i]:
+            continue  # stale entry
+        alive[i] = False
+        remaining -= 1
+        for j, wij in zip(nbr[start[i]:start[i + 1]], nbr_w[start[i]:start[i + 1]]):
+            if alive[j]:
+                weight[j] -= wij
+                heapq.heappush(heap, (-weight[j], int(j)))
+    return np.nonzero(alive)[0]
+
+
+class MeasurementPoints(NamedTuple):
+    """Measurement points chosen among candidate surface samples.
+
+    Fields:
+      fine_index: (S,) indices into the candidates where direct light is measured.
+      group:      (S,) index 0..P-1 of the coarse point each fine point is averaged into.
+      counts:     (P,) number of fine points per coarse point (>= 1).
+      coarse_index: (P,) candidate index of each coarse point (itself one of the fine points).
+    """
+
+    fine_index: np.ndarray
+    group: np.ndarray
+    counts: np.ndarray
+    coarse_index: np.ndarray
+
+
+def select_points(position, count: int, *, supersample: int = 1, area: float | None = None) -> MeasurementPoints:
+    """Blue-noise measurement points and their §5.1 downscaling groups.
+
+    ``count * supersample`` fine points are eliminated from the candidates, ``count`` coarse
+    points from the fine ones, and every fine point is averaged into its nearest coarse point
+    ("averaging neighboring direct samples when the measurement points are geometrically close").
+    """
+    from scipy.spatial import cKDTree
+
+    position = np.asarray(position, np.float64)
+    count, supersample = int(count), int(supersample)
+    if count < 1 or supersample < 1:
+        raise ValueError(f"points.count and points.supersample must be >= 1, got {count} and {supersample}")
+    if count * supersample > position.shape[0]:
+        raise ValueError(f"{count} x {supersample} measurement points need at least that many candidates, "
+                         f"got {position.shape[0]} (raise points.candidates)")
+    fine = sample_elimination(position, count * supersample, area=area)
+    coarse_local = sample_elimination(position[fine], count, area=area) if supersample > 1 else np.arange(count)
+    _, group = cKDTree(position[fine][coarse_local]).query(position[fine])
+    group[coarse_local] = np.arange(count)  # a coarse point always belongs to its own group
+    counts = np.bincount(group, minlength=count)
+    return MeasurementPoints(fine.astype(np.int32), group.astype(np.int32), counts.astype(np.int32),
+                             fine[coarse_local].astype(np.int32))
+
+
+# --------------------------------------------------------------------------------------------
+# Linear algebra (§3, §4.2, §5.3)
+
+
+def gamma_encode(v, gamma: float):
+    """g(v) = sign(v) |v|^(1 / gamma) (§5.3; sign-extended so noisy negative indirect values and
+    negative reconstructions survive the round trip). ``gamma <= 0`` is the identity."""
+    if gamma <= 0:
+        return v
+    xp = jnp if isinstance(v, jax.Array) else np
+    return xp.sign(v) * xp.abs(v) ** (1.0 / gamma)
+
+
+def gamma_decode(v, gamma: float):
+    """Inverse of ``gamma_encode``: sign(v) |v|^gamma."""
+    if gamma <= 0:
+        return v
+    xp = jnp if isinstance(v, jax.Array) else np
+    return xp.sign(v) * xp.abs(v) ** gamma
+
+
+def gram_svd(a, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``n`` leading left singular vectors (rows, n) and singular values (n,) of ``a``
+    (rows x N), through the N x N Gram matrix a^T a when rows > N (Turk and Pentland 1991,
+    §4.2): a^T a = V S^2 V^T, U = a V S^-1. Singular values below 10 sqrt(eps * max(rows, N))
+    s_max (rounding noise of the Gram matrix) are returned as 0 with zero columns (never NaN). With rows <= N it is the thin SVD of ``a`` itself."""
+    a = np.asarray(a, np.float64)
+    rows, cols = a.shape
+    n = int(n)
+    if not 0 <= n <= min(rows, cols):
+        raise ValueError(f"cannot take {n} singular vectors of a {rows} x {cols} matrix")
+    if rows <= cols:
+        u, s, _ = np.linalg.svd(a, full_matrices=False)
+        return u[:, :n], s[:n]
+    evals, v = np.linalg.eigh(a.T @ a)
+    order = np.argsort(evals)[::-1][:n]
+    s = np.sqrt(np.maximum(evals[order], 0.0))
+    # the Gram matrix squares the condition number: singular values below ~sqrt(eps) s_max are
+    # rounding noise of a^T a and are returned as exact zeros (zero singular vectors)
+    tol = 10.0 * np.sqrt(np.finfo(np.float64).eps * max(rows, cols)) * (s[0] if s.size else 0.0)
+    keep = s > max(tol, 1e-300)
+    s = np.where(keep, s, 0.0)
+    u = np.zeros((rows, n))
+    u[:, keep] = (a @ v[:, order[keep]]) / s[keep]
+    # re-orthonormalise (eigh of the Gram matrix squares the condition number)
+    if keep.any():
+        q, r = np.linalg.qr(u[:, keep])
+        u[:, keep] = q * np.sign(np.diag(r))
+    return u, s
+
+
+def ridge_pinv(d, lam: float, *, rcond: float = 1e-12, warn_condition: float = 1e7,
+               name: str = "D") -> tuple[np.ndarray, dict]:
+    """(D^T D + lam I)^(-1) D^T = D^T (D D^T + lam I)^(-1) for D (P x N), from the SVD of D:
+    V diag(s / (s^2 + lam)) U^T (Eq. 14; lam = 0 gives the pseudo-inverse of Eq. 13, with
+    singular values below ``rcond * s_max`` dropped). Returns (N x P matrix, info) with the
+    condition number s_max / s_min and the numerical rank; warns (``IllConditionedWarning``)
+    when the condition number exceeds ``warn_condition``. Always finite."""
+    d = np.asarray(d, np.float64)
+    if not np.isfinite(d).all():
+        raise ValueError(f"{name} contains NaN or inf")
+    return _ridge_from_svd(np.linalg.svd(d, full_matrices=False), float(lam), rcond, warn_condition, name, d.shape)
+
+
+# --------------------------------------------------------------------------------------------
+# Fitting (§3-5)
+
+
+def _examples(direct: np.ndarray, indirect: np.ndarray, channels: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Columns of D and I: mono -> (P, 3N) and (T, 3N) with channel labels; multi -> (3P, N)
+    and (3T, N) with the channels interleaved per point / texel (§5.2)."""
+    n = direct.shape[0]
+    if channels == "mono":
+        x = np.transpose(direct, (1, 2, 0)).reshape(direct.shape[1], 3 * n)  # column c * N + k
+        y = np.transpose(indirect, (1, 2, 0)).reshape(indirect.shape[1], 3 * n)
+        label = np.repeat(np.arange(3), n)
+        return x, y, label
+    if channels == "multi":
+        return direct.reshape(n, -1).T, indirect.reshape(n, -1).T, np.zeros(n, np.int64)
+    raise ValueError(f"basis.channels must be 'mono' or 'multi', got {channels!r}")
+
+
+class _Stage(NamedTuple):
+    """Normalised examples and their basis (everything of a fit that does not depend on lambda)."""
+
+    xn: np.ndarray  # (P or 3P, examples) unit direct vectors
+    label: np.ndarray  # (examples,) colour channel (mono) or 0 (multi)
+    mean: np.ndarray  # stored mean (zeros when the mean is a regressed basis vector)
+    basis: np.ndarray  # (rows, n)
+    coeffs: np.ndarray  # (n, examples) regression targets
+    singular_values: np.ndarray
+    energy: float
+    points: int
+    counts: np.ndarray
+    examples: int
+
+
+def _stage(direct, indirect, group, cfg: dict) -> _Stage:
+    bcfg = cfg["basis"]
+    direct = np.asarray(direct, np.float64)
+    indirect = np.asarray(indirect, np.float64)
+    group = np.asarray(group, np.int64)
+    if direct.ndim != 3 or direct.shape[2] != 3 or indirect.ndim != 3 or indirect.shape[2] != 3:
+        raise ValueError(f"direct must be (N, S, 3) and indirect (N, T, 3), got {direct.shape} and {indirect.shape}")
+    if direct.shape[0] != indirect.shape[0]:
+        raise ValueError(f"direct has {direct.shape[0]} examples, indirect {indirect.shape[0]}")
+    if group.shape != (direct.shape[1],) or group.min() < 0:
+        raise ValueError(f"group must be (S,) = ({direct.shape[1]},) non-negative indices, got {group.shape}")
+    if not (np.isfinite(direct).all() and np.isfinite(indirect).all()):
+        raise ValueError("direct or indirect data contain NaN or inf")
+    if bcfg["mean"] not in ("norm", "linear"):
+        raise ValueError(f"basis.mean must be 'norm' (Belcour et al. §4.2) or 'linear', got {bcfg['mean']!r}")
+    p = int(group.max()) + 1
+    counts = np.bincount(group, minlength=p)
+    if np.any(counts == 0):
+        raise ValueError(f"coarse points {np.nonzero(counts == 0)[0][:5]} have no fine point")
+    coarse = np.zeros((direct.shape[0], p, 3))
+    np.add.at(coarse, (slice(None), group), direct)
+    coarse /= counts[None, :, None]
+    gamma = float(bcfg["gamma"])
+    x, y, label = _examples(gamma_encode(coarse, gamma), gamma_encode(indirect, gamma), bcfg["channels"])
+    norms = np.linalg.norm(x, axis=0)
+    usable = norms > 1e-12 * max(float(norms.max()), 1e-300)
+    if not usable.any():
+        raise ValueError("every example has a zero direct vector: no light reaches any measurement point")
+    if not usable.all():
+        warnings.warn(f"{int((~usable).sum())} of {usable.size} examples have a zero direct vector (the light "
+                      "reaches no measurement point); they carry no information for the transfer and are skipped",
+                      IllConditionedWarning, stacklevel=3)
+    x, y, label, norms = x[:, usable], y[:, usable], label[usable], norms[usable]
+    xn, yn = x / norms, y / norms
+    center = bool(bcfg["center"])
+    n_total = int(bcfg["n"])
+    if n_total < 1:
+        raise ValueError(f"basis.n must be >= 1, got {bcfg['n']}")
+    mean = yn.mean(axis=1) if center else np.zeros(yn.shape[0])
+    a = yn - mean[:, None]
+    n_basis = min(n_total - (1 if center else 0), min(a.shape))
+    u, sv = gram_svd(a, n_basis)
+    total = float(np.sum(a ** 2))
+    energy = float(np.sum(sv ** 2) / total) if total > 0 else 1.0
+    if center and bcfg["mean"] == "linear":
+        # the mean is one more basis vector whose coefficient is regressed like the others, so the
+        # model stays exactly linear in x (no |x| factor)
+        q, r = np.linalg.qr(np.column_stack([mean, u]))
+        u = q * np.where(np.abs(np.diag(r)) > 1e-12 * max(np.abs(np.diag(r)).max(), 1e-300), 1.0, 0.0)
+        return _Stage(xn, label, np.zeros_like(mean), u, u.T @ yn, sv, energy, p, counts, int(usable.sum()))
+    return _Stage(xn, label, mean, u, u.T @ a, sv, energy, p, counts, int(usable.sum()))
+
+
+class _Solver:
+    """SVDs of the direct matrices of a stage (per channel for mono), reused for every lambda."""
+
+    def __init__(self, stage: _Stage, channels: str):
+        self.stage = stage
+        self.channels = channels
+        self.parts = []
+        for ch in (range(3) if channels == "mono" else [0]):
+            sel = stage.label == ch
+            if sel.any():
+                self.parts.append((ch, sel, np.linalg.svd(stage.xn[:, sel], full_matrices=False)))
+
+    def transfer(self, lam: float, rcond: float, warn: float | None) -> tuple[np.ndarray, list]:
+        st = self.stage
+        n = st.basis.shape[1]
+        transfer = np.zeros((3, n, st.points)) if self.channels == "mono" else np.zeros((n, st.xn.shape[0]))
+        info = []
+        for ch, sel, svd in self.parts:
+            name = f"D (channel {'RGB'[ch]})" if self.channels == "mono" else "D"
+            pinv, inf = _ridge_from_svd(svd, lam, rcond, warn, name, st.xn[:, sel].shape)
+            if self.channels == "mono":
+                transfer[ch] = st.coeffs[:, sel] @ pinv
+            else:
+                transfer = st.coeffs @ pinv
+            info.append(inf)
+        return transfer, info
+
+
+def _ridge_from_svd(svd, lam: float, rcond: float, warn: float | None, name: str, shape) -> tuple[np.ndarray, dict]:
+    if lam < 0:
+        raise ValueError(f"lambda must be >= 0, got {lam}")
+    u, s, vt = svd
+    s_max = float(s[0]) if s.size else 0.0
+    keep = s > rcond * s_max if s_max > 0 else np.zeros_like(s, bool)
+    filt = np.where(keep, s / np.where(keep, s * s + lam, 1.0), 0.0)
+    s_min = float(s[-1]) if s.size else 0.0
+    cond = s_max / s_min if s_min > 0 else math.inf
+    info = {"condition": cond, "rank": int(keep.sum()), "shape": list(shape), "s_max": s_max, "s_min": s_min}
+    if warn is not None and cond > warn:
+        warnings.warn(f"{name} ({shape[0]} x {shape[1]}) is ill-conditioned: condition number {cond:.3g}, "
+                      f"numerical rank {info['rank']} of {min(shape)} (duplicate measurement points, or lights "
+                      f"that reach none); the transfer uses the regularised pseudo-inverse (lambda = {lam:g})",
+                      IllConditionedWarning, stacklevel=4)
+    return (vt.T * filt) @ u.T, info
+
+
+def fit_arrays(direct, indirect, group, config: dict | None = None, *, progress: bool = False) -> dict:
+    """Basis and transfer matrices from N examples.
+
+    Args:
+      direct: (N, S, 3) direct radiance at the S fine measurement points of each configuration.
+      indirect: (N, T, 3) indirect lightmap texels of each configuration.
+      group: (S,) coarse point index of each fine point (``MeasurementPoints.group``).
+      config: ``basis`` and ``transfer`` sections (``DEFAULT_CONFIG`` layout); ``transfer.lam_cv``
+        is not used here (see ``fit`` and ``cross_validate_lambda``).
+
+    Returns the params dict read by ``evaluator`` (arrays, plus ``meta``).
+    """
+    del progress
+    cfg = _cfg(config)
+    bcfg, tcfg = cfg["basis"], cfg["transfer"]
+    stage = _stage(direct, indirect, group, cfg)
+    lam = float(tcfg["lam"])
+    transfer, info = _Solver(stage, bcfg["channels"]).transfer(lam, float(tcfg["rcond"]), float(tcfg["warn_condition"]))
+    return {
+        "mean": stage.mean.astype(np.float32),
+        "basis": stage.basis.astype(np.float32),
+        "transfer": transfer.astype(np.float32),
+        "group": np.asarray(group, np.int32),
+        "counts": stage.counts.astype(np.int32),
+        "singular_values": stage.singular_values.astype(np.float32),
+        "meta": {"channels": bcfg["channels"], "gamma": float(bcfg["gamma"]), "center": bool(bcfg["center"]),
+                 "mean": bcfg["mean"], "n": int(bcfg["n"]), "lam": lam, "points": stage.points,
+                 "texels": int(np.shape(indirect)[1]), "examples": stage.examples, "conditioning": info,
+                 "energy_kept": stage.energy},
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Evaluation (§4.3)
+
+
+def _coarse_jax(direct, group, counts):
+    p = counts.shape[0]
+    return jax.ops.segment_sum(direct, group, num_segments=p) / counts[:, None].astype(direct.dtype)
+
+
+def _lightmap_jax(params: dict, direct):
+    """(S, 3) fine direct -> (T, 3) lightmap (jit-able)."""
+    meta = params["meta"]
+    gamma = meta["gamma"]
+    x = gamma_encode(_coarse_jax(direct, params["group"], params["counts"]), gamma)
+    mean, basis, transfer = params["mean"], params["basis"], params["transfer"]
+    if meta["channels"] == "mono":
+        norms = jnp.linalg.norm(x, axis=0)  # (3,)
+        u = jnp.einsum("cnp,pc->nc", transfer, x)  # (n, 3): u_c = M_c x_c
+        out = mean[:, None] * norms[None, :] + basis @ u
+    else:
+        xv = x.reshape(-1)
+        u = transfer @ xv
+        out = (mean * jnp.linalg.norm(xv) + basis @ u).reshape(-1, 3)
+    return gamma_decode(out, gamma)
+
+
+def _bilinear(image, uv):
+    """Bilinear lookup of an (R, R, C) atlas at (..., 2) UVs (u -> column, v -> row; texel
+    centres at (i + 0.5) / R), clamped to the atlas."""
+    r = image.shape[0]
+    col = jnp.clip(uv[..., 0] * r - 0.5, 0.0, r - 1.0)
+    row = jnp.clip(uv[..., 1] * r - 0.5, 0.0, r - 1.0)
+    c0, r0 = jnp.floor(col).astype(jnp.int32), jnp.floor(row).astype(jnp.int32)
+    c1, r1 = jnp.minimum(c0 + 1, r - 1), jnp.minimum(r0 + 1, r - 1)
+    fc, fr = (col - c0)[..., None], (row - r0)[..., None]
+    top = image[r0, c0] * (1 - fc) + image[r0, c1] * fc
+    bottom = image[r1, c0] * (1 - fc) + image[r1, c1] * fc
+    return top * (1 - fr) + bottom * fr
+
+
+def evaluator(params: dict, config: dict | None = None):
+    """``evaluate(gbuffer, direct) -> (H, W, 3)`` indirect radiance, jit-compiled.
+
+    ``gbuffer`` needs ``uv`` in atlas coordinates and ``valid`` (``jprt.render.lightmap.atlas_gbuffer``);
+    ``direct`` is (S, 3): the direct radiance at the fine measurement points (the method's
+    lighting input, §4.3 "fake G-buffer"). Attributes: ``evaluate.lightmap(direct)`` -> (T, 3)
+    texels, ``evaluate.transfer(x)`` -> the coefficients u = M_n x of a coarse (P, 3) direct
+    vector, ``evaluate.jitted(uv, valid, direct)`` the array-only function (for export).
+    """
+    del config
+    if "texel_index" not in params:
+        raise ValueError("params have no lightmap layout (fit_arrays output): use fit(data, ...) or add "
+                         "texel_index / fill_index / resolution")
+    p = {k: (jnp.asarray(v) if isinstance(v, np.ndarray) else v) for k, v in params.items()}
+    res = int(params["meta"]["resolution"])
+    fill = jnp.asarray(params["fill_index"])
+    n_fine = int(params["group"].shape[0])
+    texels = int(params["meta"]["texels"])
+
+    def check(direct):
+        direct = jnp.asarray(direct, jnp.float32)
+        if direct.shape != (n_fine, 3):
+            raise ValueError(f"direct must be ({n_fine}, 3) radiance at the fine measurement points, "
+                             f"got {direct.shape}")
+        return direct
+
+    @jax.jit
+    def lightmap_fn(direct):
+        return _lightmap_jax(p, direct)
+
+    @jax.jit
+    def image_fn(uv, valid, direct):
+        lm = _lightmap_jax(p, direct)
+        atlas = lm[fill].reshape(res, res, 3)
+        return jnp.where(valid[..., None], _bilinear(atlas, uv), 0.0)
+
+    @jax.jit
+    def transfer_fn(x):
+        xg = gamma_encode(x, p["meta"]["gamma"])
+        if p["meta"]["channels"] == "mono":
+            return jnp.einsum("cnp,pc->nc", p["transfer"], xg)
+        return p["transfer"] @ xg.reshape(-1)
+
+    def evaluate(gbuffer, direct):
+        uv = jnp.asarray(gbuffer.uv, jnp.float32)
+        valid = jnp.asarray(gbuffer.valid, bool)
+        if uv.shape[:-1] != valid.shape or uv.shape[-1] != 2:
+            raise ValueError(f"gbuffer.uv must be (H, W, 2) matching valid (H, W), got {uv.shape} and {valid.shape}")
+        return image_fn(uv, valid, check(direct))
+
+    def lightmap(direct):
+        out = lightmap_fn(check(direct))
+        assert out.shape == (texels, 3)
+        return out
+
+    evaluate.lightmap = lightmap
+    evaluate.transfer = transfer_fn
+    evaluate.jitted = image_fn
+    return evaluate
+
+
+def project(params: dict, direct, indirect) -> np.ndarray:
+    """The best reconstruction of reference lightmaps in the fitted basis (Fig. 14 dashed):
+    s (m + U_n U_n^T (y / s - m)) in the transfer space (gamma-mapped, s = |x| of the example's
+    own direct vector), mapped back. direct (N, S, 3), indirect (N, T, 3) -> (N, T, 3)."""
+    meta = params["meta"]
+    gamma = meta["gamma"]
+    direct = np.asarray(direct, np.float64)
+    indirect = np.asarray(indirect, np.float64)
+    group, counts = np.asarray(params["group"]), np.asarray(params["counts"])
+    coarse = np.zeros((direct.shape[0], counts.shape[0], 3))
+    np.add.at(coarse, (slice(None), group), direct)
+    coarse /= counts[None, :, None]
+    x, y, _ = _examples(gamma_encode(coarse, gamma), gamma_encode(indirect, gamma), meta["channels"])
+    s = np.maximum(np.linalg.norm(x, axis=0), 1e-30)
+    mean = np.asarray(params["mean"], np.float64)[:, None]
+    u = np.asarray(params["basis"], np.float64)
+    yn = y / s
+    rec = (mean + u @ (u.T @ (yn - mean))) * s
+    n = indirect.shape[0]
+    if meta["channels"] == "mono":
+        out = np.transpose(rec.reshape(indirect.shape[1], 3, n), (2, 0, 1))
+    else:
+        out = rec.T.reshape(indirect.shape)
+    return gamma_decode(out, gamma)
+
+
+def _predict_np(params: dict, direct) -> np.ndarray:
+    """NumPy twin of the evaluator's lightmap for a batch (N, S, 3) -> (N, T, 3) (no compile per
+    fit, for cross-validation)."""
+    meta = params["meta"]
+    gamma = meta["gamma"]
+    direct = np.asarray(direct, np.float64)
+    group, counts = np.asarray(params["group"]), np.asarray(params["counts"])
+    coarse = np.zeros((direct.shape[0], counts.shape[0], 3))
+    np.add.at(coarse, (slice(None), group), direct)
+    x = gamma_encode(coarse / counts[None, :, None], gamma)
+    mean, basis = np.asarray(params["mean"], np.float64), np.asarray(params["basis"], np.float64)
+    transfer = np.asarray(params["transfer"], np.float64)
+    if meta["channels"] == "mono":
+        norms = np.linalg.norm(x, axis=1)  # (N, 3)
+        u = np.einsum("cnp,kpc->knc", transfer, x)
+        out = mean[None, :, None] * norms[:, None, :] + np.einsum("tn,knc->ktc", basis, u)
+    else:
+        xv = x.reshape(x.shape[0], -1)
+        out = (mean[None] * np.linalg.norm(xv, axis=1)[:, None] + xv @ transfer.T @ basis.T).reshape(
+            x.shape[0], -1, 3)
+    return gamma_decode(out, gamma)
+
+
+def cross_validate_lambda(direct, indirect, group, config: dict | None, lambdas, *, folds: int = 4,
+                          seed: int = 0) -> dict:
+    """Choose the ridge lambda (Eq. 14) by k-fold cross-validation over lighting configurations:
+    for every candidate, fit on k - 1 folds and measure the lightmap RMSE on the held-out fold
+    (the basis and the SVDs of each fold are shared by all candidates).
+    Returns {"best": lambda, "lambdas": [...], "rmse": [...]} (never looks at test data)."""
+    direct, indirect = np.asarray(direct), np.asarray(indirect)
+    n = direct.shape[0]
+    folds = int(folds)
+    if folds < 2 or folds > n:
+        raise ValueError(f"cv_folds must be in [2, {n}], got {folds}")
+    if not len(lambdas):
+        raise ValueError("no lambda candidates")
+    order = np.random.default_rng(seed).permutation(n)
+    cfg = _cfg(config)
+    sq = np.zeros(len(lambdas))
+    count = 0
+    for part in np.array_split(order, folds):
+        train = np.setdiff1d(order, part)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", IllConditionedWarning)
+            stage = _stage(direct[train], indirect[train], group, cfg)
+        solver = _Solver(stage, cfg["basis"]["channels"])
+        params = {"mean": stage.mean, "basis": stage.basis, "group": np.asarray(group), "counts": stage.counts,
+                  "meta": {"channels": cfg["basis"]["channels"], "gamma": float(cfg["basis"]["gamma"])}}
+        for j, lam in enumerate(lambdas):
+            params["transfer"], _ = solver.transfer(float(lam), float(cfg["transfer"]["rcond"]), None)
+            err = _predict_np(params, direct[part]) - indirect[part]
+            sq[j] += float(np.sum(err ** 2))
+        count += indirect[part].size
+    scores = np.sqrt(sq / count)
+    return {"best": float(lambdas[int(np.argmin(scores))]), "lambdas": [float(l) for l in lambdas],
+            "rmse": [float(v) for v in scores]}
+
+
+def lightmap_rmse(predictions, references) -> float:
+    """RMSE over all texels, channels and configurations of (N, T, 3) lightmaps."""
+    p, r = np.asarray(predictions, np.float64), np.asarray(references, np.float64)
+    if p.shape != r.shape:
+        raise ValueError(f"predictions {p.shape} and references {r.shape} differ")
+    return float(np.sqrt(np.mean((p - r) ** 2)))
+
+
+def model_bytes(params: dict) -> int:
+    """Bytes of the runtime data (float32 basis, mean and transfer matrices, point groups)."""
+    return int(sum(np.asarray(params[k]).nbytes for k in ("mean", "basis", "transfer", "group", "counts")))
+
+
+# --------------------------------------------------------------------------------------------
+# Dataset (§4.1)
+
+
+class DDData(NamedTuple):
+    """Rendered examples of one lighting scenario.
+
+    Fields:
+      atlas: ``jprt.render.lightmap.Atlas`` arrays as a dict (NumPy only).
+      candidates: dict of candidate surface samples (position, normal, albedo, object_id, area).
+      direct / indirect: (N, S, 3) direct at every candidate and (N, T, 3) indirect lightmaps
+        (training configurations, ``data.spp`` samples per texel).
+      direct_test / indirect_test: held-out configurations (``data.test_spp``).
+      lights / lights_test: dicts of stacked ``SpotLights`` fields.
+      meta: scene description, object names, render seconds, cache path.
+    """
+
+    atlas: dict
+    candidates: dict
+    direct: np.ndarray
+    indirect: np.ndarray
+    direct_test: np.ndarray
+    indirect_test: np.ndarray
+    lights: dict
+    lights_test: dict
+    meta: dict
+
+
+def random_lights(rng: np.random.Generator, n: int, lights_cfg: dict, accept=None) -> list:
+    """``n`` random lighting configurations of the scenario in ``lights_cfg`` (one spot light
+    each: position and target uniform in their boxes, cone angle uniform in ``cutoff_deg``,
+    intensity uniform in ``intensity`` times a random colour of saturation ``saturation``).
+    ``accept(position) -> bool`` rejects positions (inside objects, touching walls)."""
+    from jprt.render.lights import SpotLights
+    from jprt.render.sampling import check_box
+
+    if lights_cfg["kind"] != "spot":
+        raise ValueError(f"lights.kind {lights_cfg['kind']!r}: only 'spot' scenarios are built in "
+                         "(other kinds are evaluation-only, see experiments/datadriven.py)")
+    plo, phi = check_box(lights_cfg["position_lo"], lights_cfg["position_hi"], "lights.position")
+    tlo, thi = check_box(lights_cfg["target_lo"], lights_cfg["target_hi"], "lights.target")
+    out = []
+    for _ in range(int(n)):
+        for _attempt in range(1000):
+            pos = plo + (phi - plo) * rng.random(3)
+            if accept is None or accept(pos):
+                break
+        else:
+            raise ValueError("no acceptable spot-light position in lights.position_lo/hi after 1000 tries "
+                             "(inside objects or closer than lights.clearance to a surface)")
+        tgt = tlo + (thi - tlo) * rng.random(3)
+        while np.linalg.norm(tgt - pos) < 1e-3:
+            tgt = tlo + (thi - tlo) * rng.random(3)
+        cutoff = rng.uniform(*lights_cfg["cutoff_deg"])
+        colour = (1.0 - lights_cfg["saturation"]) + lights_cfg["saturation"] * rng.random(3)
+        colour /= colour.max()
+        out.append(SpotLights.create(pos, tgt, rng.uniform(*lights_cfg["intensity"]) * colour, cutoff))
+    return out
+
+
+def render_examples(handle, atlas, candidates, lightings, *, spp: int, seed: int = 0,
+                    progress: bool = True, desc: str = "examples") -> tuple[np.ndarray, np.ndarray]:
+    """Direct at every candidate point (exact, one shadow ray per light) and indirect lightmap
+    texels (``spp`` paths, full minus direct with equal seeds) for each lighting: (N, S, 3) and
+    (N, T, 3)."""
+    from tqdm.auto import tqdm
+
+    from jprt.render import lightmap
+
+    direct, indirect = [], []
+    for k, lighting in enumerate(tqdm(lightings, desc=desc, disable=not progress)):
+        handle.set_lighting(lighting)
+        direct.append(lightmap.radiance_at_points(handle, candidates["position"], candidates["normal"], spp=1,
+                                                  max_depth=2))
+        indirect.append(lightmap.indirect_at_points(handle, atlas["position"], atlas["normal"], spp=spp,
+                                                    seed=seed * 100003 + k))
+    return np.stack(direct), np.stack(indirect)
+
+
+def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
+                 progress: bool = True) -> DDData:
+    """Render the training and held-out examples of ``scene`` (default: ``config['scene']``),
+    cached by content hash under ``$JPRT_CACHE/datadriven/<hash>.npz`` (checksummed, atomic)."""
+    from jprt.render import lightmap
+    from jprt.render.dataset import _entry_state, _save_npz, cache_root
+    from jprt.render.scenes import SceneHandle, describe
+
+    cfg = _cfg(config)
+    desc = describe(scene if scene is not None else cfg["scene"])
+    if desc.get("area_light") or desc.get("keep_emitters"):
+        raise ValueError("the data-driven scenario supplies the lights: use a scene without emitters of its own "
+                         "(area_light=False, or keep_emitters=False for XML)")
+    dcfg = cfg["data"]
+    for key in ("n_train", "n_test", "spp", "test_spp"):
+        if int(dcfg[key]) < (0 if key == "n_test" else 1):
+            raise ValueError(f"data.{key} must be positive, got {dcfg[key]}")
+    spec = {"format": 1, "scene": desc, "objects": list(cfg["objects"]), "lightmap": cfg["lightmap"],
+            "candidates": cfg["points"]["candidates"], "seed_points": cfg["points"]["seed"], "lights": cfg["lights"],
+            "data": dcfg}
+    folder = os.path.join(cache_dir or cache_root(), "datadriven")
+    path = os.path.join(folder, stable_hash(spec) + ".npz")
+    if _entry_state(path) == "ok":
+        with np.load(path, allow_pickle=False) as f:
+            arrays = {k: f[k] for k in f.files}
+        return _unpack(arrays, spec, path)
+    os.makedirs(folder, exist_ok=True)
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(int(dcfg["seed"]))
+    handle = SceneHandle(desc)
+
+    def accept(position):
+        return bool(lightmap.free_positions(handle, position, clearance=float(cfg["lights"]["clearance"]))[0])
+
+    train = random_lights(rng, dcfg["n_train"], cfg["lights"], accept)
+    # held-out lights from their own stream: the same test set for any n_train
+    test = random_lights(np.random.default_rng([int(dcfg["seed"]), 1]), dcfg["n_test"], cfg["lights"], accept)
+    objects = list(cfg["objects"]) or None
+    atlas = lightmap.build_atlas(handle, objects, resolution=int(cfg["lightmap"]["resolution"]))._asdict()
+    cands = lightmap.surface_samples(handle, int(cfg["points"]["candidates"]), objects=objects,
+                                     seed=int(cfg["points"]["seed"]))._asdict()
+    d, i = render_examples(handle, atlas, cands, train, spp=int(dcfg["spp"]), seed=int(dcfg["seed"]),
+                           progress=progress, desc="train configurations")
+    t_train = time.perf_counter() - t0
+    if test:
+        dt, it = render_examples(handle, atlas, cands, test, spp=int(dcfg["test_spp"]), seed=int(dcfg["seed"]) + 1,
+                                 progress=progress, desc="held-out configurations")
+    else:
+        dt, it = np.zeros((0,) + d.shape[1:], np.float32), np.zeros((0,) + i.shape[1:], np.float32)
+    arrays = {f"atlas_{k}": np.asarray(v) for k, v in atlas.items()}
+    arrays.update({f"cand_{k}": np.asarray(v) for k, v in cands.items()})
+    arrays.update(direct=d, indirect=i, direct_test=dt, indirect_test=it,
+                  object_names=np.array(handle.object_names()), render_train_s=np.array(t_train),
+                  render_s=np.array(time.perf_counter() - t0))
+    for name, ls in (("lights", train), ("lights_test", test)):
+        for k, field in enumerate(("position", "target", "intensity", "cutoff_deg", "beam_deg")):
+            arrays[f"{name}_{field}"] = np.stack([getattr(l, field)[0] for l in ls]) if ls else np.zeros((0,))
+    _save_npz(path, arrays)
+    if progress:
+        print(f"datadriven: rendered {len(train)} + {len(test)} configurations in "
+              f"{time.perf_counter() - t0:.1f} s -> {path}", file=sys.stderr)
+    return _unpack(arrays, spec, path)
+
+
+def _unpack(arrays: dict, spec: dict, path: str) -> DDData:
+    def prefixed(prefix, exclude=None):
+        return {k[len(prefix):]: (v.item() if v.ndim == 0 else v) for k, v in arrays.items()
+                if k.startswith(prefix) and not (exclude and k.startswith(exclude))}
+
+    meta = {"scene": spec["scene"], "object_names": [str(s) for s in arrays["object_names"]],
+            "render_s": float(arrays["render_s"]), "render_train_s": float(arrays["render_train_s"]),
+            "cache": path, "spec_hash": stable_hash(spec)}
+    return DDData(atlas=prefixed("atlas_"), candidates=prefixed("cand_"), direct=arrays["direct"],
+                  indirect=arrays["indirect"], direct_test=arrays["direct_test"], indirect_test=arrays["indirect_test"],
+                  lights=prefixed("lights_", "lights_test_"), lights_test=prefixed("lights_test_"), meta=meta)
+
+
+def fit(data: DDData, config: dict | None = None, *, progress: bool = False) -> dict:
+    """Measurement points (§4.1, §5.1), basis and transfer (§4.2) from a ``DDData``; the params
+    also carry the lightmap layout the evaluator needs."""
+    cfg = _cfg(config)
+    t0 = time.perf_counter()
+    pcfg = cfg["points"]
+    points = select_points(data.candidates["position"], pcfg["count"], supersample=pcfg["supersample"],
+                           area=float(data.candidates["area"]))
+    direct = data.direct[:, points.fine_index]
+    cv = None
+    if cfg["transfer"]["lam_cv"]:
+        cv = cross_validate_lambda(direct, data.indirect, points.group, cfg, cfg["transfer"]["lam_cv"],
+                                   folds=int(cfg["transfer"]["cv_folds"]))
+        cfg = merge(cfg, {"transfer": {"lam": cv["best"]}})
+    params = fit_arrays(direct, data.indirect, points.group, cfg, progress=progress)
+    params["meta"]["lambda_cv"] = cv
+    params["fine_index"] = points.fine_index
+    params["texel_index"] = np.asarray(data.atlas["texel_index"], np.int32)
+    params["fill_index"] = np.asarray(data.atlas["fill_index"], np.int32)
+    params["meta"].update(resolution=int(data.atlas["resolution"]), fit_s=time.perf_counter() - t0)
+    return params

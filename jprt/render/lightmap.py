@@ -1,0 +1,454 @@
+"""Texture-space (lightmap) layouts of scene objects, surface samples, and radiance at surface points.
+
+A lightmap stores one outgoing radiance per texel of an *atlas*: a square R x R image in which
+every chosen object owns one or more charts (Belcour et al. 2022, §4.1: "we evaluate indirect
+illumination in textures using the UV-space of the asset, thus each row of I is a lightmap").
+
+Charts:
+  * an object whose own UV layout does not overlap itself (Spot, Mitsuba's rectangles) is one
+    chart, its UVs scaled to world units;
+  * an object whose UVs overlap (Mitsuba's cube maps all six faces onto [0, 1]^2) is split into
+    planar charts, one per face plane, each parameterised by two axes of its plane.
+Charts are packed on shelves at one common texel size (world units per texel), with a
+two-texel gutter, so texel density is uniform over the atlas.
+
+Every triangle t then has an affine map ``uv = A_t [p, 1]`` from world position to atlas UV
+(exact inside the triangle, since the barycentric interpolation of its corner UVs is affine).
+A G-buffer pixel's atlas UV is therefore a function of (object, primitive index, position),
+which ``atlas_gbuffer`` evaluates for a camera. ``Atlas`` holds only NumPy arrays (no Mitsuba
+objects), so methods take it as data.
+
+Radiance at surface points (texel centres, measurement points) is traced as rays that start a
+small distance ``eps`` above the point along its geometric normal and point back at it: for a
+diffuse surface that returns the outgoing radiance at the point; ``images.radiance_rays`` does
+the path tracing, so the direct / indirect split is the same as for images.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import numpy as np
+
+from jprt.render import images
+from jprt.render.cameras import Camera, camera_rays
+from jprt.render.gbuffer import GBuffer, gbuffer, gbuffer_rays
+from jprt.render.lights import DirectionalLights, Lighting, PointLights, SpotLights
+from jprt.render.scenes import SceneHandle
+
+__all__ = [
+    "Atlas",
+    "SurfacePoints",
+    "mesh_triangles",
+    "build_atlas",
+    "atlas_gbuffer",
+    "surface_samples",
+    "radiance_at_points",
+    "indirect_at_points",
+    "incident_delta_lights",
+    "free_positions",
+]
+
+_GUTTER = 2  # texels between charts
+
+
+class Atlas(NamedTuple):
+    """A lightmap layout over some objects of a scene (all NumPy).
+
+    Fields:
+      resolution:  R, the atlas is R x R texels.
+      objects:     (O,) int32 object ids (indices into ``SceneHandle.object_names()``).
+      tri_offset:  (O,) int32 first global triangle of each object.
+      tri_affine:  (F, 2, 4) float64 world position -> atlas UV map of every triangle.
+      texel_index: (T,) int32 flat index (row * R + column) of each covered texel.
+      position:    (T, 3) float32 world position of each covered texel centre.
+      normal:      (T, 3) float32 unit geometric normal there.
+      texel_object:(T,) int32 object id of each texel.
+      fill_index:  (R * R,) int32 texel (0..T-1) whose value each atlas pixel shows: itself where
+                   covered, the nearest covered texel elsewhere (gutter dilation for bilinear lookup).
+      texel_size:  world units per texel.
+    """
+
+    resolution: int
+    objects: np.ndarray
+    tri_offset: np.ndarray
+    tri_affine: np.ndarray
+    texel_index: np.ndarray
+    position: np.ndarray
+    normal: np.ndarray
+    texel_object: np.ndarray
+    fill_index: np.ndarray
+    texel_size: float
+
+    @property
+    def count(self) -> int:
+        """Number of covered texels T."""
+        return int(self.texel_index.shape[0])
+
+
+class SurfacePoints(NamedTuple):
+    """Points on scene surfaces (measurement points of Belcour et al. 2022, §4.1).
+
+    Fields:
+      position: (S, 3) float32.  normal: (S, 3) float32 unit geometric normal.
+      albedo:   (S, 3) float32 diffuse albedo.  object_id: (S,) int32.
+      area:     total area of the sampled surfaces (for blue-noise radii).
+    """
+
+    position: np.ndarray
+    normal: np.ndarray
+    albedo: np.ndarray
+    object_id: np.ndarray
+    area: float
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry of the objects
+
+
+def _object_index(handle: SceneHandle, objects: Sequence[str | int] | None) -> list[int]:
+    names = handle.object_names()
+    if objects is None:
+        return list(range(len(names)))
+    out = []
+    for o in objects:
+        if isinstance(o, (int, np.integer)):
+            if not 0 <= int(o) < len(names):
+                raise ValueError(f"object id {o} out of range (the scene has {len(names)} objects)")
+            out.append(int(o))
+        elif o in names:
+            out.append(names.index(o))
+        else:
+            raise ValueError(f"unknown object {o!r}; the scene's objects are {names}")
+    if len(set(out)) != len(out):
+        raise ValueError(f"objects listed twice: {objects}")
+    return out
+
+
+def mesh_triangles(handle: SceneHandle, object_id: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Triangles of one object: world corners (F, 3, 3), corner UVs (F, 3, 2) or None, and the
+    shape's primitive index of each triangle (F,) (a rectangle is one primitive, two triangles)."""
+    mi = handle.mi
+    shape = handle.shapes()[object_id]
+    params = mi.traverse(shape)
+    keys = set(params.keys())
+    if "vertex_positions" in keys:
+        v = np.array(params["vertex_positions"], np.float64).reshape(-1, 3)
+        f = np.array(params["faces"], np.int64).reshape(-1, 3)
+        uv = np.array(params["vertex_texcoords"], np.float64).reshape(-1, 2) if "vertex_texcoords" in keys else None
+        if uv is not None and uv.shape[0] != v.shape[0]:
+            uv = None
+        return v[f], (uv[f] if uv is not None else None), np.arange(f.shape[0])
+    if "to_world" in keys and shape.class_name() == "Rectangle":
+        m = np.array(params["to_world"].matrix, np.float64).reshape(4, 4)
+        local = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+        world = local @ m[:3, :3].T + m[:3, 3]
+        uv = (local[:, :2] + 1.0) / 2.0
+        tri = np.array([[0, 1, 2], [0, 2, 3]])
+        return world[tri], uv[tri], np.zeros(2, np.int64)
+    raise ValueError(f"object {handle.object_names()[object_id]!r} ({type(shape).__name__}) is not a triangle "
+                     "mesh or a rectangle; lightmaps need one of those")
+
+
+def _areas(tris: np.ndarray) -> np.ndarray:
+    return 0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1)
+
+
+def _geometric_normals(tris: np.ndarray) -> np.ndarray:
+    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+
+
+def _uv_overlaps(uv: np.ndarray, res: int = 256) -> float:
+    """Fraction of covered texels of a UV layout that more than one triangle covers."""
+    lo, hi = uv.reshape(-1, 2).min(0), uv.reshape(-1, 2).max(0)
+    scaled = (uv - lo) / np.maximum(hi - lo, 1e-12) * res
+    count = np.zeros((res, res), np.int32)
+    for t in range(scaled.shape[0]):
+        idx, _ = _raster_triangle(scaled[t], res)
+        np.add.at(count.reshape(-1), idx, 1)
+    covered = count > 0
+    return float((count > 1).sum() / max(covered.sum(), 1))
+
+
+def _raster_triangle(corners: np.ndarray, res: int, eps: float = 1e-9):
+    """Texel centres (flat indices) inside a triangle given in texel units, and their
+    barycentric coordinates (n, 3)."""
+    lo = np.maximum(np.floor(corners.min(0) - 0.5).astype(int), 0)
+    hi = np.minimum(np.ceil(corners.max(0) + 0.5).astype(int), res - 1)
+    if np.any(hi < lo):
+        return np.zeros(0, np.int64), np.zeros((0, 3))
+    xs, ys = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
+    p = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], axis=1)
+    a, b, c = corners
+    m = np.array([b - a, c - a]).T
+    det = np.linalg.det(m)
+    if abs(det) < 1e-14:
+        return np.zeros(0, np.int64), np.zeros((0, 3))
+    l12 = np.linalg.solve(m, (p - a).T).T
+    bary = np.column_stack([1.0 - l12.sum(1), l12])
+    inside = np.all(bary >= -eps, axis=1)
+    return (ys.ravel() * res + xs.ravel())[inside], bary[inside]
+
+
+def _charts(tris: np.ndarray, uv: np.ndarray | None, overlap_tol: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Split one object's triangles into charts: [(triangle indices, corner coords in world units)]."""
+    area3 = _areas(tris)
+    if uv is not None:
+        e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+        uv_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        if uv_area.sum() > 0 and _uv_overlaps(uv) <= overlap_tol:
+            scale = np.sqrt(area3.sum() / uv_area.sum())
+            return [(np.arange(tris.shape[0]), uv * scale)]
+    # planar charts: group triangles by (normal, plane offset)
+    n = _geometric_normals(tris)
+    offset = np.einsum("fi,fi->f", n, tris[:, 0])
+    key = np.round(np.column_stack([n * 1e3, offset[:, None] * 1e3])).astype(np.int64)
+    _, group = np.unique(key, axis=0, return_inverse=True)
+    charts = []
+    for g in range(group.max() + 1):
+        idx = np.nonzero(group.ravel() == g)[0]
+        normal = n[idx[0]]
+        a = np.cross(normal, [0.0, 1.0, 0.0] if abs(normal[1]) < 0.9 else [1.0, 0.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(normal, a)
+        charts.append((idx, np.stack([tris[idx] @ a, tris[idx] @ b], axis=-1)))
+    return charts
+
+
+def _pack(sizes: np.ndarray, res: int, texel: float) -> np.ndarray | None:
+    """Shelf packing of chart rectangles (world units) at ``texel`` world units per texel;
+    returns the lower-left texel of each chart, or None if they do not fit in res x res."""
+    ext = np.ceil(sizes / texel).astype(int) + 2 * _GUTTER
+    order = np.argsort(-ext[:, 1], kind="stable")
+    origin = np.zeros((len(sizes), 2), int)
+    x = y = shelf = 0
+    for i in order:
+        w, h = ext[i]
+        if x + w > res:
+            x, y, shelf = 0, y + shelf, 0
+        if w > res or y + h > res:
+            return None
+        origin[i] = (x + _GUTTER, y + _GUTTER)
+        x += w
+        shelf = max(shelf, h)
+    return origin
+
+
+def _affine_maps(tris: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(F, 2, 4) matrices A with A [p, 1] = the barycentric interpolation of ``uv`` at the
+    projection of p onto each triangle's plane."""
+    e1, e2 = tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]
+    n = np.cross(e1, e2)
+    # world->barycentric: solve [e1 e2 n] (l1, l2, h) = p - v0
+    basis = np.stack([e1, e2, n], axis=2)  # (F, 3, 3) columns
+    inv = np.linalg.inv(basis)[:, :2, :]  # rows giving l1, l2
+    du = np.stack([uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]], axis=2)  # (F, 2, 2): uv = uv0 + du (l1, l2)
+    lin = du @ inv  # (F, 2, 3)
+    const = uv[:, 0] - np.einsum("fij,fj->fi", lin, tris[:, 0])
+    return np.concatenate([lin, const[:, :, None]], axis=2)
+
+
+def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None, *, resolution: int = 64,
+                overlap_tol: float = 0.01, eps: float | None = None) -> Atlas:
+    """Lay out a lightmap atlas of ``objects`` (names or ids; None = all) at ``resolution``^2.
+
+    Charts are packed at the smallest common texel size (found by bisection) that fits the atlas;
+    texel centres covered by a triangle become lightmap texels (their position and geometric
+    normal interpolated from the triangle), and uncovered atlas pixels point at their nearest
+    covered texel (``fill_index``) so a bilinear lookup never reads an empty texel.
+    """
+    from scipy import ndimage
+
+    if int(resolution) < 8:
+        raise ValueError(f"atlas resolution must be >= 8, got {resolution}")
+    res = int(resolution)
+    ids = _object_index(handle, objects)
+    per_object, charts, owners = [], [], []
+    for oi, obj in enumerate(ids):
+        tris, uv, prim = mesh_triangles(handle, obj)
+        per_object.append((tris, prim))
+        for idx, coords in _charts(tris, uv, overlap_tol):
+            charts.append((oi, idx, coords))
+    lo = np.array([c[2].reshape(-1, 2).min(0) for c in charts])
+    sizes = np.array([c[2].reshape(-1, 2).max(0) for c in charts]) - lo
+    total = sum(_areas(t).sum() for t, _ in per_object)
+    low, high = np.sqrt(total) / res * 0.5, np.sqrt(total) / res * 0.5
+    while _pack(sizes, res, high) is None:
+        high *= 1.5
+        if high > 1e6 * low:
+            raise ValueError(f"{len(charts)} lightmap charts (with {_GUTTER}-texel gutters) do not fit a "
+                             f"{res} x {res} atlas; raise the resolution")
+    for _ in range(30):
+        mid = 0.5 * (low + high)
+        low, high = (low, mid) if _pack(sizes, res, mid) is not None else (mid, high)
+    texel = high
+    origin = _pack(sizes, res, texel)
+
+    n_tri = [t.shape[0] for t, _ in per_object]
+    tri_offset = np.concatenate([[0], np.cumsum(n_tri)[:-1]]).astype(np.int32)
+    atlas_uv = np.zeros((sum(n_tri), 3, 2))
+    for ci, (oi, idx, coords) in enumerate(charts):
+        atlas_uv[tri_offset[oi] + idx] = ((coords - lo[ci]) / texel + origin[ci]) / res
+    all_tris = np.concatenate([t for t, _ in per_object])
+    tri_object = np.concatenate([np.full(n, ids[oi], np.int32) for oi, n in enumerate(n_tri)])
+    affine = _affine_maps(all_tris, atlas_uv)
+
+    owner = np.full(res * res, -1, np.int64)
+    bary_of = np.zeros((res * res, 3))
+    for t in range(all_tris.shape[0]):
+        idx, bary = _raster_triangle(atlas_uv[t] * res, res)
+        free = owner[idx] < 0
+        owner[idx[free]], bary_of[idx[free]] = t, bary[free]
+    texel_index = np.nonzero(owner >= 0)[0].astype(np.int32)
+    if texel_index.size == 0:
+        raise ValueError("the atlas covers no texel centre; raise the resolution")
+    t_of = owner[texel_index]
+    position = np.einsum("ti,tij->tj", bary_of[texel_index], all_tris[t_of])
+    normal = _geometric_normals(all_tris)[t_of]
+    _, nearest = ndimage.distance_transform_edt((owner < 0).reshape(res, res), return_indices=True)
+    flat_nearest = (nearest[0] * res + nearest[1]).ravel()
+    lookup = np.full(res * res, -1, np.int64)
+    lookup[texel_index] = np.arange(texel_index.size)
+    fill_index = lookup[flat_nearest].astype(np.int32)
+    return Atlas(resolution=res, objects=np.asarray(ids, np.int32), tri_offset=tri_offset, tri_affine=affine,
+                 texel_index=texel_index, position=position.astype(np.float32), normal=normal.astype(np.float32),
+                 texel_object=tri_object[t_of], fill_index=fill_index, texel_size=float(texel))
+
+
+# --------------------------------------------------------------------------------------------
+# Per-pixel atlas coordinates
+
+
+def _primitive_hits(handle: SceneHandle, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    mi = handle.mi
+    o, d = origins.astype(np.float32), directions.astype(np.float32)
+    ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
+    si = handle.scene.ray_intersect(ray)
+    prim = np.array(si.prim_index, np.int64).reshape(-1)
+    return np.where(np.array(si.is_valid(), bool).reshape(-1), prim, -1)
+
+
+def atlas_gbuffer(handle: SceneHandle, atlas: Atlas, camera: Camera) -> GBuffer:
+    """The exact pixel-centre G-buffer of ``camera`` with ``uv`` replaced by atlas UVs and
+    ``valid`` restricted to pixels that see an atlas object (the "fake G-buffer" lookup of
+    Belcour et al. 2022, §4.3)."""
+    gb = gbuffer(handle, camera)
+    o, d = camera_rays(camera)
+    prim = _primitive_hits(handle, o.reshape(-1, 3), d.reshape(-1, 3)).reshape(gb.object_id.shape)
+    slot = np.full(max(int(gb.object_id.max()) + 1, int(atlas.objects.max()) + 1), -1)
+    slot[atlas.objects] = np.arange(atlas.objects.size)
+    obj = np.where(gb.object_id >= 0, gb.object_id, 0)
+    in_atlas = gb.valid & (slot[obj] >= 0) & (prim >= 0)
+    # a rectangle is one primitive: its triangles share one affine map, so any of them works
+    tri = np.where(in_atlas, atlas.tri_offset[np.maximum(slot[obj], 0)] + np.maximum(prim, 0), 0)
+    tri = np.minimum(tri, atlas.tri_affine.shape[0] - 1)
+    p1 = np.concatenate([gb.position, np.ones(gb.position.shape[:-1] + (1,), np.float32)], axis=-1)
+    uv = np.einsum("hwij,hwj->hwi", atlas.tri_affine[tri], p1.astype(np.float64))
+    uv = np.where(in_atlas[..., None], uv, 0.0).astype(np.float32)
+    return gb._replace(uv=uv, valid=in_atlas, object_id=np.where(in_atlas, gb.object_id, -1).astype(np.int32))
+
+
+# --------------------------------------------------------------------------------------------
+# Surface samples and radiance at surface points
+
+
+def surface_samples(handle: SceneHandle, n: int, *, objects: Sequence[str | int] | None = None,
+                    seed: int = 0) -> SurfacePoints:
+    """``n`` uniform random points (area-weighted) on ``objects``, with geometric normals and the
+    diffuse albedo there (read from the BSDF through a ray that hits the point)."""
+    if int(n) < 1:
+        raise ValueError(f"need at least one surface sample, got {n}")
+    rng = np.random.default_rng(seed)
+    ids = _object_index(handle, objects)
+    tris = [mesh_triangles(handle, o)[0] for o in ids]
+    all_tris = np.concatenate(tris)
+    owner = np.concatenate([np.full(t.shape[0], o, np.int32) for o, t in zip(ids, tris)])
+    area = _areas(all_tris)
+    pick = rng.choice(area.size, size=int(n), p=area / area.sum())
+    r1, r2 = rng.random(int(n)), rng.random(int(n))
+    s = np.sqrt(r1)
+    bary = np.column_stack([1 - s, s * (1 - r2), s * r2])
+    position = np.einsum("ni,nij->nj", bary, all_tris[pick])
+    normal = _geometric_normals(all_tris)[pick]
+    eps = _eps(handle)
+    gb = gbuffer_rays(handle, position + eps * normal, -normal)
+    return SurfacePoints(position.astype(np.float32), normal.astype(np.float32), gb.diffuse_albedo,
+                         owner[pick], float(area.sum()))
+
+
+def _eps(handle: SceneHandle) -> float:
+    box = handle.scene.bbox()
+    return 1e-4 * float(np.linalg.norm(np.array(box.max) - np.array(box.min)))
+
+
+def radiance_at_points(handle: SceneHandle, position, normal, *, spp: int, seed: int = 0,
+                       max_depth: int = 2) -> np.ndarray:
+    """Outgoing radiance (S, 3) along the normal at surface points, path traced with
+    ``max_depth`` (2 = direct lighting only, -1 = full global illumination).
+
+    With point, spot or directional lights the direct part is deterministic (one shadow ray per
+    light), so ``spp=1`` gives it exactly (the "deferred shading of measurement points" of §4.3).
+    """
+    position = np.asarray(position, np.float64)
+    normal = np.asarray(normal, np.float64)
+    eps = _eps(handle)
+    return images.radiance_rays(handle, position + eps * normal, -normal, spp=spp, seed=seed, max_depth=max_depth)
+
+
+def indirect_at_points(handle: SceneHandle, position, normal, *, spp: int, seed: int = 0) -> np.ndarray:
+    """Indirect outgoing radiance (S, 3) at surface points: full minus direct with equal seeds."""
+    position = np.asarray(position, np.float64)
+    normal = np.asarray(normal, np.float64)
+    eps = _eps(handle)
+    return images.indirect_rays(handle, position + eps * normal, -normal, spp=spp, seed=seed).indirect
+
+
+def incident_delta_lights(handle: SceneHandle, point, lighting: Lighting) -> tuple[np.ndarray, np.ndarray]:
+    """Unoccluded incident light of delta lights at ``point``: unit directions towards each light
+    (K, 3) and the RGB irradiance each delivers to a surface facing it (K, 3) (intensity times
+    spot falloff over squared distance; a directional light's irradiance).
+
+    This is what a distant-lighting method (classic SH PRT) sees of local lights: each light
+    becomes a delta in the environment of ``point``.
+    """
+    mi = handle.mi
+    point = np.asarray(point, np.float64).reshape(3)
+    if isinstance(lighting, DirectionalLights):
+        return -lighting.direction.astype(np.float64), lighting.irradiance.astype(np.float64)
+    if not isinstance(lighting, (PointLights, SpotLights)):
+        raise TypeError(f"incident_delta_lights takes point, spot or directional lights, not {type(lighting).__name__}")
+    handle.set_lighting(lighting)
+    directions, values = [], []
+    it = mi.Interaction3f()
+    it.p = mi.Point3f(*map(float, point))
+    it.wavelengths = mi.Color0f() if hasattr(mi, "Color0f") else it.wavelengths
+    for emitter in handle.scene.emitters():
+        ds, spec = emitter.sample_direction(it, mi.Point2f(0.5, 0.5), True)
+        directions.append(np.array(ds.d, np.float64).reshape(3))
+        values.append(np.array(spec, np.float64).reshape(3))
+    return np.array(directions), np.array(values)
+
+
+def free_positions(handle: SceneHandle, points, *, clearance: float = 0.0, n_dirs: int = 26) -> np.ndarray:
+    """(K,) bool: the points lie in free space (not inside a closed object: fewer than half of
+    ``n_dirs`` rays in all directions hit a surface from its back side) and no surface is closer
+    than ``clearance`` along those rays. Used to reject random light positions inside the
+    Cornell box's blocks, or touching a wall."""
+    mi = handle.mi
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    g = np.stack(np.meshgrid(*[np.array([-1.0, 0.0, 1.0])] * 3, indexing="ij"), -1).reshape(-1, 3)
+    dirs = g[np.any(g != 0, axis=1)][:n_dirs]
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    o = np.repeat(pts, len(dirs), axis=0)
+    d = np.tile(dirs, (len(pts), 1))
+    ray = mi.Ray3f(mi.Point3f(*o.T.astype(np.float32)), mi.Vector3f(*d.T.astype(np.float32)))
+    si = handle.scene.ray_intersect(ray)
+    valid = np.array(si.is_valid(), bool).reshape(-1)
+    n = np.array(si.n, np.float64)
+    n = (n.T if n.shape[0] == 3 and n.ndim == 2 else n).reshape(-1, 3)
+    t = np.where(valid, np.array(si.t, np.float64).reshape(-1), np.inf)
+    back = valid & (np.sum(n * d, axis=1) > 0)
+    inside = back.reshape(len(pts), -1).mean(axis=1) >= 0.5
+    near = t.reshape(len(pts), -1).min(axis=1) < clearance
+    return ~inside & ~near

@@ -1,0 +1,317 @@
+"""Data-driven PRT (Belcour et al. 2022): linear algebra, measurement points, evaluator."""
+
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+from scipy.spatial.distance import pdist
+
+from jprt.methods import datadriven as dd
+
+
+def _layout(params, texels, res=8):
+    """Attach a trivial lightmap layout (texel t at flat atlas index t) so the evaluator runs."""
+    params = dict(params)
+    params["texel_index"] = np.arange(texels, dtype=np.int32)
+    fill = np.minimum(np.arange(res * res), texels - 1).astype(np.int32)
+    params["fill_index"] = fill
+    params["fine_index"] = np.arange(len(params["group"]), dtype=np.int32)
+    params["meta"] = dict(params["meta"], resolution=res)
+    return params
+
+
+def _linear_transport(rng, p=12, t=60, n=40, colour_mix=False):
+    """Known transport: indirect = M_true direct per channel (or mixing channels)."""
+    m_true = rng.random((t, p)) * (rng.random((t, p)) < 0.5)
+    direct = rng.random((n, p, 3)) + 0.05
+    if colour_mix:
+        big = rng.random((3 * t, 3 * p))
+        indirect = (direct.reshape(n, -1) @ big.T).reshape(n, t, 3)
+        return big, direct, indirect
+    return m_true, direct, np.einsum("tp,npc->ntc", m_true, direct)
+
+
+# ---------------------------------------------------------------------------------------------
+# Exact recovery of a known linear transport (noise free, full rank)
+
+
+@pytest.mark.parametrize("channels", ["mono", "multi"])
+def test_recovers_known_linear_transport_exactly(channels):
+    rng = np.random.default_rng(0)
+    p, t = 10, 50
+    n = 40 if channels == "mono" else 80  # multi needs N >= 3P examples for a full-rank D
+    m_true, direct, indirect = _linear_transport(rng, p, t, n, colour_mix=channels == "multi")
+    rank = p if channels == "mono" else 3 * p
+    params = dd.fit_arrays(direct, indirect, np.arange(p),
+                           {"basis": {"n": rank, "center": False, "channels": channels}, "transfer": {"lam": 0.0}})
+    # effective operator U_n M_n equals the true transport
+    u, m = params["basis"].astype(np.float64), params["transfer"].astype(np.float64)
+    if channels == "mono":
+        for c in range(3):
+            np.testing.assert_allclose(u @ m[c], m_true, atol=2e-5 * np.abs(m_true).max())
+    else:
+        np.testing.assert_allclose(u @ m, m_true, atol=2e-5 * np.abs(m_true).max())
+    # and held-out lighting is reproduced through the jitted evaluator
+    evaluate = dd.evaluator(_layout(params, t))
+    fresh = rng.random((4, p, 3))
+    if channels == "mono":
+        expected = np.einsum("tp,npc->ntc", m_true, fresh)
+    else:
+        expected = (fresh.reshape(4, -1) @ m_true.T).reshape(4, t, 3)
+    got = np.stack([np.asarray(evaluate.lightmap(f)) for f in fresh])
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-4 * np.abs(expected).max())
+
+
+def test_centred_basis_interpolates_training_examples():
+    """With the mean (scaled by |x|, §4.2) and P >= N the fit reproduces every training example."""
+    rng = np.random.default_rng(1)
+    p, t, n = 30, 80, 20
+    _, direct, indirect = _linear_transport(rng, p, t, n)
+    params = dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": p + 1}, "transfer": {"lam": 0.0}})
+    evaluate = dd.evaluator(_layout(params, t))
+    got = np.stack([np.asarray(evaluate.lightmap(d)) for d in direct])
+    np.testing.assert_allclose(got, indirect, rtol=1e-4, atol=1e-4 * np.abs(indirect).max())
+    # the projection of the training set onto its own full basis is exact too
+    np.testing.assert_allclose(dd.project(params, direct, indirect), indirect, atol=1e-5 * np.abs(indirect).max())
+
+
+def test_intensity_scaling_is_linear():
+    """Normalising by |x| and scaling the mean back makes the output homogeneous of degree 1."""
+    rng = np.random.default_rng(2)
+    _, direct, indirect = _linear_transport(rng, 8, 30, 50)
+    params = dd.fit_arrays(direct, indirect + 0.01 * rng.random(indirect.shape), np.arange(8), {"basis": {"n": 5}})
+    evaluate = dd.evaluator(_layout(params, 30))
+    x = rng.random((8, 3))
+    np.testing.assert_allclose(np.asarray(evaluate.lightmap(7.5 * x)), 7.5 * np.asarray(evaluate.lightmap(x)),
+                               rtol=1e-5, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Ridge regression and its limit
+
+
+@pytest.mark.parametrize("rank_deficient", [False, True])
+def test_ridge_tends_to_the_pseudo_inverse(rank_deficient):
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(12, 20))
+    if rank_deficient:
+        d[5] = d[2]  # duplicate measurement point
+        d[:, 7] = 0.0  # a light that reaches no point
+    target = np.linalg.pinv(d, rcond=1e-12)
+    errors = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", dd.IllConditionedWarning)
+        for lam in (1e-1, 1e-3, 1e-5, 1e-7, 1e-9):
+            pinv, _ = dd.ridge_pinv(d, lam)
+            errors.append(np.abs(pinv - target).max())
+        exact, _ = dd.ridge_pinv(d, 0.0)
+    assert all(b < a for a, b in zip(errors, errors[1:])), errors
+    assert errors[-1] < 1e-6
+    np.testing.assert_allclose(exact, target, atol=1e-10)
+
+
+def test_both_gram_orientations_agree_for_positive_lambda():
+    """Erratum of Eq. 13-14: (D^T D + lam)^-1 D^T == D^T (D D^T + lam)^-1 == ridge_pinv."""
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(9, 15))
+    lam = 0.3
+    a = np.linalg.solve(d.T @ d + lam * np.eye(15), d.T)
+    b = d.T @ np.linalg.inv(d @ d.T + lam * np.eye(9))
+    c, _ = dd.ridge_pinv(d, lam)
+    np.testing.assert_allclose(a, b, atol=1e-10)
+    np.testing.assert_allclose(c, a, atol=1e-10)
+
+
+def test_ill_conditioned_direct_matrix_warns_and_stays_finite():
+    rng = np.random.default_rng(5)
+    p, t, n = 10, 40, 30
+    _, direct, indirect = _linear_transport(rng, p, t, n)
+    direct[:, 3] = direct[:, 2]  # duplicate measurement points
+    direct[4] = 0.0  # a configuration whose light reaches no measurement point
+    with pytest.warns(dd.IllConditionedWarning) as record:
+        params = dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": 8}, "transfer": {"lam": 0.0}})
+    messages = " ".join(str(w.message) for w in record)
+    assert "condition number" in messages and "zero direct vector" in messages
+    for key in ("mean", "basis", "transfer"):
+        assert np.isfinite(params[key]).all(), key
+    evaluate = dd.evaluator(_layout(params, t))
+    assert np.isfinite(np.asarray(evaluate.lightmap(direct[0]))).all()
+    assert np.isfinite(np.asarray(evaluate.lightmap(np.zeros((p, 3))))).all()  # zero light -> finite (zero)
+    np.testing.assert_allclose(np.asarray(evaluate.lightmap(np.zeros((p, 3)))), 0.0)
+
+
+def test_all_zero_direct_is_an_error():
+    with pytest.raises(ValueError, match="no light reaches"):
+        dd.fit_arrays(np.zeros((4, 3, 3)), np.ones((4, 5, 3)), np.arange(3))
+
+
+# ---------------------------------------------------------------------------------------------
+# Gamma space (§5.3)
+
+
+@settings(max_examples=50, deadline=None)
+@given(hnp.arrays(np.float64, st.integers(1, 30), elements=st.floats(-1e4, 1e4, allow_nan=False)),
+       st.floats(1.0, 3.0))
+def test_gamma_round_trip(values, gamma):
+    np.testing.assert_allclose(dd.gamma_decode(dd.gamma_encode(values, gamma), gamma), values, rtol=1e-9, atol=1e-9)
+    got = dd.gamma_decode(dd.gamma_encode(jnp.asarray(values, jnp.float32), gamma), gamma)
+    np.testing.assert_allclose(np.asarray(got), values, rtol=2e-5, atol=1e-4)
+    assert np.all(np.sign(dd.gamma_encode(values, gamma)) == np.sign(values))
+
+
+def test_gamma_transfer_reproduces_data_linear_in_gamma_space():
+    """Data that is linear between gamma-mapped direct and indirect is recovered exactly."""
+    rng = np.random.default_rng(6)
+    p, t, n, gamma = 8, 30, 40, 2.2
+    m_true, direct_g, indirect_g = _linear_transport(rng, p, t, n)
+    direct, indirect = dd.gamma_decode(direct_g, gamma), dd.gamma_decode(indirect_g, gamma)
+    params = dd.fit_arrays(direct, indirect, np.arange(p),
+                           {"basis": {"n": p, "center": False, "gamma": gamma}, "transfer": {"lam": 0.0}})
+    evaluate = dd.evaluator(_layout(params, t))
+    fresh_g = rng.random((3, p, 3))
+    expected = dd.gamma_decode(np.einsum("tp,npc->ntc", m_true, fresh_g), gamma)
+    got = np.stack([np.asarray(evaluate.lightmap(dd.gamma_decode(f, gamma))) for f in fresh_g])
+    np.testing.assert_allclose(got, expected, rtol=2e-4, atol=2e-4 * np.abs(expected).max())
+
+
+# ---------------------------------------------------------------------------------------------
+# SVD through the Gram matrix (§4.2)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.integers(2, 12), st.integers(0, 12))
+def test_gram_svd_equals_direct_svd(seed, cols, rank_drop):
+    rng = np.random.default_rng(seed)
+    rows = 5 * cols + 7
+    rank = max(1, cols - rank_drop)
+    a = rng.normal(size=(rows, rank)) @ rng.normal(size=(rank, cols))
+    u, s = dd.gram_svd(a, cols)
+    u_ref, s_ref, _ = np.linalg.svd(a, full_matrices=False)
+    assert np.isfinite(u).all()
+    np.testing.assert_allclose(s, s_ref, atol=1e-6 * s_ref[0])  # tiny ones come back as exact zeros
+    for j in range(rank):  # singular vectors up to sign (the rank-deficient tail is a zero column)
+        if s_ref[j] > 1e-6 * s_ref[0] and (j + 1 >= cols or s_ref[j] - s_ref[j + 1] > 1e-6 * s_ref[0]):
+            np.testing.assert_allclose(np.abs(u[:, j] @ u_ref[:, j]), 1.0, atol=1e-6)
+    np.testing.assert_allclose(u.T @ u, np.diag((s > 1e-8 * s[0]).astype(float)), atol=1e-8)
+
+
+# ---------------------------------------------------------------------------------------------
+# Measurement points (§4.1, §5.1)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_sample_elimination_beats_random_subsets(seed):
+    rng = np.random.default_rng(seed)
+    candidates = rng.random((1500, 2))
+    n = 150
+    keep = dd.sample_elimination(candidates, n, area=1.0)
+    assert keep.shape == (n,) and len(set(keep.tolist())) == n
+    d_elim = pdist(candidates[keep]).min()
+    d_random = [pdist(candidates[rng.choice(1500, n, replace=False)]).min() for _ in range(20)]
+    assert d_elim >= max(d_random), (d_elim, max(d_random))
+
+
+def test_sample_elimination_on_a_sphere_surface():
+    rng = np.random.default_rng(11)
+    v = rng.normal(size=(3000, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    keep = dd.sample_elimination(v, 200, area=4 * np.pi)
+    d = pdist(v[keep]).min()
+    assert d >= max(pdist(v[rng.choice(3000, 200, replace=False)]).min() for _ in range(20))
+    # close to the Poisson-disk radius: a blue-noise set, not merely better than random
+    r_max = np.sqrt(4 * np.pi / (2 * np.sqrt(3) * 200))
+    assert d > 0.6 * r_max
+
+
+def test_select_points_groups():
+    rng = np.random.default_rng(7)
+    pts = rng.random((2000, 2))
+    mp = dd.select_points(pts, 40, supersample=4, area=1.0)
+    assert mp.fine_index.shape == (160,) and mp.counts.shape == (40,)
+    assert mp.counts.min() >= 1 and mp.counts.sum() == 160
+    assert set(mp.coarse_index.tolist()) <= set(mp.fine_index.tolist())
+    # every fine point is averaged into its nearest coarse point
+    fine, coarse = pts[mp.fine_index], pts[mp.coarse_index]
+    nearest = np.argmin(np.linalg.norm(fine[:, None] - coarse[None], axis=-1), axis=1)
+    assert np.mean(nearest == mp.group) > 0.97  # ties and the "coarse point in its own group" rule aside
+    with pytest.raises(ValueError, match="candidates"):
+        dd.select_points(pts[:100], 40, supersample=4)
+
+
+# ---------------------------------------------------------------------------------------------
+# Evaluator
+
+
+def test_image_lookup_at_texel_centres_returns_texels():
+    rng = np.random.default_rng(8)
+    p, t, res = 6, 64, 8
+    _, direct, indirect = _linear_transport(rng, p, t, 30)
+    params = _layout(dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": 6}}), t, res)
+    params["fill_index"] = np.arange(res * res, dtype=np.int32)
+    evaluate = dd.evaluator(params)
+    rows, cols = np.divmod(np.arange(t), res)
+    uv = np.stack([(cols + 0.5) / res, (rows + 0.5) / res], axis=-1).reshape(8, 8, 2).astype(np.float32)
+
+    class GB:  # the evaluator reads only uv and valid
+        pass
+
+    gb = GB()
+    gb.uv, gb.valid = uv, np.ones((8, 8), bool)
+    gb.valid[0, 0] = False
+    x = direct[3]
+    image = np.asarray(evaluate(gb, x))
+    lm = np.asarray(evaluate.lightmap(x))
+    np.testing.assert_allclose(image.reshape(-1, 3)[1:], lm[1:], rtol=1e-5, atol=1e-6)
+    assert np.all(image[0, 0] == 0)
+    with pytest.raises(ValueError, match="fine measurement points"):
+        evaluate(gb, np.zeros((p + 1, 3)))
+    # transfer alone = M_n x
+    coeffs = np.asarray(evaluate.transfer(jnp.asarray(x, jnp.float32)))
+    np.testing.assert_allclose(coeffs, np.einsum("cnp,pc->nc", params["transfer"], x), rtol=1e-5, atol=1e-6)
+
+
+def test_fit_input_errors():
+    with pytest.raises(ValueError, match="examples"):
+        dd.fit_arrays(np.ones((3, 4, 3)), np.ones((2, 5, 3)), np.arange(4))
+    with pytest.raises(ValueError, match="NaN"):
+        bad = np.ones((3, 4, 3))
+        bad[0, 0, 0] = np.nan
+        dd.fit_arrays(bad, np.ones((3, 5, 3)), np.arange(4))
+    with pytest.raises(ValueError, match="channels"):
+        dd.fit_arrays(np.ones((3, 4, 3)), np.ones((3, 5, 3)), np.arange(4), {"basis": {"channels": "rgb"}})
+
+
+def test_numpy_batch_prediction_matches_the_jitted_evaluator_and_cv_picks_a_candidate():
+    rng = np.random.default_rng(9)
+    p, t = 8, 40
+    _, direct, indirect = _linear_transport(rng, p, t, 40)
+    noisy = indirect + 0.05 * rng.normal(size=indirect.shape)
+    for channels, gamma in (("mono", 0.0), ("multi", 0.0), ("mono", 2.2)):
+        params = dd.fit_arrays(direct, noisy, np.arange(p), {"basis": {"n": 6, "channels": channels, "gamma": gamma}})
+        evaluate = dd.evaluator(_layout(params, t))
+        want = np.stack([np.asarray(evaluate.lightmap(d)) for d in direct[:5]])
+        np.testing.assert_allclose(dd._predict_np(params, direct[:5]), want, rtol=1e-4, atol=1e-4)
+    cv = dd.cross_validate_lambda(direct, noisy, np.arange(p), {"basis": {"n": 6}}, [1e-6, 1e-2, 1e3], folds=4)
+    assert cv["best"] in (1e-6, 1e-2, 1e3) and len(cv["rmse"]) == 3
+    assert cv["rmse"][2] > min(cv["rmse"][:2])  # a huge lambda shrinks the transfer to zero: clearly worse
+
+
+def test_linear_mean_recovers_known_transport_with_centring():
+    """basis.mean = "linear": the mean is a regressed basis vector, so the centred model is
+    exactly linear and held-out lighting is recovered (the paper's |x|-scaled mean is not)."""
+    rng = np.random.default_rng(10)
+    p, t = 10, 50
+    m_true, direct, indirect = _linear_transport(rng, p, t, 40)
+    params = dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": p + 1, "mean": "linear"},
+                                                            "transfer": {"lam": 0.0}})
+    np.testing.assert_allclose(params["mean"], 0.0)
+    fresh = rng.random((4, p, 3))
+    expected = np.einsum("tp,npc->ntc", m_true, fresh)
+    got = dd._predict_np(params, fresh)
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6 * np.abs(expected).max())
+    paper = dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": p + 1}, "transfer": {"lam": 0.0}})
+    assert np.abs(dd._predict_np(paper, fresh) - expected).max() > 1e-3 * np.abs(expected).max()

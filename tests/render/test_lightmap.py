@@ -1,0 +1,101 @@
+"""Lightmap atlases, surface samples and radiance at surface points (jprt.render.lightmap)."""
+
+import os
+
+import numpy as np
+import pytest
+
+from jprt.render import lightmap
+from jprt.render.cameras import look_at
+from jprt.render.lights import DirectionalLights, PointLights, SpotLights
+from jprt.render.scenes import SceneHandle, asset_room, cornell_box
+
+
+@pytest.fixture(scope="module")
+def cornell(mi):
+    handle = SceneHandle(cornell_box(area_light=False))
+    return handle, lightmap.build_atlas(handle, None, resolution=48)
+
+
+def test_texels_lie_on_their_surfaces_and_face_outwards(cornell):
+    handle, atlas = cornell
+    mi = handle.mi
+    p, n = atlas.position.astype(np.float64), atlas.normal.astype(np.float64)
+    ray = mi.Ray3f(mi.Point3f(*(p + 1e-2 * n).T.astype(np.float32)), mi.Vector3f(*(-n).T.astype(np.float32)))
+    si = handle.scene.ray_intersect(ray)
+    t = np.array(si.t, np.float64).reshape(-1)
+    assert np.mean(np.abs(t - 1e-2) < 1e-4) > 0.99  # the offset ray hits the texel's own surface
+    assert set(np.unique(atlas.texel_object)) == set(range(7))
+    # the cubes' overlapping UVs were split into planar charts: one per visible face direction
+    for obj in (5, 6):
+        dirs = np.unique(np.round(atlas.normal[atlas.texel_object == obj], 2), axis=0)
+        assert len(dirs) >= 5, dirs
+    assert np.all(atlas.fill_index >= 0) and atlas.fill_index.max() < atlas.count
+
+
+def test_atlas_gbuffer_uv_points_at_the_texel_under_the_pixel(cornell):
+    handle, atlas = cornell
+    gb = lightmap.atlas_gbuffer(handle, atlas, handle.default_camera(48, 48))
+    assert gb.valid.mean() > 0.9
+    r = atlas.resolution
+    ij = np.clip((gb.uv[gb.valid] * r).astype(int), 0, r - 1)
+    texel = atlas.fill_index[ij[:, 1] * r + ij[:, 0]]
+    dist = np.linalg.norm(atlas.position[texel] - gb.position[gb.valid], axis=1) / atlas.texel_size
+    assert np.median(dist) < 0.75 and np.percentile(dist, 95) < 1.5
+
+
+def test_direct_at_points_matches_the_analytic_point_light(cornell):
+    handle, _ = cornell
+    light = np.array([0.1, 0.5, 0.2])
+    handle.set_lighting(PointLights.create(light, [2.0, 3.0, 4.0]))
+    p = np.array([[-0.6, -1.0, 0.7], [0.8, -1.0, -0.3]])  # floor points the blocks do not shadow
+    n = np.array([[0.0, 1.0, 0.0]] * 2)
+    got = lightmap.radiance_at_points(handle, p, n, spp=1)
+    d = light - p
+    r2 = np.sum(d * d, axis=1)
+    cos = d[:, 1] / np.sqrt(r2)
+    albedo = np.array([0.885809, 0.698859, 0.666422])
+    expected = albedo / np.pi * np.array([2.0, 3.0, 4.0]) * (cos / r2)[:, None]
+    np.testing.assert_allclose(got, expected, rtol=2e-3)
+
+
+def test_spot_and_directional_lights(cornell):
+    handle, _ = cornell
+    spot = SpotLights.create([0.0, 0.8, 0.0], [0.0, -1.0, 0.0], [5.0, 5.0, 5.0], 30.0)
+    handle.set_lighting(spot)
+    builds = handle.builds
+    moved = SpotLights.create([0.2, 0.7, 0.1], [0.2, -1.0, 0.1], [1.0, 2.0, 3.0], 30.0)
+    handle.set_lighting(moved)
+    assert handle.builds == builds  # same layout: parameters written, no rebuild
+    dirs, irr = lightmap.incident_delta_lights(handle, [0.2, -0.3, 0.1], moved)
+    np.testing.assert_allclose(dirs[0], [0, 1, 0], atol=1e-5)
+    np.testing.assert_allclose(irr[0], np.array([1.0, 2.0, 3.0]) / 1.0 ** 2, rtol=1e-4)
+    # off the cone: nothing
+    _, irr_off = lightmap.incident_delta_lights(handle, [0.9, -0.3, 0.9], moved)
+    assert np.all(irr_off == 0)
+    sun = DirectionalLights.create([0.0, -1.0, -1.0], [1.0, 1.0, 1.0])
+    dirs, _ = lightmap.incident_delta_lights(handle, [0, 0, 0], sun)
+    np.testing.assert_allclose(dirs[0], [0, np.sqrt(0.5), np.sqrt(0.5)], atol=1e-6)
+    with pytest.raises(ValueError, match="beam_deg"):
+        SpotLights.create([0, 0, 0], [0, -1, 0], [1, 1, 1], cutoff_deg=20, beam_deg=30)
+
+
+def test_free_positions_and_surface_samples(cornell):
+    handle, _ = cornell
+    inside_large_box, centre, near_wall = [-0.33, -0.4, -0.28], [0.0, 0.3, 0.3], [0.0, 0.3, -0.97]
+    free = lightmap.free_positions(handle, [inside_large_box, centre, near_wall], clearance=0.1)
+    assert free.tolist() == [False, True, False]
+    pts = lightmap.surface_samples(handle, 500, objects=["floor", "small-box"], seed=1)
+    assert set(np.unique(pts.object_id)) <= {0, 5}
+    np.testing.assert_allclose(pts.area, 4.0 + 5 * 0.6 ** 2 + 0.36, rtol=0.05)  # floor + cube faces
+    assert np.all(pts.albedo[pts.object_id == 0] > 0.6)
+
+
+def test_asset_room_atlas_uses_the_mesh_uvs(assets):
+    mesh = os.path.join(assets, "meshes", "c3d_spot.obj")
+    handle = SceneHandle(asset_room(mesh))
+    atlas = lightmap.build_atlas(handle, ["asset"], resolution=32)
+    assert set(np.unique(atlas.texel_object)) == {handle.object_names().index("asset")}
+    cam = look_at([2.6, 1.3, 2.4], [0.0, 0.1, 0.2], fov=40.0, width=32, height=32)
+    gb = lightmap.atlas_gbuffer(handle, atlas, cam)
+    assert 0.05 < gb.valid.mean() < 0.9  # the asset, not the room
