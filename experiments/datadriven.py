@@ -62,6 +62,8 @@ SPOT = {
     "scene": {"name": "asset_room", "mesh": SPOT_MESH},
     "objects": ["asset"],
     "lightmap": {"resolution": 96},
+    # the cow's indirect light is mostly floor and wall bounce: measure direct light there too
+    "points": {"objects": ["asset", "floor", "back", "side"], "candidates": 8192},
     "lights": {"position_lo": [-1.2, 1.0, -1.3], "position_hi": [2.0, 2.4, 2.2],
                "target_lo": [-0.45, -0.7, -0.65], "target_hi": [0.45, 0.9, 1.0],
                "cutoff_deg": [15.0, 40.0], "intensity": [3.0, 15.0]},
@@ -114,8 +116,9 @@ def _oos_lights(config, data, rng):
     e = config["eval"]
     cand = data.candidates
     points, directional = [], []
+    on_asset = np.nonzero(np.isin(cand["object_id"], np.atleast_1d(data.atlas["objects"])))[0]  # near the asset
     for _ in range(int(e["oos_n"])):
-        k = rng.integers(len(cand["position"]))
+        k = rng.choice(on_asset)
         pos = cand["position"][k] + rng.uniform(*e["point_offset"]) * cand["normal"][k]
         colour = 0.4 + 0.6 * rng.random(3)
         points.append(PointLights.create(pos, rng.uniform(*e["point_intensity"]) * colour / colour.max()))
@@ -349,8 +352,4 @@ def main(config: dict) -> dict:
                               "direct_measure_ms: Mitsuba shading of the fine measurement points (outside JAX)")
     _say(f"transfer {summary['transfer_us']:.1f} us, frame {summary['frame_ms']:.2f} ms at {tr}^2, "
          f"direct measurement {summary['direct_measure_ms']:.1f} ms")
-    summary["total_s"] = time.perf_counter() - t_start
-    summary["output"] = out
-    io.write_json(os.path.join(out, "summary.json"), summary)
-    print(f"data-driven PRT report (summary.json, side_by_side.png, plots, EXRs) written to {out}")
-    return summary
+    return jeval.write_report(out, summary, t_start, "data-driven PRT")

@@ -320,11 +320,7 @@ def run(config: dict) -> dict:
     summary["speedup_equal_error"] = summary["pathtrace_ms_equal_error"] / summary["eval_ms_512_1light"]
     _say(f"equal-error spp {eq['spp']}: Mitsuba {pt['median_ms']:.0f} ms -> speedup "
          f"{summary['speedup_equal_error']:.1f}x")
-    summary["total_s"] = time.perf_counter() - t_start
-    summary["output"] = out
-    io.write_json(os.path.join(out, "summary.json"), summary)
-    print(f"RRF report (summary.json, side_by_side.png, plots, EXRs) written to {out}")
-    return summary
+    return jeval.write_report(out, summary, t_start, "RRF")
 
 
 def material_demo(config: dict) -> dict:

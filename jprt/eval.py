@@ -12,6 +12,7 @@ number of valid pixels.
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 from typing import Callable, Sequence
@@ -155,3 +156,13 @@ def plot_series(path: str, series: dict, *, xlabel: str, ylabel: str, title: str
     with io.atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)
+
+
+def write_report(out: str, summary: dict, t_start: float, label: str) -> dict:
+    """Finish an experiment report: add ``total_s`` (since ``t_start``, a ``time.perf_counter()``
+    value) and ``output``, write ``out/summary.json`` and say where the report is."""
+    summary["total_s"] = time.perf_counter() - t_start
+    summary["output"] = out
+    io.write_json(os.path.join(out, "summary.json"), summary)
+    print(f"{label} report (summary.json, side_by_side.png, plots, EXRs) written to {out}")
+    return summary

@@ -87,6 +87,8 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "candidates": 4096,  # dense uniform surface samples (also the sample-elimination input)
         "count": 256,  # measurement points P (length of the direct vector per channel)
         "supersample": 4,  # direct measured at count * supersample points, averaged to count (§5.1)
+        "objects": [],  # objects carrying measurement points; [] = the lightmap's objects. An asset lit
+        # mostly by bounce light from its surroundings needs points there too (Spot in a room)
         "seed": 0,
     },
     "lights": {  # the lighting scenario (§4.1): one spot light per configuration
@@ -750,7 +752,8 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
         if int(dcfg[key]) < (0 if key == "n_test" else 1):
             raise ValueError(f"data.{key} must be positive, got {dcfg[key]}")
     spec = {"format": 1, "scene": desc, "objects": list(cfg["objects"]), "lightmap": cfg["lightmap"],
-            "candidates": cfg["points"]["candidates"], "seed_points": cfg["points"]["seed"], "lights": cfg["lights"],
+            "candidates": cfg["points"]["candidates"], "seed_points": cfg["points"]["seed"],
+            "point_objects": list(cfg["points"]["objects"]), "lights": cfg["lights"],
             "data": dcfg}
     folder = os.path.join(cache_dir or cache_root(), "datadriven")
     path = os.path.join(folder, stable_hash(spec) + ".npz")
@@ -771,7 +774,8 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
     test = random_lights(np.random.default_rng([int(dcfg["seed"]), 1]), dcfg["n_test"], cfg["lights"], accept)
     objects = list(cfg["objects"]) or None
     atlas = lightmap.build_atlas(handle, objects, resolution=int(cfg["lightmap"]["resolution"]))._asdict()
-    cands = lightmap.surface_samples(handle, int(cfg["points"]["candidates"]), objects=objects,
+    cands = lightmap.surface_samples(handle, int(cfg["points"]["candidates"]),
+                                     objects=list(cfg["points"]["objects"]) or objects,
                                      seed=int(cfg["points"]["seed"]))._asdict()
     d, i = render_examples(handle, atlas, cands, train, spp=int(dcfg["spp"]), seed=int(dcfg["seed"]),
                            progress=progress, desc="train configurations")
