@@ -326,10 +326,8 @@ def main(config: dict) -> dict:
                  np.repeat(0.5 + 0.5 * np.concatenate(tiles, axis=1)[..., None], 3, axis=-1), tonemapped=True)
 
     # 6. Timings: the transfer product alone, and a whole frame at the timing resolution.
-    x = np.zeros((params["meta"]["points"], 3), np.float32)
-    np.add.at(x, np.asarray(params["group"]), data.direct_test[0][params["fine_index"]])
-    x /= np.asarray(params["counts"])[:, None]
-    summary["transfer_us"] = 1e3 * jeval.time_call(evaluate.transfer, jax.numpy.asarray(x),
+    x = dd.coarse_direct(data.direct_test[0][params["fine_index"]], params["group"], params["counts"])
+    summary["transfer_us"] = 1e3 * jeval.time_call(evaluate.transfer, jax.numpy.asarray(x, jax.numpy.float32),
                                                    repeats=int(e["timing_repeats"]) * 5)["median_ms"]
     tr = int(e["timing_resolution"])
     tcam = cams.look_at(c["origin"], c["target"], fov=float(c["fov"]), width=tr, height=tr)

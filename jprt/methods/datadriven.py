@@ -62,6 +62,7 @@ __all__ = [
     "DDData",
     "sample_elimination",
     "select_points",
+    "coarse_direct",
     "gamma_encode",
     "gamma_decode",
     "gram_svd",
@@ -311,6 +312,14 @@ def _examples(direct: np.ndarray, indirect: np.ndarray, channels: str) -> tuple[
     raise ValueError(f"basis.channels must be 'mono' or 'multi', got {channels!r}")
 
 
+def coarse_direct(direct, group, counts) -> np.ndarray:
+    """Average fine direct measurements (..., S, 3) into their coarse points (..., P, 3) (§5.1)."""
+    direct = np.asarray(direct, np.float64)
+    out = np.zeros(direct.shape[:-2] + (len(counts), 3))
+    np.add.at(out, (Ellipsis, np.asarray(group), slice(None)), direct)
+    return out / np.asarray(counts)[:, None]
+
+
 class _Stage(NamedTuple):
     """Normalised examples and their basis (everything of a fit that does not depend on lambda)."""
 
@@ -345,9 +354,7 @@ def _stage(direct, indirect, group, cfg: dict) -> _Stage:
     counts = np.bincount(group, minlength=p)
     if np.any(counts == 0):
         raise ValueError(f"coarse points {np.nonzero(counts == 0)[0][:5]} have no fine point")
-    coarse = np.zeros((direct.shape[0], p, 3))
-    np.add.at(coarse, (slice(None), group), direct)
-    coarse /= counts[None, :, None]
+    coarse = coarse_direct(direct, group, counts)
     gamma = float(bcfg["gamma"])
     x, y, label = _examples(gamma_encode(coarse, gamma), gamma_encode(indirect, gamma), bcfg["channels"])
     norms = np.linalg.norm(x, axis=0)
@@ -566,10 +573,7 @@ def project(params: dict, direct, indirect) -> np.ndarray:
     gamma = meta["gamma"]
     direct = np.asarray(direct, np.float64)
     indirect = np.asarray(indirect, np.float64)
-    group, counts = np.asarray(params["group"]), np.asarray(params["counts"])
-    coarse = np.zeros((direct.shape[0], counts.shape[0], 3))
-    np.add.at(coarse, (slice(None), group), direct)
-    coarse /= counts[None, :, None]
+    coarse = coarse_direct(direct, params["group"], params["counts"])
     x, y, _ = _examples(gamma_encode(coarse, gamma), gamma_encode(indirect, gamma), meta["channels"])
     s = np.maximum(np.linalg.norm(x, axis=0), 1e-30)
     mean = np.asarray(params["mean"], np.float64)[:, None]
@@ -590,10 +594,7 @@ def _predict_np(params: dict, direct) -> np.ndarray:
     meta = params["meta"]
     gamma = meta["gamma"]
     direct = np.asarray(direct, np.float64)
-    group, counts = np.asarray(params["group"]), np.asarray(params["counts"])
-    coarse = np.zeros((direct.shape[0], counts.shape[0], 3))
-    np.add.at(coarse, (slice(None), group), direct)
-    x = gamma_encode(coarse / counts[None, :, None], gamma)
+    x = gamma_encode(coarse_direct(direct, params["group"], params["counts"]), gamma)
     mean, basis = np.asarray(params["mean"], np.float64), np.asarray(params["basis"], np.float64)
     transfer = np.asarray(params["transfer"], np.float64)
     if meta["channels"] == "mono":

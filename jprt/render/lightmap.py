@@ -422,7 +422,6 @@ def incident_delta_lights(handle: SceneHandle, point, lighting: Lighting) -> tup
     directions, values = [], []
     it = mi.Interaction3f()
     it.p = mi.Point3f(*map(float, point))
-    it.wavelengths = mi.Color0f() if hasattr(mi, "Color0f") else it.wavelengths
     for emitter in handle.scene.emitters():
         ds, spec = emitter.sample_direction(it, mi.Point2f(0.5, 0.5), True)
         directions.append(np.array(ds.d, np.float64).reshape(3))
