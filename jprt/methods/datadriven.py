@@ -432,7 +432,7 @@ def _ridge_from_svd(svd, lam: float, rcond: float, warn: float | None, name: str
     return (vt.T * filt) @ u.T, info
 
 
-def fit_arrays(direct, indirect, group, config: dict | None = None, *, progress: bool = False) -> dict:
+def fit_arrays(direct, indirect, group, config: dict | None = None) -> dict:
     """Basis and transfer matrices from N examples.
 
     Args:
@@ -444,7 +444,6 @@ def fit_arrays(direct, indirect, group, config: dict | None = None, *, progress:
 
     Returns the params dict read by ``evaluator`` (arrays, plus ``meta``).
     """
-    del progress
     cfg = _cfg(config)
     bcfg, tcfg = cfg["basis"], cfg["transfer"]
     stage = _stage(direct, indirect, group, cfg)
@@ -792,7 +791,7 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
                   object_names=np.array(handle.object_names()), render_train_s=np.array(t_train),
                   render_s=np.array(time.perf_counter() - t0))
     for name, ls in (("lights", train), ("lights_test", test)):
-        for k, field in enumerate(("position", "target", "intensity", "cutoff_deg", "beam_deg")):
+        for field in ("position", "target", "intensity", "cutoff_deg", "beam_deg"):
             arrays[f"{name}_{field}"] = np.stack([getattr(l, field)[0] for l in ls]) if ls else np.zeros((0,))
     _save_npz(path, arrays)
     if progress:
@@ -814,7 +813,7 @@ def _unpack(arrays: dict, spec: dict, path: str) -> DDData:
                   lights=prefixed("lights_", "lights_test_"), lights_test=prefixed("lights_test_"), meta=meta)
 
 
-def fit(data: DDData, config: dict | None = None, *, progress: bool = False) -> dict:
+def fit(data: DDData, config: dict | None = None) -> dict:
     """Measurement points (§4.1, §5.1), basis and transfer (§4.2) from a ``DDData``; the params
     also carry the lightmap layout the evaluator needs."""
     cfg = _cfg(config)
@@ -828,7 +827,7 @@ def fit(data: DDData, config: dict | None = None, *, progress: bool = False) -> 
         cv = cross_validate_lambda(direct, data.indirect, points.group, cfg, cfg["transfer"]["lam_cv"],
                                    folds=int(cfg["transfer"]["cv_folds"]))
         cfg = merge(cfg, {"transfer": {"lam": cv["best"]}})
-    params = fit_arrays(direct, data.indirect, points.group, cfg, progress=progress)
+    params = fit_arrays(direct, data.indirect, points.group, cfg)
     params["meta"]["lambda_cv"] = cv
     params["fine_index"] = points.fine_index
     params["texel_index"] = np.asarray(data.atlas["texel_index"], np.int32)

@@ -125,9 +125,10 @@ def _object_index(handle: SceneHandle, objects: Sequence[str | int] | None) -> l
     return out
 
 
-def mesh_triangles(handle: SceneHandle, object_id: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-    """Triangles of one object: world corners (F, 3, 3), corner UVs (F, 3, 2) or None, and the
-    shape's primitive index of each triangle (F,) (a rectangle is one primitive, two triangles)."""
+def mesh_triangles(handle: SceneHandle, object_id: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Triangles of one object: world corners (F, 3, 3) and corner UVs (F, 3, 2) or None. Triangle
+    f of a mesh is its primitive f; a rectangle is one primitive split into two triangles that
+    share one planar UV map."""
     mi = handle.mi
     shape = handle.shapes()[object_id]
     params = mi.traverse(shape)
@@ -138,14 +139,14 @@ def mesh_triangles(handle: SceneHandle, object_id: int) -> tuple[np.ndarray, np.
         uv = np.array(params["vertex_texcoords"], np.float64).reshape(-1, 2) if "vertex_texcoords" in keys else None
         if uv is not None and uv.shape[0] != v.shape[0]:
             uv = None
-        return v[f], (uv[f] if uv is not None else None), np.arange(f.shape[0])
+        return v[f], (uv[f] if uv is not None else None)
     if "to_world" in keys and shape.class_name() == "Rectangle":
         m = np.array(params["to_world"].matrix, np.float64).reshape(4, 4)
         local = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
         world = local @ m[:3, :3].T + m[:3, 3]
         uv = (local[:, :2] + 1.0) / 2.0
         tri = np.array([[0, 1, 2], [0, 2, 3]])
-        return world[tri], uv[tri], np.zeros(2, np.int64)
+        return world[tri], uv[tri]
     raise ValueError(f"object {handle.object_names()[object_id]!r} ({type(shape).__name__}) is not a triangle "
                      "mesh or a rectangle; lightmaps need one of those")
 
@@ -264,15 +265,15 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
         raise ValueError(f"atlas resolution must be >= 8, got {resolution}")
     res = int(resolution)
     ids = _object_index(handle, objects)
-    per_object, charts, owners = [], [], []
+    per_object, charts = [], []
     for oi, obj in enumerate(ids):
-        tris, uv, prim = mesh_triangles(handle, obj)
-        per_object.append((tris, prim))
+        tris, uv = mesh_triangles(handle, obj)
+        per_object.append(tris)
         for idx, coords in _charts(tris, uv, overlap_tol):
             charts.append((oi, idx, coords))
     lo = np.array([c[2].reshape(-1, 2).min(0) for c in charts])
     sizes = np.array([c[2].reshape(-1, 2).max(0) for c in charts]) - lo
-    total = sum(_areas(t).sum() for t, _ in per_object)
+    total = sum(_areas(t).sum() for t in per_object)
     low, high = np.sqrt(total) / res * 0.5, np.sqrt(total) / res * 0.5
     while _pack(sizes, res, high) is None:
         high *= 1.5
@@ -285,12 +286,12 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     texel = high
     origin = _pack(sizes, res, texel)
 
-    n_tri = [t.shape[0] for t, _ in per_object]
+    n_tri = [t.shape[0] for t in per_object]
     tri_offset = np.concatenate([[0], np.cumsum(n_tri)[:-1]]).astype(np.int32)
     atlas_uv = np.zeros((sum(n_tri), 3, 2))
     for ci, (oi, idx, coords) in enumerate(charts):
         atlas_uv[tri_offset[oi] + idx] = ((coords - lo[ci]) / texel + origin[ci]) / res
-    all_tris = np.concatenate([t for t, _ in per_object])
+    all_tris = np.concatenate(per_object)
     tri_object = np.concatenate([np.full(n, ids[oi], np.int32) for oi, n in enumerate(n_tri)])
     affine = _affine_maps(all_tris, atlas_uv)
 
