@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.jprt-installed
 
-.PHONY: setup llvm test test-slow demo bench bench-rrf bench-datadriven clean
+.PHONY: setup llvm test test-slow demo bench bench-rrf bench-datadriven bench-wavelet clean
 
 setup: llvm $(STAMP)
 
@@ -43,6 +43,9 @@ bench-rrf: setup
 
 bench-datadriven: setup
 	$(PY) benchmarks/datadriven.py
+
+bench-wavelet: setup
+	$(PY) benchmarks/wavelet_prt.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -63,3 +63,26 @@ def test_datadriven_test_preset(mi, tmp_path):
     folder = os.path.dirname(summary)
     for name in ("fig14_basis.png", "side_by_side.png", "basis_mean_and_first7.png", "lambda_sweep.png"):
         assert os.path.isfile(os.path.join(folder, name)), name
+
+
+def test_wavelet_prt_test_preset(mi, tmp_path, monkeypatch):
+    """Every stage of the neural-wavelet PRT experiment at tiny size (procedural maps): the
+    transport check, training, Table 1 metrics, timings, equal error, ablations."""
+    monkeypatch.setenv("JPRT_CACHE", str(tmp_path / "cache"))
+    out = str(tmp_path / "out")
+    assert cli_main(["run", "experiments/wavelet_prt_cornell.py", "--preset", "test", "--set",
+                     f"output.dir={out}"]) == 0
+    (summary,) = [os.path.join(r, f) for r, _, fs in os.walk(out) for f in fs if f == "summary.json"]
+    with open(summary) as f:
+        s = json.load(f)
+    for key in ("psnr_indirect_far", "psnr_full_far", "ssim_indirect_far", "psnr_indirect_near",
+                "psnr_indirect_far_baseline", "model_bytes", "train_s", "speedup_equal_error",
+                "gt_transport_noise_floor"):
+        assert np.isfinite(s[key]), key
+    assert set(s["gt_transport_rel_err_by_k"]) == {"8", "32"}
+    assert s["gt_transport_parseval_err"] < 1e-4
+    assert set(s["frame_ms"]) == {"8", "16"} and all(v > 0 for v in s["frame_ms"].values())
+    assert set(s["ablations"]) == {"log2_table_size", "reflection", "spatial"}
+    folder = os.path.dirname(summary)
+    for name in ("side_by_side.png", "loss.png", "gt_transport_error_vs_k.png", "equal_error.png"):
+        assert os.path.isfile(os.path.join(folder, name)), name

@@ -452,3 +452,148 @@ def free_positions(handle: SceneHandle, points, *, clearance: float = 0.0, n_dir
     inside = back.reshape(len(pts), -1).mean(axis=1) >= 0.5
     near = t.reshape(len(pts), -1).min(axis=1) < clearance
     return ~inside & ~near
+
+
+# --------------------------------------------------------------------------------------------
+# Per-vertex interpolation on a subdivided scene mesh (the per-vertex feature baseline of
+# Raghavan et al. 2023, Table 6)
+
+
+def _sphere_frame(handle: SceneHandle, object_id: int) -> tuple[np.ndarray, float] | None:
+    shape = handle.shapes()[object_id]
+    if shape.class_name() != "Sphere":
+        return None
+    m = np.array(handle.mi.traverse(shape)["to_world"].matrix, np.float64).reshape(4, 4)
+    return m[:3, 3], float(np.linalg.norm(m[:3, 0]))
+
+
+def vertex_interpolation(handle: SceneHandle, positions, *, edge: float = 0.1,
+                         chunk: int = 65536) -> tuple[np.ndarray, np.ndarray, int]:
+    """Vertex indices and interpolation weights of surface points on a subdivided scene mesh.
+
+    Every triangle of every object (``mesh_triangles``) is split regularly into N^2 triangles
+    (N = 2^l, the smallest with edges <= ``edge``); vertices are shared along the edges inside
+    an object. A point gets the three corners of the sub-triangle it lies in with their
+    barycentric weights. Spheres (analytic in Mitsuba) become a latitude-longitude vertex grid
+    of about ``edge`` spacing with bilinear weights over four vertices.
+
+    Args:
+      positions: (..., 3) points on the scene's surfaces (e.g. G-buffer positions); points off
+        every surface get the nearest surface's vertices.
+    Returns (index (..., 4) int32, weight (..., 4) float32 summing to 1, vertex positions (V, 3)).
+    """
+    pos = np.asarray(positions, np.float64)
+    shape = pos.shape[:-1]
+    p = pos.reshape(-1, 3)
+    n_obj = len(handle.shapes())
+    keys: dict = {}
+    vertices: list = []
+
+    def vid(obj: int, world: np.ndarray) -> np.ndarray:
+        out = np.empty(len(world), np.int64)
+        for i, w in enumerate(np.round(world / (1e-4 * edge)).astype(np.int64)):
+            key = (obj, *w.tolist())
+            if key not in keys:
+                keys[key] = len(vertices)
+                vertices.append(world[i])
+            out[i] = keys[key]
+        return out
+
+    tris, owner, levels, sphere_objs = [], [], [], []
+    for obj in range(n_obj):
+        frame = _sphere_frame(handle, obj)
+        if frame is not None:
+            sphere_objs.append((obj, frame))
+            continue
+        t, _ = mesh_triangles(handle, obj)
+        tris.append(t)
+        owner += [obj] * len(t)
+    tris = np.concatenate(tris) if tris else np.zeros((0, 3, 3))
+    lengths = np.linalg.norm(tris - np.roll(tris, 1, axis=1), axis=-1).max(axis=1) if len(tris) else np.zeros(0)
+    levels = np.maximum(1, 2 ** np.ceil(np.log2(np.maximum(lengths / edge, 1.0)))).astype(np.int64)
+    # vertex ids of every triangle's barycentric grid (i, j) -> corner0 + i/N (c1 - c0) + j/N (c2 - c0)
+    grids = []
+    for t, obj, n in zip(tris, owner, levels):
+        i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+        ok = i + j <= n
+        world = t[0] + (i[ok, None] / n) * (t[1] - t[0]) + (j[ok, None] / n) * (t[2] - t[0])
+        table = np.full((n + 1, n + 1), -1, np.int64)
+        table[i[ok], j[ok]] = vid(obj, world)
+        grids.append(table)
+    grid = np.full((max(len(grids), 1), int(levels.max(initial=1)) + 1, int(levels.max(initial=1)) + 1), 0, np.int64)
+    for g_i, table in enumerate(grids):
+        grid[g_i, :table.shape[0], :table.shape[1]] = np.maximum(table, 0)
+    spheres = []
+    for obj, (center, radius) in sphere_objs:
+        n_theta = max(2, int(np.ceil(np.pi * radius / edge)))
+        n_phi = max(3, int(np.ceil(2 * np.pi * radius / edge)))
+        base = len(vertices)
+        th, ph = np.meshgrid(np.pi * np.arange(n_theta + 1) / n_theta, 2 * np.pi * np.arange(n_phi) / n_phi,
+                             indexing="ij")  # ids: rows of theta, columns of phi (wrapping)
+        vertices.extend(center + radius * np.stack([np.sin(th) * np.sin(ph), np.cos(th), np.sin(th) * np.cos(ph)],
+                                                   -1).reshape(-1, 3))
+        spheres.append((center, radius, n_theta, n_phi, base))
+
+    index = np.zeros((len(p), 4), np.int64)
+    weight = np.zeros((len(p), 4), np.float64)
+    best = np.full(len(p), np.inf)
+    for start in range(0, len(p), chunk):
+        q = p[start:start + chunk]
+        sl = slice(start, start + len(q))
+        if len(tris):
+            e1, e2 = tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]
+            nrm = np.cross(e1, e2)
+            nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
+            rel = q[:, None, :] - tris[None, :, 0]  # (Q, F, 3)
+            dist = np.abs(np.einsum("qfk,fk->qf", rel, nrm))
+            # barycentric coordinates (b1, b2) of the projection, by the 2 x 2 normal equations
+            d11, d12, d22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+            r1, r2 = np.einsum("qfk,fk->qf", rel, e1), np.einsum("qfk,fk->qf", rel, e2)
+            det = np.maximum(d11 * d22 - d12 * d12, 1e-30)
+            b1, b2 = (d22 * r1 - d12 * r2) / det, (d11 * r2 - d12 * r1) / det
+            outside = np.maximum.reduce([-b1, -b2, b1 + b2 - 1.0, np.zeros_like(b1)])
+            score = dist + outside * np.sqrt(np.maximum(d11, d22))[None, :]
+            f = np.argmin(score, axis=1)
+            s = score[np.arange(len(q)), f]
+            take = s < best[sl]
+            best[sl] = np.where(take, s, best[sl])
+            a1, a2 = np.clip(b1[np.arange(len(q)), f], 0, 1), np.clip(b2[np.arange(len(q)), f], 0, 1)
+            tot = a1 + a2
+            scale = 1.0 / np.maximum(tot, 1.0)
+            a1, a2 = a1 * scale, a2 * scale
+            n = levels[f]
+            u, v = a1 * n, a2 * n
+            i = np.minimum(np.floor(u).astype(np.int64), n - 1)
+            j = np.minimum(np.floor(v).astype(np.int64), n - 1 - i)
+            fu, fv = u - i, v - j
+            upper = (fu + fv > 1.0) & (i + j <= n - 2)
+            ids = np.zeros((len(q), 4), np.int64)
+            ws = np.zeros((len(q), 4))
+            lower_ids = np.stack([grid[f, i, j], grid[f, i + 1, j], grid[f, i, j + 1]], 1)
+            upper_ids = np.stack([grid[f, i + 1, j + 1], grid[f, i, j + 1], grid[f, i + 1, j]], 1)
+            ids[:, :3] = np.where(upper[:, None], upper_ids, lower_ids)
+            ws[:, :3] = np.where(upper[:, None], np.stack([fu + fv - 1.0, 1.0 - fu, 1.0 - fv], 1),
+                                 np.stack([1.0 - fu - fv, fu, fv], 1))
+            ws[:, :3] = np.clip(ws[:, :3], 0.0, 1.0)
+            index[sl] = np.where(take[:, None], ids, index[sl])
+            weight[sl] = np.where(take[:, None], ws, weight[sl])
+        for center, radius, n_theta, n_phi, base in spheres:
+            d = q - center
+            r = np.linalg.norm(d, axis=1)
+            s = np.abs(r - radius)
+            take = s < best[sl]
+            best[sl] = np.where(take, s, best[sl])
+            d = d / np.maximum(r[:, None], 1e-30)
+            t = np.arccos(np.clip(d[:, 1], -1, 1)) / np.pi * n_theta
+            ph = np.mod(np.arctan2(d[:, 0], d[:, 2]), 2 * np.pi) / (2 * np.pi) * n_phi
+            ti = np.minimum(np.floor(t).astype(np.int64), n_theta - 1)
+            pj = np.floor(ph).astype(np.int64) % n_phi
+            ft, fp = t - ti, ph - np.floor(ph)
+            pk = (pj + 1) % n_phi
+            ids = base + np.stack([ti * n_phi + pj, ti * n_phi + pk, (ti + 1) * n_phi + pj, (ti + 1) * n_phi + pk], 1)
+            ws = np.stack([(1 - ft) * (1 - fp), (1 - ft) * fp, ft * (1 - fp), ft * fp], 1)
+            index[sl] = np.where(take[:, None], ids, index[sl])
+            weight[sl] = np.where(take[:, None], ws, weight[sl])
+    weight /= np.maximum(weight.sum(axis=1, keepdims=True), 1e-30)
+    return (index.reshape(shape + (4,)).astype(np.int32), weight.reshape(shape + (4,)).astype(np.float32),
+            np.asarray(vertices, np.float32).reshape(-1, 3))

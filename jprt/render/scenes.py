@@ -104,12 +104,15 @@ def cornell_box(*, area_light: bool = True, materials: dict | None = None) -> di
 
 
 def glossy_cornell(*, floor_roughness: float = 0.15, sphere_roughness: float = 0.02,
-                   area_light: bool = False, albedo_checker: bool = True) -> dict:
+                   area_light: bool = False, albedo_checker: bool = True, open_top: bool = False) -> dict:
     """A Cornell box with glossy interreflection and a caustic.
 
     The floor is diffuse + GGX (``roughplastic``, alpha = ``floor_roughness``), the tall box is
     replaced by a near-mirror metal sphere (alpha = ``sphere_roughness``) that focuses light
     onto the walls and floor (a reflective caustic), the back wall has a checker albedo texture.
+    ``open_top`` removes the ceiling (and the light's quad), so an environment map lights the box
+    through its top as well as its open front (the environment-lit variant of
+    ``jprt.methods.wavelet_prt``).
     """
     materials = dict(_CORNELL_DEFAULT_MATERIALS)
     materials["floor"] = {"type": "glossy", "albedo": [0.35, 0.35, 0.4], "specular": [0.8, 0.8, 0.8],
@@ -119,7 +122,12 @@ def glossy_cornell(*, floor_roughness: float = 0.15, sphere_roughness: float = 0
     materials["large-box"] = {"type": "metal", "specular": [0.95, 0.93, 0.88], "roughness": float(sphere_roughness)}
     for k, v in materials.items():
         _check_material(k, v)
-    return {"name": "glossy_cornell", "area_light": bool(area_light), "materials": materials}
+    if open_top and area_light:
+        raise ValueError("glossy_cornell: open_top removes the ceiling light; use area_light=False")
+    desc = {"name": "glossy_cornell", "area_light": bool(area_light), "materials": materials}
+    if open_top:  # only present when set, so existing descriptions (and their cache hashes) are unchanged
+        desc["open_top"] = True
+    return desc
 
 
 def xml(path: str, *, keep_emitters: bool = True) -> dict:
@@ -185,13 +193,16 @@ def describe(scene: dict | str) -> dict:
         return cornell_box(**kwargs)
     if name == "glossy_cornell":
         if "materials" in kwargs:  # already a full description
-            unknown = set(kwargs) - {"area_light", "materials"}
+            unknown = set(kwargs) - {"area_light", "materials", "open_top"}
             if unknown or set(kwargs["materials"]) != set(CORNELL_OBJECTS):
                 raise ValueError(f"malformed glossy_cornell description (keys {sorted(kwargs)})")
             for k, v in kwargs["materials"].items():
                 _check_material(k, v)
-            return {"name": name, "area_light": bool(kwargs.get("area_light", False)),
+            desc = {"name": name, "area_light": bool(kwargs.get("area_light", False)),
                     "materials": dict(kwargs["materials"])}
+            if kwargs.get("open_top"):
+                desc["open_top"] = True
+            return desc
         return glossy_cornell(**kwargs)
     if name == "xml":
         return xml(scene["path"], keep_emitters=scene.get("keep_emitters", True))
@@ -259,6 +270,8 @@ def _base_dict(desc: dict, mi) -> dict:
             base["light"] = dict(base["light"], bsdf=_bsdf_dict({"type": "diffuse", "albedo": _WHITE}, mi))
         else:
             base.pop("light")  # its quad sits just below the ceiling; without emission it only casts slivers
+        if desc.get("open_top"):
+            base.pop("ceiling")
         return base
     if name == "asset_room":
         return _asset_room_dict(desc, mi)

@@ -3,7 +3,10 @@
     result = train(loss_fn, params, sampler, key=key, steps=10_000, learning_rate=schedule,
                    checkpoint_path="run/ckpt.npz", checkpoint_every=500, log_path="run/metrics.jsonl")
 
-* ``sampler(key, step) -> batch`` draws a minibatch; ``loss_fn(params, batch) -> scalar``.
+* ``sampler(key, step) -> batch`` draws a minibatch; ``loss_fn(params, batch) -> scalar``. With
+  ``data=`` (a pytree of arrays, e.g. a whole training set) the sampler is called as
+  ``sampler(key, step, data)`` and ``data`` is passed to the jitted step as an argument instead
+  of being baked into the compiled program as constants.
 * The key of step t is ``fold_in(key, t)``, so a run resumed from the checkpoint of step t draws
   exactly the batches an uninterrupted run would: parameters, optimiser state and key are saved
   bit-exactly (``jprt.io.save_checkpoint``, atomic), and the resumed run is bit-identical.
@@ -56,7 +59,7 @@ def _batch_size(batch) -> int:
 def train(loss_fn: Callable, params, sampler: Callable, *, key, steps: int, learning_rate=1e-3,
           b1: float = 0.9, b2: float = 0.99, eps: float = 1e-15, checkpoint_path: str | None = None,
           checkpoint_every: int = 1000, log_path: str | None = None, log_every: int = 50, progress: bool = True,
-          stop_after: int | None = None) -> TrainResult:
+          stop_after: int | None = None, data=None) -> TrainResult:
     """Run Adam for ``steps`` steps from ``params`` (or from ``checkpoint_path`` if it exists).
 
     Args:
@@ -64,6 +67,7 @@ def train(loss_fn: Callable, params, sampler: Callable, *, key, steps: int, lear
       b1, b2, eps: Adam constants (defaults as Müller et al. 2022 / Raghavan et al. 2023).
       stop_after: stop (and checkpoint) after this many steps of this call, as an interruption
         would; the run can be resumed later (tests use it).
+      data: optional pytree handed to ``sampler`` as its third argument (see the module docstring).
     """
     import optax
     from tqdm import tqdm
@@ -81,8 +85,9 @@ def train(loss_fn: Callable, params, sampler: Callable, *, key, steps: int, lear
         resumed_from = int(state.step)
 
     @jax.jit
-    def step_fn(state: TrainState):
-        batch = sampler(jax.random.fold_in(key, state.step), state.step)
+    def step_fn(state: TrainState, data):
+        args = (jax.random.fold_in(key, state.step), state.step) + (() if data is None else (data,))
+        batch = sampler(*args)
         loss, grads = jax.value_and_grad(loss_fn)(state.params, batch)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
         return TrainState(optax.apply_updates(state.params, updates), opt_state, state.step + 1), loss
@@ -90,7 +95,8 @@ def train(loss_fn: Callable, params, sampler: Callable, *, key, steps: int, lear
     def lr_at(step):
         return float(learning_rate(step)) if callable(learning_rate) else float(learning_rate)
 
-    batch_size = _batch_size(jax.eval_shape(sampler, key, jnp.zeros((), jnp.int32)))
+    probe = (key, jnp.zeros((), jnp.int32)) + (() if data is None else (data,))
+    batch_size = _batch_size(jax.eval_shape(sampler, *probe))
     todo = max(0, steps - resumed_from)
     if stop_after is not None:
         todo = min(todo, stop_after)
@@ -104,7 +110,7 @@ def train(loss_fn: Callable, params, sampler: Callable, *, key, steps: int, lear
     last_step = resumed_from
     try:
         for i in range(todo):
-            state, loss = step_fn(state)
+            state, loss = step_fn(state, data)
             losses[i] = loss
             step = resumed_from + i + 1
             bar.update(1)

@@ -99,3 +99,29 @@ def test_asset_room_atlas_uses_the_mesh_uvs(assets):
     cam = look_at([2.6, 1.3, 2.4], [0.0, 0.1, 0.2], fov=40.0, width=32, height=32)
     gb = lightmap.atlas_gbuffer(handle, atlas, cam)
     assert 0.05 < gb.valid.mean() < 0.9  # the asset, not the room
+
+
+def test_vertex_interpolation_reproduces_surface_points(mi):
+    """Interpolating the subdivided mesh's vertex positions gives back the surface points: exactly on
+    flat triangles, within the chord error on the (analytic, lat-long tessellated) sphere."""
+    from jprt.render.cameras import look_at
+    from jprt.render.gbuffer import gbuffer
+    from jprt.render.lightmap import vertex_interpolation
+    from jprt.render.scenes import SceneHandle, glossy_cornell
+
+    handle = SceneHandle(glossy_cornell(open_top=True))
+    g = gbuffer(handle, look_at((0.2, 0.8, 3.5), (0, -0.1, 0), width=24, height=24))
+    edge = 0.25
+    idx, w, verts = vertex_interpolation(handle, g.position, edge=edge)
+    np.testing.assert_allclose(w.sum(-1), 1.0, rtol=1e-5)
+    assert idx.min() >= 0 and idx.max() < len(verts)
+    rec = np.einsum("...k,...kc->...c", w, verts[idx])
+    err = np.linalg.norm(rec - g.position, axis=-1)
+    names = handle.object_names()
+    sphere = g.object_id == names.index("large-box")
+    flat = g.valid & ~sphere
+    assert flat.any() and sphere.any()
+    assert err[flat].max() < 1e-4
+    assert err[sphere].max() < edge**2 / (8 * 0.4) * 2 + 1e-4  # sagitta of the chords at radius 0.4
+    # vertices are shared: neighbouring pixels on one wall reuse them
+    assert len(np.unique(idx[flat][:, :3])) < 3 * flat.sum()

@@ -36,3 +36,15 @@ def test_bitterli_xml_scene(assets, mi):
     assert gb.valid.mean() > 0.9
     assert len(set(handle.object_names())) == len(handle.object_names())
     np.testing.assert_allclose(np.linalg.norm(gb.normal[gb.valid], axis=-1), 1.0, atol=1e-5)
+
+
+def test_open_top_glossy_cornell(mi):
+    """open_top drops the ceiling (and is only recorded when set, so older cache hashes hold)."""
+    assert "open_top" not in scenes.glossy_cornell()
+    desc = scenes.glossy_cornell(open_top=True)
+    assert scenes.describe(desc) == desc and desc["open_top"] is True
+    with pytest.raises(ValueError, match="open_top"):
+        scenes.glossy_cornell(open_top=True, area_light=True)
+    names = SceneHandle(desc).object_names()
+    assert "ceiling" not in names and "floor" in names
+    assert "ceiling" in SceneHandle(scenes.glossy_cornell()).object_names()

@@ -1,0 +1,837 @@
+"""Neural-wavelet PRT (Raghavan et al. 2023, "Neural Free-Viewpoint Relighting for Glossy
+Indirect Illumination"): environment-map relighting of glossy indirect light from any view.
+
+The indirect radiance of a pixel is a dot product in the non-standard Haar basis of a cube map
+(``jprt.sphere.haar``):
+
+    B(x, w_o) = sum_k L_k T_k(x, w_o)                                          (Eq. 3)
+
+with L_k the wavelet coefficients of the environment (taken *without* solid-angle
+premultiplication, §5: the network learns those factors) and the transport coefficients
+
+    T_k(x, w_o) = f(h_k(x), SH4(w_r), n, rho; Theta)                            (Eq. 4)
+
+predicted by a 2 x 128 ReLU MLP f from the CP-factored feature field
+
+    h_k(x) = sum_m S_m[x] W_m[k] U_m                                            (Eq. 6-7)
+
+(``jprt.nn.factor``: hash grid S over space, cube-map grid W over wavelet positions, matrix U),
+the SH encoding of the reflected direction w_r (``jprt.nn.encoding.sh4``), the normal and the
+GGX parameters rho = (k_d, k_s, remapped roughness log(25 sigma + 1) / log 26).
+
+* Training (§5): each step picks a training environment, takes 300 wavelets (half the largest
+  |L_k|, half uniformly among the rest), samples pixels from the images lit by that environment
+  in four equal parts (uniform, view variance, high frequency, k_s (1 - sigma)), predicts
+  B = sum_k L_k T_k and minimises the sign-extended mu-law tonemapped L2 loss (Eq. 8) with Adam
+  (``jprt.solve.adam``, bit-identical resume).
+* Rendering (Algorithm 1): the K largest area-weighted wavelets of the new lighting, the
+  transport coefficients of all pixels in one jit-compiled pass over pixel chunks (memory bounded
+  by the chunk), then the dot product; final = direct (Mitsuba) + indirect.
+* Table 6's baseline (``model.spatial = "vertex"``): S_m[x] from learned features at the vertices
+  of the scene mesh subdivided to a target edge length, interpolated and passed through softplus
+  (``add_vertex_interpolation`` supplies the per-pixel vertices and weights).
+* Ground truth for the wavelet half (``transport_check``): Mitsuba's environment-to-pixel
+  transport (``jprt.render.transport``) projected onto the Haar basis and relit with the top K
+  wavelets, against Mitsuba's render of the same environment.
+
+Images are relit with environment maps that are constant over the texels of a (6, n, n) cube map
+(the lighting the method represents exactly); the Mitsuba references are rendered with that
+same piecewise-constant map, so the reported errors are the method's, not a resampling's.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from functools import partial
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jprt.config import merge, stable_hash
+from jprt.nn import encoding
+from jprt.nn.factor import factor_field
+from jprt.nn.mlp import mlp
+from jprt.solve import losses
+from jprt.sphere import cubemap, haar
+
+__all__ = [
+    "DEFAULT_CONFIG",
+    "GBUFFER_FIELDS",
+    "VERTEX_FIELDS",
+    "WaveletData",
+    "add_vertex_interpolation",
+    "prepare_environment",
+    "synthetic_environments",
+    "rotate_equirect",
+    "render_equirect",
+    "trajectory",
+    "importance_maps",
+    "make_dataset",
+    "pixel_features",
+    "Model",
+    "model",
+    "training_wavelets",
+    "select_wavelets",
+    "render_pixels",
+    "exact_transport_fn",
+    "transport_check",
+    "run_key",
+    "fit",
+    "evaluator",
+    "indirect_baseline_scale",
+    "model_bytes",
+]
+
+SHARED_ENVMAPS = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "assets",
+                                              "envmaps"))
+
+DEFAULT_CONFIG = {
+    # the glossy Cornell box opened at the top so the environment lights it from above and the front
+    "scene": {"name": "glossy_cornell", "open_top": True, "floor_roughness": 0.1, "sphere_roughness": 0.05},
+    "envmaps": {
+        "folder": "",  # "" -> ../shared/assets/envmaps
+        "train": [],  # file stems; [] -> every map in the folder that is not held out
+        "held_out": ["st_fagans_interior_1k", "venice_sunset_1k"],
+        "rotations_deg": [0.0, 120.0, 240.0],  # §5: each map and its 120 / 240 degree rotations
+        "synthetic": 0,  # > 0: that many seeded procedural maps instead of files (tests)
+        "face_size": 16,  # cube-map face size n (paper: 64)
+        "normalise": True,  # scale every map to mean radiance 1 (equal exposure across maps)
+    },
+    "cameras": {
+        "width": 64, "height": 64, "fov": 39.3077,
+        "target": [0.0, -0.1, 0.0],
+        # spherical trajectory: a spiral over a cap of the sphere (azimuth / elevation ranges, degrees)
+        "sphere": {"n": 45, "radius": 3.9, "azimuth": [-35.0, 35.0], "elevation": [-5.0, 45.0]},
+        # helix for occluded regions: sweeps the azimuth range `turns` times while rising
+        "helix": {"n": 30, "radius": 3.0, "azimuth": [-30.0, 30.0], "elevation": [0.0, 40.0], "turns": 2.0},
+        "near": 6,  # held-out views on the training trajectories
+        "far": 6,  # views away from them
+        "far_radius": [2.4, 2.8], "far_azimuth": [-45.0, 45.0], "far_elevation": [-10.0, 55.0],
+    },
+    "data": {"spp": 128, "test_spp": 1024, "envs_per_view": 2, "seed": 0, "max_depth": -1},
+    "model": {
+        "n_levels": 8, "features_per_level": 2,  # M = n_levels x features_per_level (paper: 64)
+        "log2_table_size": 14,  # paper: 19
+        "base_resolution": 4, "per_level_scale": 1.6,
+        "n_features": 32,  # L, the width of h_k (paper: 64)
+        "hidden": 128, "layers": 2,  # f: 2 x 128 ReLU (paper)
+        "reflection": "sh4",  # "sh4" | "raw" (w_r as 3 numbers) | "none"   (Table 4)
+        # S_m[x]: "hashgrid" (the paper), or "vertex": learned features at the vertices of the scene
+        # mesh subdivided to edges <= vertex_edge, interpolated, softplus (Table 6's baseline)
+        "spatial": "hashgrid", "vertex_edge": 0.1,
+    },
+    "train": {
+        # paper: 2048 pixels per step; 256 keeps the `small` run near 0.5 s per step on 2 CPU cores
+        "steps": 1500, "learning_rate": 1e-2, "final_lr_fraction": 0.1, "pixels": 256, "wavelets": 300,
+        "seed": 0, "checkpoint_every": 250, "log_every": 50,
+        "mu": 10.0,  # mu-law constant (eps = 1)
+    },
+    "render": {"k": 64, "chunk": 2048},
+}
+
+#: G-buffer arrays the model reads, with their trailing shapes.
+GBUFFER_FIELDS = {"position": (3,), "normal": (3,), "reflected": (3,), "diffuse_albedo": (3,),
+                  "specular_albedo": (3,), "roughness": (), "valid": ()}
+#: Extra per-pixel arrays of the per-vertex variant (``add_vertex_interpolation``).
+VERTEX_FIELDS = {"vertex_index": (4,), "vertex_weight": (4,)}
+
+
+def _cfg(config: dict | None) -> dict:
+    config = config or {}
+    return merge(DEFAULT_CONFIG, {k: v for k, v in config.items() if k in DEFAULT_CONFIG})
+
+
+# --------------------------------------------------------------------------------------------
+# Environments
+# --------------------------------------------------------------------------------------------
+
+
+def rotate_equirect(equirect, degrees: float) -> np.ndarray:
+    """The map rotated about +Y by ``degrees`` (a column roll; exact when degrees * W / 360 is
+    an integer, nearest column otherwise)."""
+    e = np.asarray(equirect)
+    return np.roll(e, int(round(degrees / 360.0 * e.shape[1])), axis=1)
+
+
+def _downsample_equirect(e: np.ndarray, max_height: int) -> np.ndarray:
+    """Solid-angle weighted block averages down to at most ``max_height`` rows (energy kept)."""
+    h, w = e.shape[:2]
+    f = 1
+    while h // (2 * f) >= max_height and h % (2 * f) == 0 and w % (2 * f) == 0:
+        f *= 2
+    if f == 1:
+        return e
+    omega = np.asarray(cubemap.equirect_solid_angles(h, w))[..., None]
+    num = (e * omega).reshape(h // f, f, w // f, f, -1).sum(axis=(1, 3))
+    den = omega.reshape(h // f, f, w // f, f, 1).sum(axis=(1, 3))
+    return num / den
+
+
+def prepare_environment(equirect, face_size: int, *, normalise: bool = True) -> np.ndarray:
+    """An (H, W, 3) equirect map as the (6, n, n, 3) cube map the method relights with
+    (area-weighted resampling, ``jprt.sphere.cubemap``), optionally scaled to mean radiance 1."""
+    e = _downsample_equirect(np.asarray(equirect, np.float32), max(8, 4 * face_size))
+    cube = np.asarray(cubemap.equirect_to_cubemap(jnp.asarray(e), face_size), np.float32)
+    cube = np.maximum(cube, 0.0)
+    if normalise:
+        omega = np.asarray(cubemap.texel_solid_angles(face_size))
+        mean = float(np.sum(cube.mean(axis=-1) * omega) / (4.0 * np.pi))
+        if mean <= 0:
+            raise ValueError("environment map has no positive radiance")
+        cube = cube / mean
+    return cube.astype(np.float32)
+
+
+def synthetic_environments(n_maps: int, face_size: int, seed: int = 0) -> np.ndarray:
+    """``n_maps`` seeded procedural cube maps (E, 6, n, n, 3): a coloured sky gradient plus one
+    or two sharp lobes ("suns" and windows), mean radiance about 1 (tests, demos without assets)."""
+    rng = np.random.default_rng(seed)
+    d = np.asarray(cubemap.texel_directions(face_size))
+    out = []
+    for _ in range(n_maps):
+        sky = rng.uniform(0.2, 1.0, 3) * (0.6 + 0.4 * d[..., 1:2]) + rng.uniform(0.0, 0.3, 3) * (1 - d[..., 1:2]) / 2
+        for _ in range(int(rng.integers(1, 3))):
+            axis = rng.normal(size=3)
+            axis[1] = abs(axis[1])
+            axis /= np.linalg.norm(axis)
+            sharp = rng.uniform(10.0, 80.0)
+            lobe = np.exp(sharp * (d @ axis - 1.0))[..., None] * rng.uniform(0.5, 1.0, 3)
+            sky = sky + rng.uniform(2.0, 8.0) * lobe
+        out.append(sky)
+    return np.stack(out).astype(np.float32)
+
+
+def render_equirect(cube, scale: int = 8) -> np.ndarray:
+    """The (scale n, 2 scale n, 3) equirect map whose texels take the value of the cube-map texel
+    containing their centre: what Mitsuba renders with, so references see the same piecewise
+    constant lighting as the wavelet relighting (up to the equirect's bilinear lookup)."""
+    n = np.asarray(cube).shape[1]
+    d = cubemap.equirect_directions(scale * n, 2 * scale * n)
+    return np.asarray(cubemap.sample_cubemap_nearest(jnp.asarray(cube), d), np.float32)
+
+
+# --------------------------------------------------------------------------------------------
+# Cameras
+# --------------------------------------------------------------------------------------------
+
+
+def _on_sphere(radius, az_deg, el_deg, target):
+    az, el = np.radians(az_deg), np.radians(el_deg)
+    return np.asarray(target) + np.stack([radius * np.cos(el) * np.sin(az), radius * np.sin(el),
+                                          radius * np.cos(el) * np.cos(az)], axis=-1)
+
+
+def trajectory(kind: str, n: int, spec: dict, target, *, phase: float = 0.0) -> np.ndarray:
+    """Camera origins (n, 3) on a training trajectory (§5).
+
+    ``"sphere"``: a Fibonacci-like spiral covering the azimuth x elevation cap of a sphere of
+    ``spec["radius"]`` around ``target``. ``"helix"``: the azimuth range swept back and forth
+    ``spec["turns"]`` times while the elevation rises through its range. ``phase`` in [0, 1)
+    shifts the samples along the curve (held-out "near" views use phase 0.5: between the
+    training positions, on the same curve).
+    """
+    t = (np.arange(n) + 0.5 + phase) / max(n, 1)
+    t = np.clip(t, 0.0, 1.0)
+    a0, a1 = spec["azimuth"]
+    e0, e1 = spec["elevation"]
+    if kind == "sphere":
+        golden = (np.sqrt(5.0) - 1.0) / 2.0
+        u = np.mod((np.arange(n) + phase) * golden, 1.0)
+        az = a0 + (a1 - a0) * u
+        el = e0 + (e1 - e0) * t
+    elif kind == "helix":
+        s = 0.5 - 0.5 * np.cos(2.0 * np.pi * float(spec["turns"]) * t)
+        az = a0 + (a1 - a0) * s
+        el = e0 + (e1 - e0) * t
+    else:
+        raise ValueError(f"unknown trajectory {kind!r}: use 'sphere' or 'helix'")
+    return _on_sphere(float(spec["radius"]), az, el, target)
+
+
+def _camera_sets(ccfg: dict, seed: int):
+    """Origins of the training, near and far views."""
+    target = np.asarray(ccfg["target"], np.float64)
+    train, near = [], []
+    for kind in ("sphere", "helix"):
+        spec = ccfg[kind]
+        if int(spec["n"]) > 0:
+            train.append(trajectory(kind, int(spec["n"]), spec, target))
+    train = np.concatenate(train) if train else np.zeros((0, 3))
+    n_near = int(ccfg["near"])
+    if n_near:
+        spec = ccfg["sphere"]
+        near = trajectory("sphere", int(spec["n"]), spec, target, phase=0.5)
+        near = near[np.linspace(0, len(near) - 1, n_near).round().astype(int)]
+    rng = np.random.default_rng([seed, 7])
+    n_far = int(ccfg["far"])
+    far = _on_sphere(rng.uniform(*ccfg["far_radius"], n_far), rng.uniform(*ccfg["far_azimuth"], n_far),
+                     rng.uniform(*ccfg["far_elevation"], n_far), target)
+    return train, np.asarray(near).reshape(-1, 3), far
+
+
+# --------------------------------------------------------------------------------------------
+# Importance maps (§5, Fig. 2)
+# --------------------------------------------------------------------------------------------
+
+
+def _luminance(x):
+    return x @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+
+
+def _blur(img: np.ndarray, mask: np.ndarray, sigma: float = 1.5) -> np.ndarray:
+    """Gaussian blur of (..., H, W) images over the pixels in ``mask`` only (normalised
+    convolution: invalid pixels neither contribute nor darken their neighbours)."""
+    from scipy.ndimage import gaussian_filter
+
+    sig = (0,) * (img.ndim - 2) + (sigma, sigma)
+    m = mask.astype(np.float64)
+    num = gaussian_filter(np.where(mask, img, 0.0), sig, mode="constant")
+    den = gaussian_filter(m, sig, mode="constant")
+    return np.where(den > 1e-12, num / np.maximum(den, 1e-12), 0.0)
+
+
+def importance_maps(indirect, position, valid, specular, roughness, *, mu: float = 10.0, grid: int = 24):
+    """The four pixel-sampling distributions of §5 for the V images lit by one environment.
+
+    Args: (V, H, W, ...) arrays of one environment's images.
+    Returns (4, V * H * W) probabilities, each summing to 1 over valid pixels:
+      0 uniform;
+      1 view variance: the variance across views of the mu-law tonemapped indirect luminance of
+        each surface voxel (a ``grid``^3 voxelisation of the hit points), per pixel;
+      2 high frequency: |TM(I) - blur(TM(I))|;
+      3 k_s (1 - sigma): mean specular albedo times the complement of the remapped roughness.
+    A strategy with no mass (e.g. no glossy pixel) falls back on uniform.
+    """
+    valid = np.asarray(valid, bool)
+    tm = np.asarray(losses.mu_law(_luminance(np.asarray(indirect, np.float32)), mu))
+    v = valid.reshape(-1)
+    lo = position[valid].min(axis=0) if valid.any() else np.zeros(3)
+    hi = position[valid].max(axis=0) if valid.any() else np.ones(3)
+    cell = np.clip(((position - lo) / np.maximum(hi - lo, 1e-9) * grid).astype(int), 0, grid - 1)
+    voxel = ((cell[..., 0] * grid + cell[..., 1]) * grid + cell[..., 2]).reshape(len(indirect), -1)
+    n_vox = grid**3
+    means = []
+    for i in range(len(indirect)):  # per-view mean of each voxel, then the variance across views
+        m = valid[i].reshape(-1)
+        s = np.bincount(voxel[i][m], tm[i].reshape(-1)[m], n_vox)
+        c = np.bincount(voxel[i][m], None, n_vox)
+        means.append((s / np.maximum(c, 1), c > 0))
+    s1 = sum(np.where(seen, mean, 0.0) for mean, seen in means)
+    s2 = sum(np.where(seen, mean**2, 0.0) for mean, seen in means)
+    cnt = sum(seen.astype(float) for _, seen in means)
+    var = np.where(cnt > 1, s2 / np.maximum(cnt, 1) - (s1 / np.maximum(cnt, 1)) ** 2, 0.0)
+    view_var = np.maximum(var[voxel.reshape(-1)], 0.0)
+    high = np.abs(tm - _blur(tm, valid)).reshape(-1)
+    gloss = (np.asarray(specular).mean(axis=-1)
+             * (1.0 - np.asarray(encoding.roughness_remap(np.clip(roughness, 0.0, 1.0))))).reshape(-1)
+    out = []
+    for w in (np.ones_like(high), view_var, high, gloss):
+        w = np.where(v, np.maximum(w, 0.0), 0.0)
+        if w.sum() <= 0:
+            w = v.astype(float)
+        out.append(w / w.sum())
+    return np.stack(out).astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------------
+# Dataset (§5)
+# --------------------------------------------------------------------------------------------
+
+
+class WaveletData(NamedTuple):
+    """Rendered training and test data (NumPy).
+
+    Fields:
+      train:      dict of (E, V, H, W, ...) arrays: the GBUFFER_FIELDS, "direct", "indirect";
+                  images grouped by their training environment (V images each).
+      importance: (E, 4, V * H * W) pixel-sampling distributions (``importance_maps``).
+      envs:       (E, 6, n, n, 3) training environments (cube maps).
+      tests:      {"near": dict, "far": dict} of (N, H, W, ...) arrays (GBUFFER_FIELDS, "direct",
+                  "indirect", "env" (N,) index into ``test_envs``).
+      test_envs:  (Eh, 6, n, n, 3) held-out environments, never used in training.
+      env_names:  names of the training environments ("map@rotation").
+      test_env_names: names of the held-out environments.
+      cameras:    {"train": (C, 3), "near": ..., "far": ...} camera origins.
+      stats:      {"render_s": ..., "spp": ..., "test_spp": ...}.
+    """
+
+    train: dict
+    importance: np.ndarray
+    envs: np.ndarray
+    tests: dict
+    test_envs: np.ndarray
+    env_names: list
+    test_env_names: list
+    cameras: dict
+    stats: dict
+
+
+def _environment_sets(ecfg: dict, seed: int):
+    n = int(ecfg["face_size"])
+    haar._levels(n)
+    rotations = [float(r) for r in ecfg["rotations_deg"]] or [0.0]
+    if int(ecfg["synthetic"]) > 0:
+        maps = synthetic_environments(int(ecfg["synthetic"]) + 1, n, seed)
+        train = [maps[i] for i in range(len(maps) - 1)]
+        names = [f"synthetic_{i}" for i in range(len(train))]
+        return np.stack(train), names, maps[-1:], ["synthetic_held_out"]
+    folder = ecfg["folder"] or SHARED_ENVMAPS
+    if not os.path.isdir(folder):
+        raise FileNotFoundError(f"environment maps not found at {folder} (set envmaps.folder, or "
+                                f"envmaps.synthetic > 0 for procedural maps)")
+    from jprt.render.lights import EnvMap
+
+    stems = sorted(os.path.splitext(f)[0] for f in os.listdir(folder) if f.lower().endswith((".hdr", ".exr")))
+    files = {os.path.splitext(f)[0]: os.path.join(folder, f) for f in os.listdir(folder)}
+    held = list(ecfg["held_out"])
+    missing = [s for s in held + list(ecfg["train"]) if s not in files]
+    if missing:
+        raise FileNotFoundError(f"environment maps {missing} not in {folder}; available: {stems}")
+    train_stems = list(ecfg["train"]) or [s for s in stems if s not in held]
+    overlap = set(train_stems) & set(held)
+    if overlap:
+        raise ValueError(f"maps {sorted(overlap)} are both training and held-out maps")
+    envs, names = [], []
+    for stem in train_stems:
+        radiance = EnvMap.from_file(files[stem]).radiance
+        for r in rotations:
+            envs.append(prepare_environment(rotate_equirect(radiance, r), n, normalise=bool(ecfg["normalise"])))
+            names.append(f"{stem}@{r:g}")
+    tests = [prepare_environment(EnvMap.from_file(files[s]).radiance, n, normalise=bool(ecfg["normalise"]))
+             for s in held]
+    return np.stack(envs), names, np.stack(tests) if tests else np.zeros((0, 6, n, n, 3), np.float32), held
+
+
+def _render_view(handle, camera, cube, spp: int, seed: int, max_depth: int):
+    from jprt.render import images
+    from jprt.render.lights import EnvMap
+
+    handle.set_lighting(EnvMap.create(render_equirect(cube)))
+    full = images.render(handle, camera, spp=spp, max_depth=max_depth, seed=seed)
+    direct = images.render(handle, camera, spp=spp, max_depth=2, seed=seed)
+    return direct, full - direct
+
+
+def _gbuffer_arrays(handle, camera) -> dict:
+    from jprt.render.gbuffer import gbuffer
+
+    g = gbuffer(handle, camera)
+    return {k: np.asarray(getattr(g, k)) for k in GBUFFER_FIELDS}
+
+
+def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
+                 progress: bool = True) -> WaveletData:
+    """Render the training images (§5) and held-out near / far test views of ``scene``
+    (default ``config['scene']``) lit by environment maps; cached by content hash under
+    ``$JPRT_CACHE/wavelet_prt/<hash>.npz`` (checksummed, atomic).
+
+    Each training camera is rendered under ``data.envs_per_view`` training environments, assigned
+    so that every environment lights the same number V of images; each image has its G-buffer
+    (exact pixel-centre rays), direct (Mitsuba ``max_depth=2``) and indirect (full minus direct,
+    same seed) radiance. Test views are lit by held-out maps only and rendered at ``test_spp``.
+    """
+    from tqdm import tqdm
+
+    from jprt.render.cameras import look_at
+    from jprt.render.dataset import _entry_state, _save_npz, cache_root
+    from jprt.render.scenes import SceneHandle, describe
+
+    cfg = _cfg(config)
+    desc = describe(scene if scene is not None else cfg["scene"])
+    if desc.get("area_light") or desc.get("keep_emitters"):
+        raise ValueError("wavelet PRT relights with environment maps only: use a scene without emitters of its own")
+    ecfg, ccfg, dcfg = cfg["envmaps"], cfg["cameras"], cfg["data"]
+    seed = int(dcfg["seed"])
+    files_key = None
+    if int(ecfg["synthetic"]) <= 0:
+        folder = ecfg["folder"] or SHARED_ENVMAPS
+        files_key = sorted((f, os.path.getsize(os.path.join(folder, f))) for f in os.listdir(folder)) \
+            if os.path.isdir(folder) else None
+    spec = {"format": 1, "scene": desc, "envmaps": {k: v for k, v in ecfg.items() if k != "folder"},
+            "files": files_key, "cameras": ccfg, "data": dcfg}
+    path = os.path.join(cache_dir or cache_root(), "wavelet_prt", stable_hash(spec) + ".npz")
+    if _entry_state(path) == "ok":
+        with np.load(path, allow_pickle=False) as f:
+            return _unpack({k: f[k] for k in f.files})
+    t0 = time.perf_counter()
+    envs, names, test_envs, test_names = _environment_sets(ecfg, seed)
+    train_o, near_o, far_o = _camera_sets(ccfg, seed)
+    n_env, per_view = len(envs), int(dcfg["envs_per_view"])
+    n_img = len(train_o) * per_view
+    if n_img % n_env:
+        raise ValueError(f"{len(train_o)} training cameras x {per_view} environments each = {n_img} images do not "
+                         f"split evenly over {n_env} environments: change cameras.sphere.n / cameras.helix.n")
+    rng = np.random.default_rng(seed)
+    # image j (of camera j // per_view) gets environment perm[j] % n_env: every environment equally often
+    assign = rng.permutation(n_img) % n_env
+    cam_kw = {"fov": float(ccfg["fov"]), "width": int(ccfg["width"]), "height": int(ccfg["height"])}
+    target = tuple(ccfg["target"])
+    handle = SceneHandle(desc)
+    spp, max_depth = int(dcfg["spp"]), int(dcfg["max_depth"])
+    groups: list[list[dict]] = [[] for _ in range(n_env)]
+    bar = tqdm(total=n_img + len(near_o) + len(far_o), desc="wavelet PRT images", disable=not progress)
+    for c, origin in enumerate(train_o):
+        cam = look_at(origin, target, **cam_kw)
+        g = _gbuffer_arrays(handle, cam)
+        for j in range(per_view):
+            e = int(assign[c * per_view + j])
+            direct, indirect = _render_view(handle, cam, envs[e], spp, seed * 100003 + c * per_view + j, max_depth)
+            groups[e].append(dict(g, direct=direct, indirect=indirect))
+            bar.update(1)
+    train = {k: np.stack([np.stack([img[k] for img in grp]) for grp in groups])
+             for k in list(GBUFFER_FIELDS) + ["direct", "indirect"]}
+    importance = np.stack([importance_maps(train["indirect"][e], train["position"][e], train["valid"][e],
+                                           train["specular_albedo"][e], train["roughness"][e],
+                                           mu=float(cfg["train"]["mu"])) for e in range(n_env)])
+    t_train = time.perf_counter() - t0
+    tests = {}
+    for name, origins in (("near", near_o), ("far", far_o)):
+        views = []
+        for i, origin in enumerate(origins):
+            cam = look_at(origin, target, **cam_kw)
+            e = i % max(len(test_envs), 1)
+            direct, indirect = _render_view(handle, cam, test_envs[e], int(dcfg["test_spp"]),
+                                            seed * 7 + 1000003 + i + (0 if name == "near" else 5003), max_depth)
+            views.append(dict(_gbuffer_arrays(handle, cam), direct=direct, indirect=indirect, env=np.int32(e)))
+            bar.update(1)
+        tests[name] = {k: np.stack([v[k] for v in views]) for k in views[0]} if views else {}
+    bar.close()
+    arrays = {f"train_{k}": v for k, v in train.items()}
+    for name, t in tests.items():
+        arrays.update({f"{name}_{k}": v for k, v in t.items()})
+    arrays.update(importance=importance, envs=envs, test_envs=test_envs, env_names=np.array(names),
+                  test_env_names=np.array(test_names), cam_train=train_o, cam_near=near_o, cam_far=far_o,
+                  render_train_s=np.array(t_train), render_s=np.array(time.perf_counter() - t0),
+                  spp=np.array(spp), test_spp=np.array(int(dcfg["test_spp"])))
+    _save_npz(path, arrays)
+    return _unpack(arrays)
+
+
+def _unpack(a: dict) -> WaveletData:
+    fields = list(GBUFFER_FIELDS) + ["direct", "indirect"]
+    tests = {name: {k: a[f"{name}_{k}"] for k in fields + ["env"] if f"{name}_{k}" in a} for name in ("near", "far")}
+    return WaveletData(
+        train={k: a[f"train_{k}"] for k in fields}, importance=a["importance"], envs=a["envs"], tests=tests,
+        test_envs=a["test_envs"], env_names=[str(s) for s in a["env_names"]],
+        test_env_names=[str(s) for s in a["test_env_names"]],
+        cameras={"train": a["cam_train"], "near": a["cam_near"], "far": a["cam_far"]},
+        stats={"render_train_s": float(a["render_train_s"]), "render_s": float(a["render_s"]),
+               "spp": int(a["spp"]), "test_spp": int(a["test_spp"])})
+
+
+# --------------------------------------------------------------------------------------------
+# Model (§4, Eq. 4-7)
+# --------------------------------------------------------------------------------------------
+
+
+def _reflection_size(kind: str) -> int:
+    sizes = {"sh4": 16, "raw": 3, "none": 0}
+    if kind not in sizes:
+        raise ValueError(f"unknown reflection encoding {kind!r}: use one of {sorted(sizes)}")
+    return sizes[kind]
+
+
+def pixel_features(g: dict, reflection: str = "sh4"):
+    """Per-pixel inputs of f besides h_k: encoded w_r, n, k_d, k_s, remapped roughness (..., D)."""
+    parts = []
+    if reflection == "sh4":
+        parts.append(encoding.sh4(g["reflected"]))
+    elif reflection == "raw":
+        parts.append(jnp.asarray(g["reflected"]))
+    elif reflection != "none":
+        _reflection_size(reflection)
+    rough = encoding.roughness_remap(jnp.clip(jnp.asarray(g["roughness"]), 0.0, 1.0))[..., None]
+    parts += [jnp.asarray(g["normal"]), jnp.asarray(g["diffuse_albedo"]), jnp.asarray(g["specular_albedo"]), rough]
+    return jnp.concatenate(parts, axis=-1)
+
+
+class Model(NamedTuple):
+    """``init(key, bbox) -> params``; ``transport(params, g, k) -> (P, K, 3)`` for a batch of
+    pixels (dict of (P, ...) arrays named in ``fields``) and wavelet flat indices k (K,)."""
+
+    init: Callable
+    transport: Callable
+    face_size: int
+    fields: tuple
+
+
+def model(config: dict | None = None, *, n_vertices: int | None = None) -> Model:
+    """The transport network T_k(x, w_o) = f(h_k(x), enc(w_r), n, rho) of Eq. 4 with the CP
+    feature field of Eq. 7 (``jprt.nn.factor``). With ``model.spatial = "vertex"`` S_m[x] is
+    softplus of per-vertex features interpolated over the subdivided scene mesh instead
+    (``n_vertices`` needed for ``init``)."""
+    cfg = _cfg(config)
+    mc, n = cfg["model"], int(cfg["envmaps"]["face_size"])
+    field = factor_field(face_size=n, n_features=int(mc["n_features"]), n_levels=int(mc["n_levels"]),
+                         features_per_level=int(mc["features_per_level"]),
+                         log2_table_size=int(mc["log2_table_size"]), base_resolution=int(mc["base_resolution"]),
+                         per_level_scale=float(mc["per_level_scale"]))
+    spatial = mc["spatial"]
+    if spatial not in ("hashgrid", "vertex"):
+        raise ValueError(f"unknown model.spatial {spatial!r}: use 'hashgrid' or 'vertex'")
+    fields = tuple(GBUFFER_FIELDS) + (tuple(VERTEX_FIELDS) if spatial == "vertex" else ())
+    reflection = mc["reflection"]
+    d_pix = _reflection_size(reflection) + 10
+    n_in = int(mc["n_features"]) + d_pix
+    f = mlp((n_in,) + (int(mc["hidden"]),) * int(mc["layers"]) + (3,), activation="relu", init="he")
+    # Fixed output scale: the mean texel solid angle 4 pi / (6 n^2). Without premultiplication T_k
+    # carries the solid-angle factors (§5); this puts f's outputs at O(1) for an O(1) transport.
+    out_scale = 4.0 * math.pi / (6 * n * n)
+
+    def init(key, bbox):
+        kf, km, kv = jax.random.split(key, 3)
+        fp = field.init(kf)
+        if spatial == "vertex":
+            if not n_vertices:
+                raise ValueError("model.spatial='vertex' needs n_vertices (see add_vertex_interpolation)")
+            fp["S"] = {"vertex": jax.random.uniform(kv, (int(n_vertices), field.n_components), jnp.float32,
+                                                    -1e-4, 1e-4)}
+        return {"field": fp, "f": f.init(km), "bbox": jnp.asarray(bbox, jnp.float32)}
+
+    def features(params, g, k):
+        if spatial == "hashgrid":
+            bbox = jax.lax.stop_gradient(params["bbox"])
+            x = jnp.clip((jnp.asarray(g["position"]) - bbox[0][None, :]) / (bbox[1] - bbox[0])[None, :], 0.0, 1.0)
+            return field.apply(params["field"], x, k)  # (P, K, L)
+        fv = params["field"]["S"]["vertex"][jnp.asarray(g["vertex_index"])]  # (P, 4, M)
+        s = jax.nn.softplus(jnp.einsum("pv,pvm->pm", jnp.asarray(g["vertex_weight"]), fv))
+        return jnp.einsum("pm,km,ml->pkl", s, params["field"]["W"][k], params["field"]["U"])
+
+    def transport(params, g, k):
+        h = features(params, g, k)  # (P, K, L)
+        pix = pixel_features(g, reflection)  # (P, D)
+        layers = params["f"]["layers"]
+        w0 = layers[0]["w"]
+        n_h = h.shape[-1]
+        # first layer on concat(h_k, pix) split in two, so the pixel part is computed once per pixel
+        z = jnp.einsum("pkl,lo->pko", h, w0[:n_h]) + (pix @ w0[n_h:] + layers[0]["b"][None, :])[:, None, :]
+        z = jax.nn.relu(z)
+        for layer in layers[1:-1]:
+            z = jax.nn.relu(z @ layer["w"] + layer["b"][None, None, :])
+        return (z @ layers[-1]["w"] + layers[-1]["b"][None, None, :]) * out_scale
+
+    return Model(init, transport, n, fields)
+
+
+def add_vertex_interpolation(data: WaveletData, scene, edge: float = 0.1) -> WaveletData:
+    """``data`` with the VERTEX_FIELDS of every training and test pixel
+    (``jprt.render.lightmap.vertex_interpolation`` on ``scene``); ``stats["n_vertices"]``."""
+    from jprt.render.lightmap import vertex_interpolation
+    from jprt.render.scenes import SceneHandle
+
+    handle = SceneHandle(scene)
+    _, _, verts = vertex_interpolation(handle, np.zeros((1, 3)), edge=edge)
+
+    def add(arrays: dict) -> dict:
+        if not arrays:
+            return arrays
+        idx, w, _ = vertex_interpolation(handle, arrays["position"], edge=edge)
+        return dict(arrays, vertex_index=idx, vertex_weight=w)
+
+    return data._replace(train=add(data.train), tests={k: add(v) for k, v in data.tests.items()},
+                         stats=dict(data.stats, n_vertices=int(len(verts))))
+
+
+def model_bytes(params) -> int:
+    """Bytes of the learned parameters (float32), the bounding box excluded (for the per-vertex
+    variant the unused hash grid is not counted either)."""
+    return int(sum(np.asarray(leaf).nbytes for leaf in jax.tree_util.tree_leaves(
+        {"field": params["field"], "f": params["f"]["layers"]})))
+
+
+# --------------------------------------------------------------------------------------------
+# Wavelet selection and the dot product (Algorithm 1)
+# --------------------------------------------------------------------------------------------
+
+
+def training_wavelets(key, coeffs, n: int):
+    """§5's training selection from flat coefficients (N, 3): the n // 2 largest |L_k| (no area
+    weighting) and n - n // 2 distinct others uniformly at random. Returns (indices (n,), values)."""
+    coeffs = jnp.asarray(coeffs)
+    mag = jnp.sqrt(jnp.sum(jnp.square(coeffs), axis=-1))
+    half = n // 2
+    _, top = jax.lax.top_k(mag, half)
+    rest = jnp.ones(mag.shape[0], bool).at[top].set(False)
+    others = jax.random.choice(key, mag.shape[0], (n - half,), replace=False, p=rest / jnp.sum(rest))
+    idx = jnp.concatenate([top, others]).astype(jnp.int32)
+    return idx, coeffs[idx]
+
+
+def select_wavelets(light_coeffs, k: int):
+    """Algorithm 1, line 3: the ``k`` largest area-weighted coefficients of a (6, n, n, 3)
+    wavelet cube map -> (flat indices (k,), values (k, 3))."""
+    return haar.top_k(light_coeffs, int(k), area_weighted=True)
+
+
+def render_pixels(transport_fn: Callable, g: dict, light_coeffs, k: int, *, chunk: int = 2048):
+    """B = sum_{k in K} L_k T_k for P pixels (Algorithm 1, lines 3-10), in chunks of ``chunk``
+    pixels so memory stays O(chunk x K x width) (``jax.lax.map``). ``g`` is a dict of (P, ...)
+    arrays, ``transport_fn(g_chunk, idx) -> (chunk, K, 3)``. Returns (P, 3)."""
+    idx, vals = select_wavelets(light_coeffs, k)
+    p = jax.tree_util.tree_leaves(g)[0].shape[0]
+    c = max(1, min(int(chunk), p))
+    pad = (-p) % c
+    gp = jax.tree_util.tree_map(lambda a: jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1), mode="edge")
+                                .reshape((-1, c) + a.shape[1:]), g)
+    out = jax.lax.map(lambda gc: jnp.einsum("pkc,kc->pc", transport_fn(gc, idx), vals), gp)
+    return out.reshape(-1, 3)[:p]
+
+
+def exact_transport_fn(transport_coeffs):
+    """A ``transport_fn`` reading exact transport coefficients (P, 6, n, n, 3) by pixel index
+    (the G-buffer dict must carry "pixel" (P,) int32): for tests and the ground-truth check."""
+    t = jnp.asarray(transport_coeffs)
+    flat = t.reshape(t.shape[0], -1, 3)
+
+    def fn(g, idx):
+        return flat[g["pixel"]][:, idx]
+
+    return fn
+
+
+def transport_check(transport, cube, ks=(32, 64, 128, 300), *, chunk: int = 1024) -> dict:
+    """Relight with Mitsuba's ground-truth transport (``jprt.render.transport``) in the Haar basis.
+
+    Args:
+      transport: (P, 6, n, n, 3) texel-domain transport T (solid angles included).
+      cube: (6, n, n, 3) environment.
+    Returns {"full": (P, 3) sum_t T_t L_t, "wavelet_all": (P, 3) the same through the Haar
+    basis with every wavelet, "by_k": {K: (P, 3) with the top-K area-weighted wavelets}}.
+    """
+    t = jnp.asarray(transport)
+    p, n = t.shape[0], t.shape[2]
+    # Haar transform over the texel axes: (6, n, n, P, 3) -> coefficients T_hat (P, 6, n, n, 3)
+    t_hat = jnp.moveaxis(haar.forward(jnp.moveaxis(t, 0, 3)), 3, 0)
+    l_hat = haar.forward(jnp.asarray(cube))
+    g = {"pixel": jnp.arange(p, dtype=jnp.int32)}
+    fn = exact_transport_fn(t_hat)
+    full = jnp.einsum("ptijc,tijc->pc", t, jnp.asarray(cube))
+    out = {"full": np.asarray(full),
+           "wavelet_all": np.asarray(render_pixels(fn, g, l_hat, 6 * n * n, chunk=chunk)), "by_k": {}}
+    for k in ks:
+        out["by_k"][int(k)] = np.asarray(render_pixels(fn, g, l_hat, min(int(k), 6 * n * n), chunk=chunk))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Training (§5)
+# --------------------------------------------------------------------------------------------
+
+
+def indirect_baseline_scale(direct, indirect, valid) -> np.ndarray:
+    """The best RGB scale c (least squares over valid pixels) of indirect ~ c * direct: the
+    baseline of the acceptance targets."""
+    d = np.asarray(direct, np.float64)[np.asarray(valid, bool)]
+    i = np.asarray(indirect, np.float64)[np.asarray(valid, bool)]
+    return (np.sum(d * i, axis=0) / np.maximum(np.sum(d * d, axis=0), 1e-30)).astype(np.float32)
+
+
+def _device_data(data: WaveletData) -> dict:
+    t = data.train
+    e, v, h, w = t["valid"].shape
+    names = [k for k in list(GBUFFER_FIELDS) + list(VERTEX_FIELDS) if k in t] + ["indirect"]
+    flat = {k: jnp.asarray(t[k].reshape((e, v * h * w) + t[k].shape[4:])) for k in names}
+    coeffs = haar.forward(jnp.moveaxis(jnp.asarray(data.envs), 0, 3))  # (6, n, n, E, 3)
+    flat["coeffs"] = jnp.moveaxis(coeffs, 3, 0).reshape(e, -1, 3)
+    flat["log_importance"] = jnp.log(jnp.asarray(data.importance))
+    return flat
+
+
+def _bbox(data: WaveletData, margin: float = 0.02) -> np.ndarray:
+    p = data.train["position"][data.train["valid"].astype(bool)]
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    pad = margin * (hi - lo).max()
+    return np.stack([lo - pad, hi + pad]).astype(np.float32)
+
+
+def run_key(config: dict | None = None) -> str:
+    """Content hash of everything a trained model depends on (scene, maps, cameras, data, model,
+    training): names checkpoint folders so an interrupted run resumes and a finished one is reused."""
+    cfg = _cfg(config)
+    return stable_hash({k: cfg[k] for k in ("scene", "envmaps", "cameras", "data", "model", "train")})
+
+
+def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str | None = None,
+        log_path: str | None = None, progress: bool = True, stop_after: int | None = None) -> dict:
+    """Train the transport network on ``data`` (§5) with Adam; resumes bit-identically from
+    ``checkpoint_path`` when it exists. Returns {"params", "losses", "train_s", "resumed_from"}."""
+    from jprt.solve.adam import train
+    import optax
+
+    cfg = _cfg(config)
+    tc = cfg["train"]
+    if int(data.envs.shape[2]) != int(cfg["envmaps"]["face_size"]):
+        raise ValueError(f"data has face size {data.envs.shape[2]}, config envmaps.face_size is "
+                         f"{cfg['envmaps']['face_size']}")
+    m = model(cfg, n_vertices=data.stats.get("n_vertices"))
+    missing = [f for f in m.fields if f not in data.train]
+    if missing:
+        raise ValueError(f"data lacks {missing} (model.spatial='vertex' needs add_vertex_interpolation)")
+    n_wav = min(int(tc["wavelets"]), 6 * m.face_size**2)
+    n_pix = int(tc["pixels"])
+    if n_pix % 4:
+        raise ValueError(f"train.pixels must be a multiple of 4 (four sampling strategies), got {n_pix}")
+    mu = float(tc["mu"])
+    dev = _device_data(data)
+    n_env = dev["coeffs"].shape[0]
+    key = jax.random.PRNGKey(int(tc["seed"]))
+    params = m.init(jax.random.fold_in(key, 1), _bbox(data))
+
+    def sampler(k, step, d):
+        ke, kw, kp = jax.random.split(k, 3)
+        e = jax.random.randint(ke, (), 0, n_env)
+        idx, vals = training_wavelets(kw, d["coeffs"][e], n_wav)
+        logits = d["log_importance"][e]  # (4, V H W)
+        pix = jax.vmap(lambda kk, lg: jax.random.categorical(kk, lg, shape=(n_pix // 4,)))(
+            jax.random.split(kp, 4), logits).reshape(-1)
+        g = {f: d[f][e][pix] for f in m.fields}
+        return {"g": g, "idx": idx, "vals": vals, "target": d["indirect"][e][pix]}
+
+    def loss_fn(p, batch):
+        t = m.transport(p, batch["g"], batch["idx"])  # (P, K, 3)
+        pred = jnp.einsum("pkc,kc->pc", t, batch["vals"])
+        return losses.mu_law_l2(pred, batch["target"], mu)
+
+    steps = int(tc["steps"])
+    lr = optax.exponential_decay(float(tc["learning_rate"]), max(steps, 1), float(tc["final_lr_fraction"]))
+    t0 = time.perf_counter()
+    result = train(loss_fn, params, sampler, key=key, steps=steps, learning_rate=lr,
+                   checkpoint_path=checkpoint_path, checkpoint_every=int(tc["checkpoint_every"]),
+                   log_path=log_path, log_every=int(tc["log_every"]), progress=progress, stop_after=stop_after,
+                   data=dev)
+    params = jax.tree_util.tree_map(jnp.asarray, result.state.params)  # a resumed state is NumPy
+    return {"params": params, "losses": result.losses, "train_s": time.perf_counter() - t0,
+            "resumed_from": result.resumed_from, "step": int(result.state.step)}
+
+
+# --------------------------------------------------------------------------------------------
+# Rendering (Algorithm 1)
+# --------------------------------------------------------------------------------------------
+
+
+def evaluator(params, config: dict | None = None, *, k: int | None = None, chunk: int | None = None):
+    """A jit-compiled ``fn(g, cube) -> (H, W, 3)`` indirect radiance for a G-buffer ``g`` (dict of
+    (H, W, ...) GBUFFER_FIELDS arrays, plus VERTEX_FIELDS for the per-vertex variant) relit by the environment ``cube`` (6, n, n, 3):
+    Haar transform (Eq. 3), the top-K area-weighted wavelets, T_k of every pixel in chunks, the
+    dot product (Algorithm 1). Pixels whose primary ray missed are 0."""
+    cfg = _cfg(config)
+    m = model(cfg)
+    params = jax.tree_util.tree_map(jnp.asarray, params)
+    k = int(k if k is not None else cfg["render"]["k"])
+    chunk = int(chunk if chunk is not None else cfg["render"]["chunk"])
+    if not 1 <= k <= 6 * m.face_size**2:
+        raise ValueError(f"K must be in [1, {6 * m.face_size ** 2}], got {k}")
+
+    @jax.jit
+    def fn(g, cube):
+        shape = jnp.asarray(g["valid"]).shape
+        flat = {f: jnp.asarray(g[f]).reshape((-1,) + jnp.asarray(g[f]).shape[len(shape):]) for f in m.fields}
+        light = haar.forward(jnp.asarray(cube))
+        b = render_pixels(lambda gc, idx: m.transport(params, gc, idx), flat, light, k, chunk=chunk)
+        return jnp.where(flat["valid"][:, None] > 0, b, 0.0).reshape(shape + (3,))
+
+    return fn

@@ -1,0 +1,304 @@
+"""Neural-wavelet PRT (Raghavan et al. 2023): wavelet relighting, selection, model, training."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from jax.test_util import check_grads
+
+from jprt.methods import wavelet_prt as wp
+from jprt.nn.mlp import mlp
+from jprt.solve import losses
+from jprt.sphere import cubemap, haar
+
+TINY = {
+    "envmaps": {"synthetic": 4, "face_size": 4, "rotations_deg": [0]},
+    "cameras": {"width": 12, "height": 12, "sphere": {"n": 4}, "helix": {"n": 4}, "near": 2, "far": 2},
+    "data": {"spp": 8, "test_spp": 16, "envs_per_view": 1},
+    "model": {"n_levels": 3, "features_per_level": 2, "log2_table_size": 8, "n_features": 8, "hidden": 16},
+    "train": {"steps": 12, "pixels": 32, "wavelets": 24, "checkpoint_every": 4, "log_every": 4},
+    "render": {"k": 16, "chunk": 50},
+}
+
+
+def _fake_data(seed=0, e=3, v=2, h=6, w=5, n=4) -> wp.WaveletData:
+    """A random, Mitsuba-free dataset with the WaveletData layout."""
+    rng = np.random.default_rng(seed)
+    shape = (e, v, h, w)
+    normal = rng.normal(size=shape + (3,))
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    train = {
+        "position": rng.uniform(-1, 1, shape + (3,)), "normal": normal, "reflected": normal[..., ::-1].copy(),
+        "diffuse_albedo": rng.uniform(0, 1, shape + (3,)), "specular_albedo": rng.uniform(0, 1, shape + (3,)),
+        "roughness": rng.uniform(0, 1, shape), "valid": rng.uniform(size=shape) > 0.2,
+        "direct": rng.uniform(0, 1, shape + (3,)), "indirect": rng.uniform(0, 0.5, shape + (3,)),
+    }
+    train = {k: np.asarray(a, np.bool_ if k == "valid" else np.float32) for k, a in train.items()}
+    importance = np.stack([wp.importance_maps(train["indirect"][i], train["position"][i], train["valid"][i],
+                                              train["specular_albedo"][i], train["roughness"][i]) for i in range(e)])
+    envs = wp.synthetic_environments(e, n, seed)
+    return wp.WaveletData(train, importance, envs, {}, envs[:1], [f"e{i}" for i in range(e)], ["held"],
+                          {}, {"spp": 1})
+
+
+# -- wavelet selection and relighting ----------------------------------------------------------
+
+
+@settings(deadline=None, max_examples=20)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([2, 4, 8]), st.integers(1, 40))
+def test_select_wavelets_keeps_k_largest_area_weighted(seed, n, k):
+    k = min(k, 6 * n * n)
+    c = np.random.default_rng(seed).normal(size=(6, n, n, 3)).astype(np.float32)
+    idx, vals = wp.select_wavelets(jnp.asarray(c), k)
+    importance = np.linalg.norm(c, axis=-1) * np.asarray(haar.support_area(n))
+    flat = importance.reshape(-1)
+    kth = np.sort(flat)[::-1][k - 1]
+    chosen = flat[np.asarray(idx)]
+    assert len(set(np.asarray(idx).tolist())) == k
+    assert np.all(chosen >= kth - 1e-6)  # nothing left out is larger than anything kept
+    assert np.all(np.sort(flat)[::-1][:k] - np.sort(chosen)[::-1] <= 1e-6)
+    np.testing.assert_array_equal(np.asarray(vals), c.reshape(-1, 3)[np.asarray(idx)])
+
+
+def test_area_weighting_prefers_coarse_wavelets():
+    n = 8
+    c = np.zeros((6, n, n, 3), np.float32)
+    c[0, 0, 0] = 1.0  # scaling coefficient, support = whole face
+    c[0, 7, 7] = 3.0  # finest diagonal detail, support 1/16 of the face
+    idx, _ = wp.select_wavelets(jnp.asarray(c), 1)
+    assert int(idx[0]) == 0
+    idx_plain, _ = haar.top_k(jnp.asarray(c), 1)
+    assert int(idx_plain[0]) == 7 * n + 7
+
+
+def test_evaluator_all_wavelets_with_exact_coefficients_equals_full_product():
+    rng = np.random.default_rng(3)
+    p, n = 37, 4
+    transport = rng.normal(size=(p, 6, n, n, 3)).astype(np.float32)
+    cube = rng.uniform(0, 2, (6, n, n, 3)).astype(np.float32)
+    out = wp.transport_check(transport, cube, ks=(6 * n * n,), chunk=10)
+    full = np.einsum("ptijc,tijc->pc", transport.astype(np.float64), cube.astype(np.float64))
+    np.testing.assert_allclose(out["full"], full, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(out["wavelet_all"], full, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(out["by_k"][6 * n * n], full, rtol=1e-4, atol=1e-4)
+
+
+def test_relighting_error_falls_with_k():
+    rng = np.random.default_rng(4)
+    p, n = 20, 8
+    transport = np.abs(rng.normal(size=(p, 6, n, n, 3))).astype(np.float32)
+    cube = np.asarray(wp.synthetic_environments(1, n, 5)[0])
+    out = wp.transport_check(transport, cube, ks=(8, 32, 128, 6 * n * n))
+    errs = [np.linalg.norm(out["by_k"][k] - out["full"]) for k in (8, 32, 128, 6 * n * n)]
+    assert errs[-1] < 1e-3 * np.linalg.norm(out["full"])
+    assert errs[2] < errs[0]
+
+
+def test_render_pixels_chunking_is_exact():
+    rng = np.random.default_rng(5)
+    t_hat = jnp.asarray(rng.normal(size=(23, 6, 2, 2, 3)).astype(np.float32))
+    light = jnp.asarray(rng.normal(size=(6, 2, 2, 3)).astype(np.float32))
+    g = {"pixel": jnp.arange(23, dtype=jnp.int32)}
+    fn = wp.exact_transport_fn(t_hat)
+    a = wp.render_pixels(fn, g, light, 10, chunk=23)
+    b = wp.render_pixels(fn, g, light, 10, chunk=4)  # padded last chunk
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
+
+
+def test_training_wavelets_half_largest_half_uniform():
+    rng = np.random.default_rng(6)
+    c = jnp.asarray(rng.normal(size=(96, 3)).astype(np.float32))
+    mag = np.linalg.norm(np.asarray(c), axis=-1)
+    top = set(np.argsort(mag)[::-1][:10].tolist())
+    seen = set()
+    for s in range(30):
+        idx, vals = wp.training_wavelets(jax.random.PRNGKey(s), c, 20)
+        idx = np.asarray(idx)
+        assert len(set(idx.tolist())) == 20
+        assert set(idx[:10].tolist()) == top
+        assert not (set(idx[10:].tolist()) & top)
+        np.testing.assert_array_equal(np.asarray(vals), np.asarray(c)[idx])
+        seen |= set(idx[10:].tolist())
+    assert len(seen) > 60  # the uniform half reaches most of the other 86 wavelets
+
+
+# -- loss --------------------------------------------------------------------------------------
+
+
+def test_mu_law_loss_sign_extension_handles_negative_predictions():
+    x = jnp.array([0.3, 2.0, 50.0])
+    np.testing.assert_allclose(np.asarray(losses.mu_law(-x)), -np.asarray(losses.mu_law(x)), rtol=1e-6)
+    assert float(losses.mu_law(jnp.array(0.0))) == 0.0
+    target = jnp.array([[0.5, 0.2, 0.1]])
+    neg = jnp.array([[-0.5, -0.2, -0.1]])
+    # a negative prediction is further from a positive target than zero is, and the gradient pushes it up
+    assert float(losses.mu_law_l2(neg, target)) > float(losses.mu_law_l2(jnp.zeros_like(target), target)) > 0
+    grad = jax.grad(lambda p: losses.mu_law_l2(p, target))(neg)
+    assert np.all(np.isfinite(np.asarray(grad))) and np.all(np.asarray(grad) < 0)
+    check_grads(lambda p: losses.mu_law_l2(p, target), (neg,), order=1, modes=["rev"], eps=1e-3, atol=2e-2,
+                rtol=2e-2)
+
+
+# -- model -------------------------------------------------------------------------------------
+
+
+def test_split_first_layer_matches_the_plain_mlp():
+    m = wp.model(TINY)
+    params = m.init(jax.random.PRNGKey(0), np.array([[-1, -1, -1], [1, 1, 1]], np.float32))
+    data = _fake_data(n=4)
+    g = {f: jnp.asarray(data.train[f][0, 0].reshape((-1,) + data.train[f].shape[4:])) for f in wp.GBUFFER_FIELDS}
+    idx = jnp.array([0, 5, 17, 90], jnp.int32)
+    t = m.transport(params, g, idx)
+    mc = wp._cfg(TINY)["model"]
+    from jprt.nn.factor import factor_field
+
+    field = factor_field(face_size=4, n_features=mc["n_features"], n_levels=mc["n_levels"],
+                         features_per_level=mc["features_per_level"], log2_table_size=mc["log2_table_size"],
+                         base_resolution=mc["base_resolution"], per_level_scale=mc["per_level_scale"])
+    x = (g["position"] - params["bbox"][0][None]) / (params["bbox"][1] - params["bbox"][0])[None]
+    h = field.apply(params["field"], jnp.clip(x, 0, 1), idx)
+    pix = wp.pixel_features(g, "sh4")
+    inp = jnp.concatenate([h, jnp.broadcast_to(pix[:, None], h.shape[:2] + pix.shape[-1:])], axis=-1)
+    f = mlp((inp.shape[-1], mc["hidden"], mc["hidden"], 3), activation="relu", init="he")
+    ref = f.apply(params["f"], inp) * (4 * np.pi / (6 * 16))
+    np.testing.assert_allclose(np.asarray(t), np.asarray(ref), rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("reflection, size", [("sh4", 16), ("raw", 3), ("none", 0)])
+def test_pixel_features_reflection_encodings(reflection, size):
+    g = {"reflected": jnp.array([[0.0, 1.0, 0.0]]), "normal": jnp.array([[0.0, 0.0, 1.0]]),
+         "diffuse_albedo": jnp.ones((1, 3)), "specular_albedo": jnp.ones((1, 3)), "roughness": jnp.array([1.0])}
+    assert wp.pixel_features(g, reflection).shape == (1, size + 10)
+    with pytest.raises(ValueError, match="reflection"):
+        wp.model({"model": {"reflection": "dce"}})
+
+
+def test_model_gradients():
+    """Reverse-mode gradients of T_k w.r.t. every parameter (float64, so finite differences
+    with a small step do not cross ReLU kinks)."""
+    m = wp.model(TINY)
+    data = _fake_data(n=4)
+    with jax.enable_x64(True):
+        params = m.init(jax.random.PRNGKey(1), np.array([[-1, -1, -1], [1, 1, 1]], np.float32))
+        params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), params)
+        params["field"]["S"]["tables"] = [t * 1e3 for t in params["field"]["S"]["tables"]]  # away from ~0
+        g = {f: jnp.asarray(data.train[f][0, 0].reshape((-1,) + data.train[f].shape[4:]))[:6].astype(
+            jnp.float64 if f != "valid" else bool) for f in wp.GBUFFER_FIELDS}
+        idx = jnp.array([1, 2, 40], jnp.int32)
+        trainable = {"field": params["field"], "f": params["f"]}
+
+        def fn(p):
+            return jnp.sum(m.transport(dict(params, **p), g, idx) ** 2)
+
+        check_grads(fn, (trainable,), order=1, modes=["rev"], eps=1e-5, atol=1e-4, rtol=1e-4)
+
+
+# -- data helpers ------------------------------------------------------------------------------
+
+
+def test_importance_maps_are_distributions_over_valid_pixels():
+    data = _fake_data()
+    for e in range(data.importance.shape[0]):
+        p = data.importance[e]
+        valid = data.train["valid"][e].reshape(-1)
+        np.testing.assert_allclose(p.sum(axis=1), 1.0, rtol=1e-5)
+        assert np.all(p[:, ~valid] == 0)
+        np.testing.assert_allclose(p[0, valid], 1.0 / valid.sum(), rtol=1e-5)
+
+
+def test_importance_view_variance_finds_view_dependent_voxels():
+    v, h, w = 4, 8, 8
+    pos = np.zeros((v, h, w, 3), np.float32)
+    pos[:, :, :4] = [0.1, 0.1, 0.1]
+    pos[:, :, 4:] = [0.9, 0.9, 0.9]
+    ind = np.ones((v, h, w, 3), np.float32)
+    ind[:, :, 4:] *= np.arange(1, v + 1)[:, None, None, None]  # right half changes with the view
+    p = wp.importance_maps(ind, pos, np.ones((v, h, w), bool), np.zeros((v, h, w, 3)), np.ones((v, h, w)))
+    view = p[1].reshape(v, h, w)
+    assert view[:, :, :4].sum() == 0 and view[:, :, 4:].sum() == pytest.approx(1.0, rel=1e-5)
+
+
+def test_environment_preparation():
+    rng = np.random.default_rng(0)
+    eq = rng.uniform(0.5, 2.0, (32, 64, 3)).astype(np.float32)
+    cube = wp.prepare_environment(eq, 8)
+    omega = np.asarray(cubemap.texel_solid_angles(8))
+    assert cube.shape == (6, 8, 8, 3)
+    assert np.sum(cube.mean(-1) * omega) / (4 * np.pi) == pytest.approx(1.0, rel=1e-4)
+    np.testing.assert_array_equal(wp.rotate_equirect(eq, 360.0 / 64 * 3), np.roll(eq, 3, axis=1))
+    re = wp.render_equirect(cube, scale=4)
+    d = np.asarray(cubemap.equirect_directions(*re.shape[:2]))
+    np.testing.assert_array_equal(re, np.asarray(cubemap.sample_cubemap_nearest(jnp.asarray(cube), d)))
+
+
+def test_trajectories():
+    spec = {"radius": 2.0, "azimuth": [-30.0, 30.0], "elevation": [0.0, 40.0], "turns": 2.0}
+    for kind in ("sphere", "helix"):
+        o = wp.trajectory(kind, 10, spec, [0, 0, 0])
+        np.testing.assert_allclose(np.linalg.norm(o, axis=-1), 2.0, rtol=1e-6)
+        el = np.degrees(np.arcsin(o[:, 1] / 2.0))
+        assert el.min() >= -1e-6 and el.max() <= 40 + 1e-6
+    with pytest.raises(ValueError, match="trajectory"):
+        wp.trajectory("spiral", 3, spec, [0, 0, 0])
+
+
+def test_indirect_baseline_scale_is_least_squares():
+    rng = np.random.default_rng(1)
+    d = rng.uniform(0, 1, (5, 4, 4, 3)).astype(np.float32)
+    c = np.array([0.2, 0.5, 0.1], np.float32)
+    valid = rng.uniform(size=(5, 4, 4)) > 0.3
+    np.testing.assert_allclose(wp.indirect_baseline_scale(d, d * c, valid), c, rtol=1e-5)
+
+
+# -- training ----------------------------------------------------------------------------------
+
+
+def test_training_resumes_bit_identically(tmp_path):
+    data = _fake_data(n=4)
+    full = wp.fit(data, TINY, checkpoint_path=str(tmp_path / "a.npz"), progress=False)
+    part = wp.fit(data, TINY, checkpoint_path=str(tmp_path / "b.npz"), progress=False, stop_after=5)
+    assert part["step"] == 5
+    rest = wp.fit(data, TINY, checkpoint_path=str(tmp_path / "b.npz"), progress=False)
+    assert rest["resumed_from"] == 5 and rest["step"] == TINY["train"]["steps"]
+    for a, b in zip(jax.tree_util.tree_leaves(full["params"]), jax.tree_util.tree_leaves(rest["params"])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(full["losses"][5:], rest["losses"])
+
+
+def test_fit_rejects_mismatched_face_size():
+    with pytest.raises(ValueError, match="face size"):
+        wp.fit(_fake_data(n=4), {"envmaps": {"face_size": 8}}, progress=False)
+
+
+def test_evaluator_masks_invalid_pixels_and_checks_k():
+    data = _fake_data(n=4)
+    res = wp.fit(data, dict(TINY, train=dict(TINY["train"], steps=2)), progress=False)
+    ev = wp.evaluator(res["params"], TINY)
+    g = {f: data.train[f][0, 0] for f in wp.GBUFFER_FIELDS}
+    out = np.asarray(ev(g, data.envs[0]))
+    assert out.shape == g["valid"].shape + (3,)
+    assert np.all(out[~g["valid"]] == 0) and np.all(np.isfinite(out))
+    with pytest.raises(ValueError, match="K must be"):
+        wp.evaluator(res["params"], TINY, k=6 * 16 + 1)
+
+
+def test_per_vertex_variant_trains_and_renders():
+    """Table 6's baseline: features at mesh vertices, interpolated (weights over 4 slots), softplus."""
+    data = _fake_data(n=4)
+    rng = np.random.default_rng(0)
+    n_vertices = 50
+    extra = {"vertex_index": rng.integers(0, n_vertices, data.train["valid"].shape + (4,)).astype(np.int32),
+             "vertex_weight": rng.dirichlet(np.ones(4), data.train["valid"].shape).astype(np.float32)}
+    cfg = dict(TINY, model=dict(TINY["model"], spatial="vertex"), train=dict(TINY["train"], steps=3))
+    with pytest.raises(ValueError, match="vertex"):
+        wp.fit(data, cfg, progress=False)
+    data = data._replace(train={**data.train, **extra}, stats={"n_vertices": n_vertices})
+    res = wp.fit(data, cfg, progress=False)
+    assert res["params"]["field"]["S"]["vertex"].shape[0] == n_vertices
+    g = {f: data.train[f][0, 0] for f in list(wp.GBUFFER_FIELDS) + list(wp.VERTEX_FIELDS)}
+    out = np.asarray(wp.evaluator(res["params"], cfg)(g, data.envs[0]))
+    assert out.shape == g["valid"].shape + (3,) and np.all(np.isfinite(out))
