@@ -12,9 +12,7 @@ summary.json files (their folders are recorded).
 from __future__ import annotations
 
 import argparse
-import datetime
 import os
-import platform
 import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -45,9 +43,8 @@ def main() -> int:
     parser.add_argument("--out", default=os.path.join(HERE, "results", "datadriven.json"))
     args = parser.parse_args()
     sys.path.insert(0, ROOT)
-    import jax
-
     from jprt.cli import load_experiment, resolve_config
+    from jprt.eval import run_context
     from jprt.io import write_json
 
     module = load_experiment(os.path.join(ROOT, "experiments", "datadriven.py"))
@@ -59,16 +56,12 @@ def main() -> int:
     result["scene"] = presets[0]
     for preset in presets[1:]:
         result["cornell" if preset == "small" else preset] = results[preset]
-    result["context"] = {
-        "command": f"python benchmarks/datadriven.py --presets {args.presets}",
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "device": f"{platform.machine()} CPU, {os.cpu_count()} cores; jax {jax.__version__} "
-                  f"({jax.default_backend()}); Mitsuba llvm_ad_rgb; no GPU",
-        "notes": "RMSE over lightmap texels x channels x held-out configurations (radiance units); "
+    result["context"] = run_context(
+        f"python benchmarks/datadriven.py --presets {args.presets}",
+        notes="RMSE over lightmap texels x channels x held-out configurations (radiance units); "
                  "references path traced at data.test_spp; frame_ms_512 = transfer + lightmap + bilinear "
                  "lookup of a 512x512 atlas G-buffer (JAX on CPU), not the Mitsuba direct shading "
-                 "(direct_measure_ms); bake_s = training renders + fit.",
-    }
+                 "(direct_measure_ms); bake_s = training renders + fit.")
     write_json(args.out, result)
     print(f"wrote {args.out}")
     return 0

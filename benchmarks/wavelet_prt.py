@@ -4,15 +4,13 @@ Runs experiments/wavelet_prt_cornell.py with the ``small`` preset and writes the
 issue asks for, with its targets and whether they were met, to benchmarks/results/wavelet_prt.json.
 Every value is read from the run's summary.json (its folder is recorded).
 
-    python benchmarks/wavelet_prt.py                 # ~35 min on a 2-core CPU (renders, training, ablations)
+    python benchmarks/wavelet_prt.py                 # ~40 min on a 2-core CPU (renders, training, ablations)
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime
 import os
-import platform
 import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -35,9 +33,8 @@ def main() -> int:
     parser.add_argument("--out", default=os.path.join(HERE, "results", "wavelet_prt.json"))
     args = parser.parse_args()
     sys.path.insert(0, ROOT)
-    import jax
-
     from jprt.cli import load_experiment, resolve_config
+    from jprt.eval import run_context
     from jprt.io import write_json
 
     module = load_experiment(os.path.join(ROOT, "experiments", "wavelet_prt_cornell.py"))
@@ -50,17 +47,13 @@ def main() -> int:
     }
     result["report"] = s["output"]
     result["config_hash"] = s["config_hash"]
-    result["context"] = {
-        "command": f"python benchmarks/wavelet_prt.py --preset {args.preset}",
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "device": f"{platform.machine()} CPU, {os.cpu_count()} cores; jax {jax.__version__} "
-                  f"({jax.default_backend()}); Mitsuba llvm_ad_rgb; no GPU",
-        "notes": "PSNR / SSIM on sRGB-tonemapped, clipped images (peak 1), averaged over held-out views lit by "
+    result["context"] = run_context(
+        f"python benchmarks/wavelet_prt.py --preset {args.preset}",
+        notes="PSNR / SSIM on sRGB-tonemapped, clipped images (peak 1), averaged over held-out views lit by "
                  "held-out maps; far = views off the training trajectories, near = held-out views on them; "
                  "references path traced at data.test_spp; frame_ms = Haar transform + top-K + transport of "
                  "every pixel + dot product (jitted JAX), direct light not included; train_s is the Adam run's wall "
-                 "time (from its metrics.jsonl when the benchmark reused a finished checkpoint).",
-    }
+                 "time (from its metrics.jsonl when the benchmark reused a finished checkpoint).")
     write_json(args.out, result)
     print(f"wrote {args.out}")
     return 0

@@ -158,6 +158,22 @@ def plot_series(path: str, series: dict, *, xlabel: str, ylabel: str, title: str
     plt.close(fig)
 
 
+def run_context(command: str, **extra) -> dict:
+    """What a benchmark JSON records about its run: the command, the UTC date and the device
+    (CPU, cores, JAX version and backend, GPU name when JAX has one), plus ``extra`` entries."""
+    import datetime
+    import platform
+
+    import jax
+
+    backend = jax.default_backend()
+    gpu = "; " + ", ".join(d.device_kind for d in jax.devices()) if backend == "gpu" else "; no GPU"
+    return {"command": command,
+            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "device": f"{platform.machine()} CPU, {os.cpu_count()} cores; jax {jax.__version__} ({backend}); "
+                      f"Mitsuba llvm_ad_rgb{gpu}", **extra}
+
+
 def write_report(out: str, summary: dict, t_start: float, label: str) -> dict:
     """Finish an experiment report: add ``total_s`` (since ``t_start``, a ``time.perf_counter()``
     value) and ``output``, write ``out/summary.json`` and say where the report is."""

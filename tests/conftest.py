@@ -1,12 +1,22 @@
 """Shared test set-up: an isolated dataset cache, Mitsuba configured once, asset paths."""
 
+import atexit
 import os
+import shutil
+import tempfile
 
 import jax
 import pytest
 
 # Strict numerics (STYLE.md 9): implicit rank promotion is a bug waiting to happen in batched code.
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+# Trainers build a fresh jitted step per call (resume tests call them three times with identical
+# shapes): a per-session persistent compilation cache compiles each program once.
+_COMPILE_CACHE = tempfile.mkdtemp(prefix="jprt_xla_cache_")
+atexit.register(shutil.rmtree, _COMPILE_CACHE, ignore_errors=True)
+jax.config.update("jax_compilation_cache_dir", _COMPILE_CACHE)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ASSETS = os.path.abspath(os.path.join(ROOT, "..", "shared", "assets"))

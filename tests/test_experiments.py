@@ -65,6 +65,7 @@ def test_datadriven_test_preset(mi, tmp_path):
         assert os.path.isfile(os.path.join(folder, name)), name
 
 
+@pytest.mark.slow  # ~95 s: keeps `make test` under its 10-minute budget; the stages are unit-tested
 def test_wavelet_prt_test_preset(mi, tmp_path, monkeypatch):
     """Every stage of the neural-wavelet PRT experiment at tiny size (procedural maps): the
     transport check, training, Table 1 metrics, timings, equal error, ablations."""

@@ -29,7 +29,7 @@ def _rel(a, b):
     return float(np.linalg.norm(a - b) / np.linalg.norm(b))
 
 
-@pytest.mark.parametrize("min_depth", [0, 2])
+@pytest.mark.parametrize("min_depth", [pytest.param(0, marks=pytest.mark.slow), 2])
 def test_transport_relights_like_mitsuba(setup, min_depth):
     """B = sum_t T_t L_t (all path lengths, or indirect only) agrees with Mitsuba's render of the same
     environment within the noise of two Mitsuba renders with different seeds."""
