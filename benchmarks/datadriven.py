@@ -44,8 +44,7 @@ def main() -> int:
     args = parser.parse_args()
     sys.path.insert(0, ROOT)
     from jprt.cli import load_experiment, resolve_config
-    from jprt.eval import run_context
-    from jprt.io import write_json
+    from jprt.eval import write_benchmark
 
     module = load_experiment(os.path.join(ROOT, "experiments", "datadriven.py"))
     presets = args.presets.split(",")
@@ -56,14 +55,11 @@ def main() -> int:
     result["scene"] = presets[0]
     for preset in presets[1:]:
         result["cornell" if preset == "small" else preset] = results[preset]
-    result["context"] = run_context(
-        f"python benchmarks/datadriven.py --presets {args.presets}",
-        notes="RMSE over lightmap texels x channels x held-out configurations (radiance units); "
-                 "references path traced at data.test_spp; frame_ms_512 = transfer + lightmap + bilinear "
-                 "lookup of a 512x512 atlas G-buffer (JAX on CPU), not the Mitsuba direct shading "
-                 "(direct_measure_ms); bake_s = training renders + fit.")
-    write_json(args.out, result)
-    print(f"wrote {args.out}")
+    write_benchmark(args.out, result, f"python benchmarks/datadriven.py --presets {args.presets}",
+                    notes="RMSE over lightmap texels x channels x held-out configurations (radiance units); "
+                          "references path traced at data.test_spp; frame_ms_512 = transfer + lightmap + bilinear "
+                          "lookup of a 512x512 atlas G-buffer (JAX on CPU), not the Mitsuba direct shading "
+                          "(direct_measure_ms); bake_s = training renders + fit.")
     return 0
 
 

@@ -19,7 +19,8 @@ ROOT = os.path.dirname(HERE)
 KEYS = ("psnr_indirect_far", "psnr_full_far", "ssim_indirect_far", "ssim_full_far", "psnr_indirect_near",
         "psnr_full_near", "ssim_indirect_near", "psnr_indirect_far_baseline", "psnr_full_far_baseline",
         "psnr_indirect_near_baseline", "psnr_indirect_far_by_k", "rmse_indirect_far", "rmse_indirect_far_baseline",
-        "frame_ms", "frame_ms_resolution", "frame_ms_by_resolution", "model_bytes", "train_s", "train_s_source", "equal_error_spp",
+        "frame_ms", "frame_ms_resolution", "frame_ms_by_resolution", "model_bytes", "train_s", "train_s_source",
+        "equal_error_spp",
         "pathtrace_ms_equal_error", "pathtrace_rmse_by_spp", "speedup_equal_error", "speedup_note",
         "gt_transport_rel_err_by_k", "gt_transport_rel_err_all", "gt_transport_truncation_by_k",
         "gt_transport_noise_floor", "gt_transport_parseval_err", "gt_transport_mean_ratio", "gt_transport_setup",
@@ -34,8 +35,7 @@ def main() -> int:
     args = parser.parse_args()
     sys.path.insert(0, ROOT)
     from jprt.cli import load_experiment, resolve_config
-    from jprt.eval import run_context
-    from jprt.io import write_json
+    from jprt.eval import write_benchmark
 
     module = load_experiment(os.path.join(ROOT, "experiments", "wavelet_prt_cornell.py"))
     s = module.main(resolve_config(module, [], args.preset))
@@ -47,15 +47,13 @@ def main() -> int:
     }
     result["report"] = s["output"]
     result["config_hash"] = s["config_hash"]
-    result["context"] = run_context(
-        f"python benchmarks/wavelet_prt.py --preset {args.preset}",
-        notes="PSNR / SSIM on sRGB-tonemapped, clipped images (peak 1), averaged over held-out views lit by "
-                 "held-out maps; far = views off the training trajectories, near = held-out views on them; "
-                 "references path traced at data.test_spp; frame_ms = Haar transform + top-K + transport of "
-                 "every pixel + dot product (jitted JAX), direct light not included; train_s is the Adam run's wall "
-                 "time (from its metrics.jsonl when the benchmark reused a finished checkpoint).")
-    write_json(args.out, result)
-    print(f"wrote {args.out}")
+    write_benchmark(args.out, result, f"python benchmarks/wavelet_prt.py --preset {args.preset}",
+                    notes="PSNR / SSIM on sRGB-tonemapped, clipped images (peak 1), averaged over held-out "
+                          "views lit by held-out maps; far = views off the training trajectories, near = "
+                          "held-out views on them; references path traced at data.test_spp; frame_ms = Haar "
+                          "transform + top-K + transport of every pixel + dot product (jitted JAX), direct "
+                          "light not included; train_s is the Adam run's wall time (from its metrics.jsonl "
+                          "when the benchmark reused a finished checkpoint).")
     return 0
 
 

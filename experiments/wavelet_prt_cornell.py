@@ -224,8 +224,8 @@ def main(config: dict) -> dict:
     summary["model_bytes"] = wp.model_bytes(params)
     losses = np.asarray(run["losses"])
     if len(losses):
-        jeval.plot_series(os.path.join(out, "loss.png"), {"mu-law L2": (np.arange(len(losses)) + 1 + run["resumed_from"],
-                                                                      losses)},
+        steps_run = np.arange(len(losses)) + 1 + run["resumed_from"]
+        jeval.plot_series(os.path.join(out, "loss.png"), {"mu-law L2": (steps_run, losses)},
                           xlabel="step", ylabel="loss", title="training loss", logy=True)
 
     # Table 1: near / far views on held-out maps, and the c * direct baseline

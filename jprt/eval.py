@@ -174,6 +174,15 @@ def run_context(command: str, **extra) -> dict:
                       f"Mitsuba llvm_ad_rgb{gpu}", **extra}
 
 
+def write_benchmark(path: str, result: dict, command: str, **context) -> dict:
+    """Write a benchmark's ``result`` to ``path`` (JSON, atomic) with ``result["context"] =
+    run_context(command, **context)`` and say where it went."""
+    result["context"] = run_context(command, **context)
+    io.write_json(path, result)
+    print(f"wrote {path}")
+    return result
+
+
 def write_report(out: str, summary: dict, t_start: float, label: str) -> dict:
     """Finish an experiment report: add ``total_s`` (since ``t_start``, a ``time.perf_counter()``
     value) and ``output``, write ``out/summary.json`` and say where the report is."""

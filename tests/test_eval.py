@@ -43,3 +43,14 @@ def test_time_call_and_figures(tmp_path):
     jeval.plot_series(str(tmp_path / "p.png"), {"x": ([1, 2, 4], [3.0, 2.0, 1.0])}, xlabel="spp", ylabel="rmse",
                       logx=True, logy=True, hlines={"RRF": 1.5})
     assert os.path.getsize(tmp_path / "s.png") > 0 and os.path.getsize(tmp_path / "p.png") > 0
+
+
+def test_write_benchmark_records_the_run(tmp_path):
+    import json
+
+    path = str(tmp_path / "b.json")
+    jeval.write_benchmark(path, {"x": 1.5}, "python benchmarks/x.py", notes="n")
+    with open(path) as f:
+        r = json.load(f)
+    assert r["x"] == 1.5 and r["context"]["command"] == "python benchmarks/x.py" and r["context"]["notes"] == "n"
+    assert "cores" in r["context"]["device"] and r["context"]["date"].endswith("+00:00")

@@ -815,7 +815,8 @@ def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str |
 
 def evaluator(params, config: dict | None = None, *, k: int | None = None, chunk: int | None = None):
     """A jit-compiled ``fn(g, cube) -> (H, W, 3)`` indirect radiance for a G-buffer ``g`` (dict of
-    (H, W, ...) GBUFFER_FIELDS arrays, plus VERTEX_FIELDS for the per-vertex variant) relit by the environment ``cube`` (6, n, n, 3):
+    (H, W, ...) GBUFFER_FIELDS arrays, plus VERTEX_FIELDS for the per-vertex variant) relit by
+    the environment ``cube`` (6, n, n, 3):
     Haar transform (Eq. 3), the top-K area-weighted wavelets, T_k of every pixel in chunks, the
     dot product (Algorithm 1). Pixels whose primary ray missed are 0."""
     cfg = _cfg(config)
