@@ -411,9 +411,8 @@ def _render_view(handle, camera, cube, spp: int, seed: int, max_depth: int):
     from jprt.render.lights import EnvMap
 
     handle.set_lighting(EnvMap.create(render_equirect(cube)))
-    full = images.render(handle, camera, spp=spp, max_depth=max_depth, seed=seed)
-    direct = images.render(handle, camera, spp=spp, max_depth=2, seed=seed)
-    return direct, full - direct
+    r = images.direct_indirect(handle, camera, spp=spp, seed=seed, max_depth=max_depth)
+    return r.direct, r.indirect
 
 
 def _gbuffer_arrays(handle, camera) -> dict:

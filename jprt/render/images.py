@@ -60,9 +60,10 @@ def render(handle: SceneHandle, camera: Camera, *, spp: int, max_depth: int = -1
     return out
 
 
-def direct_indirect(handle: SceneHandle, camera: Camera, *, spp: int, seed: int = 0) -> Radiance:
-    """Direct (``max_depth=2``) and indirect (full minus direct, same seed) images."""
-    full = render(handle, camera, spp=spp, max_depth=-1, seed=seed)
+def direct_indirect(handle: SceneHandle, camera: Camera, *, spp: int, seed: int = 0, max_depth: int = -1) -> Radiance:
+    """Direct (``max_depth=2``) and indirect (full minus direct, same seed) images; ``max_depth``
+    bounds the full render (-1: unbounded)."""
+    full = render(handle, camera, spp=spp, max_depth=max_depth, seed=seed)
     direct = render(handle, camera, spp=spp, max_depth=_DIRECT_DEPTH, seed=seed)
     return Radiance(direct=direct, indirect=full - direct, full=full)
 

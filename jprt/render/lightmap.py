@@ -499,7 +499,7 @@ def vertex_interpolation(handle: SceneHandle, positions, *, edge: float = 0.1,
             out[i] = keys[key]
         return out
 
-    tris, owner, levels, sphere_objs = [], [], [], []
+    tris, owner, sphere_objs = [], [], []
     for obj in range(n_obj):
         frame = _sphere_frame(handle, obj)
         if frame is not None:
