@@ -36,6 +36,17 @@ class Radiance(NamedTuple):
     full: np.ndarray
 
 
+def vector_rows(values, m: int) -> np.ndarray:
+    """A Dr.Jit 3-vector array of width m (Color3f, Vector3f; NumPy gives it as (3, m)) as an
+    (m, 3) NumPy array; a width-1 literal broadcasts to m rows."""
+    a = np.array(values, dtype=np.float32)
+    if a.size == 3:
+        return np.broadcast_to(a.reshape(1, 3), (m, 3))
+    if a.ndim == 2 and a.shape[0] == 3 and a.shape[1] == m:
+        a = a.T
+    return a.reshape(m, 3)
+
+
 def check_spp(spp) -> int:
     """Return ``spp`` as a positive int or raise a one-line ValueError."""
     if isinstance(spp, bool) or int(spp) != spp or int(spp) <= 0:
@@ -95,9 +106,7 @@ def radiance_rays(handle: SceneHandle, origins, directions, *, spp: int, seed: i
         o, d = rep(origins), rep(directions)
         ray = mi.RayDifferential3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
         spec, _, _ = integrator.sample(handle.scene, sampler, ray)
-        values = np.array(spec, dtype=np.float32)
-        values = values.T if values.shape[0] == 3 and values.ndim == 2 and values.shape[1] != 3 else values
-        out[start:stop] = values.reshape(m, spp, 3).mean(axis=1)
+        out[start:stop] = vector_rows(spec, m * spp).reshape(m, spp, 3).mean(axis=1)
         dr.eval()
     RENDER_STATS["ray_batches"] += 1
     RENDER_STATS["seconds"] += time.perf_counter() - t0

@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from jprt.render.cameras import check_rays
-from jprt.render.images import RENDER_STATS, check_spp
+from jprt.render.images import RENDER_STATS, check_spp, vector_rows
 from jprt.render.scenes import SceneHandle
 
 __all__ = ["environment_transport"]
@@ -37,16 +37,6 @@ def _direction_to_texel(d: np.ndarray, n: int) -> np.ndarray:
 
     face, row, col = (np.asarray(a) for a in direction_to_texel(d, n))
     return (face.astype(np.int64) * n + row) * n + col
-
-
-def _rgb(values, m: int) -> np.ndarray:
-    """A Dr.Jit 3-vector array (Color3f, Vector3f) as NumPy (m, 3)."""
-    a = np.array(values, dtype=np.float32)
-    if a.size == 3:  # a literal (e.g. the unit throughput before the first bounce) broadcasts
-        return np.broadcast_to(a.reshape(1, 3), (m, 3))
-    if a.ndim == 2 and a.shape[0] == 3 and a.shape[1] == m:
-        a = a.T
-    return a.reshape(m, 3)
 
 
 def environment_transport(handle: SceneHandle, origins, directions, *, face_size: int, spp: int, seed: int = 0,
@@ -94,8 +84,8 @@ def environment_transport(handle: SceneHandle, origins, directions, *, face_size
             if depth >= min_depth:
                 escaped = np.array(active & ~valid, dtype=bool)
                 if escaped.any():
-                    w = _rgb(throughput, m)[escaped]
-                    dirs = _rgb(ray.d, m)[escaped]
+                    w = vector_rows(throughput, m)[escaped]
+                    dirs = vector_rows(ray.d, m)[escaped]
                     index = pixel[escaped] * n_texels + _direction_to_texel(dirs, face_size)
                     for ch in range(3):
                         out[:, ch] += np.bincount(index, weights=w[:, ch], minlength=out.shape[0])
