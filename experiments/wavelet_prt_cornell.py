@@ -95,6 +95,14 @@ def _views(t: dict) -> list[dict]:
     return [{k: t[k][i] for k in names} for i in range(len(t["valid"]))]
 
 
+def _camera(config: dict, origin, width: int, height: int):
+    """A camera at ``origin`` looking at the configured target, with the configured fov."""
+    from jprt.render.cameras import look_at
+
+    return look_at(origin, tuple(config["cameras"]["target"]), fov=float(config["cameras"]["fov"]), width=int(width),
+                   height=int(height))
+
+
 def _predict(ev, data: wp.WaveletData, split: str) -> list[np.ndarray]:
     t = data.tests[split]
     return [np.asarray(ev(g, data.test_envs[int(t["env"][i])])) for i, g in enumerate(_views(t))]
@@ -116,8 +124,8 @@ def _scores(preds, t: dict, exposure: float) -> dict:
 
 def gt_transport_check(config: dict, data: wp.WaveletData, out: str) -> dict:
     """Step 1: Mitsuba transport of a small far view -> Haar -> top-K relighting vs Mitsuba."""
-    from jprt.render.cameras import camera_rays, look_at
-    from jprt.render.images import radiance_rays
+    from jprt.render.cameras import camera_rays
+    from jprt.render.images import indirect_rays
     from jprt.render.lights import EnvMap
     from jprt.render.scenes import SceneHandle
     from jprt.render.transport import environment_transport
@@ -126,8 +134,7 @@ def gt_transport_check(config: dict, data: wp.WaveletData, out: str) -> dict:
     n = int(config["envmaps"]["face_size"])
     cube = data.test_envs[0]
     origin = data.cameras["far"][0] if len(data.cameras["far"]) else data.cameras["train"][0]
-    cam = look_at(origin, tuple(config["cameras"]["target"]), fov=float(config["cameras"]["fov"]),
-                  width=int(gc["width"]), height=int(gc["height"]))
+    cam = _camera(config, origin, gc["width"], gc["height"])
     handle = SceneHandle(config["scene"], EnvMap.create(wp.render_equirect(cube)))
     o, d = camera_rays(cam)
     t0 = time.perf_counter()
@@ -137,8 +144,7 @@ def gt_transport_check(config: dict, data: wp.WaveletData, out: str) -> dict:
     depth = int(gc["max_depth"])
 
     def mitsuba(seed):
-        full = radiance_rays(handle, o, d, spp=int(gc["spp"]), seed=seed, max_depth=depth)
-        return full - radiance_rays(handle, o, d, spp=int(gc["spp"]), seed=seed, max_depth=2)
+        return indirect_rays(handle, o, d, spp=int(gc["spp"]), seed=seed, max_depth=depth).indirect
 
     ref, ref2 = mitsuba(21), mitsuba(22)
     ks = [min(int(k), 6 * n * n) for k in gc["ks"]]
@@ -264,7 +270,6 @@ def main(config: dict) -> dict:
 
     # Table 2: frame time by resolution and K; equal error against Mitsuba
     from jprt.render import images as mimages
-    from jprt.render.cameras import look_at
     from jprt.render.lights import EnvMap
     from jprt.render.scenes import SceneHandle
 
@@ -272,8 +277,7 @@ def main(config: dict) -> dict:
     origin = data.cameras["far"][0]
     frame_ms = {}
     for w, h in e["timing_resolutions"]:
-        cam = look_at(origin, tuple(config["cameras"]["target"]), fov=float(config["cameras"]["fov"]), width=int(w),
-                      height=int(h))
+        cam = _camera(config, origin, w, h)
         g = wp._gbuffer_arrays(handle, cam)
         g = {k: jax.device_put(v) for k, v in g.items()}
         for k in e["ks"]:
@@ -289,8 +293,7 @@ def main(config: dict) -> dict:
     refs, valids = t["indirect"], t["valid"]
     target_rmse = jeval.set_rmse(preds["far"], refs, valids)
     summary["rmse_indirect_far_set"] = target_rmse
-    far_cams = [look_at(o, tuple(config["cameras"]["target"]), fov=float(config["cameras"]["fov"]),
-                        width=int(config["cameras"]["width"]), height=int(config["cameras"]["height"]))
+    far_cams = [_camera(config, o, config["cameras"]["width"], config["cameras"]["height"])
                 for o in data.cameras["far"]]
 
     def render_at(spp):
@@ -309,7 +312,7 @@ def main(config: dict) -> dict:
                       logx=True, logy=True, hlines={"neural-wavelet PRT (K=64)": target_rmse})
     spp_eq = eq["spp"] or max(int(s) for s in e["equal_error_spp"])
     w, h = (int(v) for v in timing_key.split("x"))
-    cam = look_at(origin, tuple(config["cameras"]["target"]), fov=float(config["cameras"]["fov"]), width=w, height=h)
+    cam = _camera(config, origin, w, h)
     handle.set_lighting(EnvMap.create(wp.render_equirect(data.test_envs[0])))
     mimages.direct_indirect(handle, cam, spp=1, seed=3)  # warm-up: kernels for this film size
     pt = jeval.time_call(lambda: mimages.direct_indirect(handle, cam, spp=spp_eq, seed=3),

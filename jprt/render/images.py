@@ -114,12 +114,14 @@ def radiance_rays(handle: SceneHandle, origins, directions, *, spp: int, seed: i
 
 
 def indirect_rays(handle: SceneHandle, origins, directions, *, spp: int, seed: int = 0,
-                  chunk_rays: int = 1 << 21) -> Radiance:
+                  chunk_rays: int = 1 << 21, max_depth: int = -1) -> Radiance:
     """Direct and indirect radiance (N, 3) along arbitrary rays (per-sample training data).
 
-    Same split as the images: full (``max_depth=-1``) minus ``max_depth=2`` with equal seeds.
+    Same split as the images: full (``max_depth``, default -1: unbounded) minus ``max_depth=2``
+    with equal seeds.
     """
-    full = radiance_rays(handle, origins, directions, spp=spp, seed=seed, max_depth=-1, chunk_rays=chunk_rays)
+    full = radiance_rays(handle, origins, directions, spp=spp, seed=seed, max_depth=max_depth,
+                         chunk_rays=chunk_rays)
     direct = radiance_rays(handle, origins, directions, spp=spp, seed=seed, max_depth=_DIRECT_DEPTH,
                            chunk_rays=chunk_rays)
     return Radiance(direct=direct, indirect=full - direct, full=full)

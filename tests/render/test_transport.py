@@ -7,7 +7,7 @@ import pytest
 
 from jprt.methods import wavelet_prt as wp
 from jprt.render.cameras import camera_rays, look_at
-from jprt.render.images import radiance_rays
+from jprt.render.images import indirect_rays
 from jprt.render.lights import EnvMap
 from jprt.render.scenes import SceneHandle, glossy_cornell
 from jprt.render.transport import environment_transport
@@ -40,8 +40,8 @@ def test_transport_relights_like_mitsuba(setup, min_depth):
     b = np.einsum("ptijc,tijc->pc", t, cube)
 
     def mitsuba(seed):
-        full = radiance_rays(handle, o, d, spp=spp, seed=seed, max_depth=depth)
-        return full if min_depth == 0 else full - radiance_rays(handle, o, d, spp=spp, seed=seed, max_depth=2)
+        r = indirect_rays(handle, o, d, spp=spp, seed=seed, max_depth=depth)
+        return r.full if min_depth == 0 else r.indirect
 
     ref, ref2 = mitsuba(5), mitsuba(6)
     noise = _rel(ref2, ref)
