@@ -21,7 +21,7 @@ ROOT = os.path.dirname(HERE)
 KEYS = ("rmse", "projection_rmse", "relative_rmse", "rmse_by_basis", "projection_rmse_by_basis", "ratio_64",
         "rmse_by_basis_linear_mean", "projection_rmse_by_basis_linear_mean", "ratio_64_linear_mean",
         "rmse_sh_prt", "rmse_out_of_scenario", "rmse_sh_prt_out_of_scenario", "bake_s", "render_train_s", "fit_s",
-        "transfer_us", "frame_ms_512", "direct_measure_ms", "model_bytes", "lambda", "lambda_sweep", "points_sweep",
+        "transfer_us", "frame_ms", "frame_resolution", "direct_measure_ms", "model_bytes", "lambda", "lambda_sweep", "points_sweep",
         "rmse_gamma", "rmse_linear", "rmse_mono", "rmse_multi", "texels", "n_train", "n_test", "image_rmse",
         "reference_rms")
 
@@ -43,22 +43,21 @@ def main() -> int:
     parser.add_argument("--out", default=os.path.join(HERE, "results", "datadriven.json"))
     args = parser.parse_args()
     sys.path.insert(0, ROOT)
-    from jprt.cli import load_experiment, resolve_config
     from jprt.eval import write_benchmark
+    from jprt.runner import flat_summary, run_file
 
-    module = load_experiment(os.path.join(ROOT, "experiments", "datadriven.py"))
     presets = args.presets.split(",")
     results = {}
     for preset in presets:
-        results[preset] = _pick(module.main(resolve_config(module, [], preset)))
+        results[preset] = _pick(flat_summary(run_file(os.path.join(ROOT, "experiments", "datadriven.py"), preset)))
     result = dict(results[presets[0]])
     result["scene"] = presets[0]
     for preset in presets[1:]:
         result["cornell" if preset == "small" else preset] = results[preset]
     write_benchmark(args.out, result, f"python benchmarks/datadriven.py --presets {args.presets}",
                     notes="RMSE over lightmap texels x channels x held-out configurations (radiance units); "
-                          "references path traced at data.test_spp; frame_ms_512 = transfer + lightmap + bilinear "
-                          "lookup of a 512x512 atlas G-buffer (JAX on CPU), not the Mitsuba direct shading "
+                          "references path traced at data.test_spp; frame_ms = transfer + lightmap + bilinear "
+                          "lookup of a frame_resolution atlas G-buffer (JAX on CPU), not the Mitsuba direct shading "
                           "(direct_measure_ms); bake_s = training renders + fit.")
     return 0
 

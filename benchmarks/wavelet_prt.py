@@ -19,9 +19,8 @@ ROOT = os.path.dirname(HERE)
 KEYS = ("psnr_indirect_far", "psnr_full_far", "ssim_indirect_far", "ssim_full_far", "psnr_indirect_near",
         "psnr_full_near", "ssim_indirect_near", "psnr_indirect_far_baseline", "psnr_full_far_baseline",
         "psnr_indirect_near_baseline", "psnr_indirect_far_by_k", "rmse_indirect_far", "rmse_indirect_far_baseline",
-        "frame_ms", "frame_ms_resolution", "frame_ms_by_resolution", "model_bytes", "train_s", "train_s_source",
-        "equal_error_spp",
-        "pathtrace_ms_equal_error", "pathtrace_rmse_by_spp", "speedup_equal_error", "speedup_note",
+        "frame_ms", "frame_resolution", "frame_ms_by_resolution", "model_bytes", "train_s", "train_s_source",
+        "equal_error_spp", "pathtrace_ms_equal_error", "pathtrace_rmse_by_spp", "speedup_equal_error", "pathtrace_note",
         "gt_transport_rel_err_by_k", "gt_transport_rel_err_all", "gt_transport_truncation_by_k",
         "gt_transport_noise_floor", "gt_transport_parseval_err", "gt_transport_mean_ratio", "gt_transport_setup",
         "ablations", "ablation_steps", "n_train_images", "n_train_envs", "held_out_envs",
@@ -34,11 +33,10 @@ def main() -> int:
     parser.add_argument("--out", default=os.path.join(HERE, "results", "wavelet_prt.json"))
     args = parser.parse_args()
     sys.path.insert(0, ROOT)
-    from jprt.cli import load_experiment, resolve_config
     from jprt.eval import write_benchmark
+    from jprt.runner import flat_summary, run_file
 
-    module = load_experiment(os.path.join(ROOT, "experiments", "wavelet_prt_cornell.py"))
-    s = module.main(resolve_config(module, [], args.preset))
+    s = flat_summary(run_file(os.path.join(ROOT, "experiments", "wavelet_prt_cornell.py"), args.preset))
     result = {k: s.get(k) for k in KEYS}
     result["targets"] = {
         "psnr_indirect_far >= psnr_indirect_far_baseline + 3 dB":

@@ -10,13 +10,13 @@ configurations: RMSE vs reference lightmaps for n = 4, 16, 64 basis elements nex
 projecting the reference onto the same basis (Fig. 14); lambda sweep; measurement-point sweep;
 gamma vs linear; mono vs multi-channel; lights outside the training scenario (point lights near
 the surface, directional lights: Fig. 8); classic SH PRT of order 3 and 5 (§6.4); timings; images.
-The report goes to results/datadriven/<config hash>/.
+The report goes to results/datadriven/<config hash>/ (``jprt.runner``: the common summary is over the
+held-out lightmaps, as (R, R) atlas images whose valid pixels are the covered texels).
 """
 
 from __future__ import annotations
 
 import os
-import sys
 import time
 import warnings
 
@@ -25,9 +25,17 @@ import numpy as np
 
 from jprt import eval as jeval
 from jprt import io
-from jprt.config import config_hash, merge, save_resolved
-from jprt.methods import datadriven as dd
-from jprt.methods import sh_prt
+from jprt.inputs import PointRadiance
+from jprt.methods.atlas import atlas_inputs
+from jprt.methods.base import FitResult
+from jprt.methods.datadriven import data as dd_data
+from jprt.methods.datadriven import model as dd
+from jprt.methods.sh_prt import data as sh_data
+from jprt.methods.sh_prt import model as sh_prt
+from jprt.runner import HeldOut
+
+METHOD = "datadriven"
+LABEL = "datadriven"
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SPOT_MESH = os.path.join(os.path.dirname(ROOT), "shared", "assets", "meshes", "c3d_spot.obj")
@@ -56,7 +64,7 @@ EVAL_DEFAULTS = {
     "seed": 2022,
 }
 
-CONFIG = merge({**dd.DEFAULT_CONFIG, "eval": EVAL_DEFAULTS, "output": {"dir": "results/datadriven"}}, {})
+CONFIG = {**dd.DEFAULT_CONFIG, "eval": EVAL_DEFAULTS, "output": {"dir": "results/datadriven"}}
 
 SPOT = {
     "scene": {"name": "asset_room", "mesh": SPOT_MESH},
@@ -85,29 +93,183 @@ PRESETS = {
 }
 
 
-def _say(msg: str) -> None:
-    print(f"[datadriven] {msg}", file=sys.stderr, flush=True)
+
+def _fit(run, **sections) -> FitResult:
+    """A fit of the run's dataset with ``sections`` overriding the method config; the
+    ill-conditioning warnings it raised are kept in ``info["warnings"]``."""
+    cfg = run.with_config(sections)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", dd.IllConditionedWarning)
+        result = dd.fit(run.dataset, cfg)
+    result.info["warnings"] = [str(w.message) for w in caught if issubclass(w.category, dd.IllConditionedWarning)]
+    result.info["config"] = cfg
+    return result
 
 
-def _predict(params, direct) -> np.ndarray:
-    evaluate = dd.evaluator(params)
+def _scores(result: FitResult, direct, indirect) -> dict:
+    """Lightmap RMSE of the method and of projecting the references onto its basis (Fig. 14)."""
+    params, cfg = result.params, result.info["config"]
     fine = np.asarray(params["fine_index"])
-    return np.stack([np.asarray(evaluate.lightmap(d[fine])) for d in direct])
-
-
-def _scores(params, direct, indirect) -> dict:
-    pred = _predict(params, direct)
-    proj = dd.project(params, direct[:, params["fine_index"]], indirect)
+    pred = np.asarray(dd.lightmap(params, direct[:, fine], cfg))
+    proj = dd.project(params, direct[:, fine], indirect, cfg)
     return {"rmse": dd.lightmap_rmse(pred, indirect), "projection_rmse": dd.lightmap_rmse(proj, indirect)}
 
 
-def _fit(data, config, **sections) -> dict:
-    cfg = merge(config, sections)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", dd.IllConditionedWarning)
-        params = dd.fit(data, cfg)
-    params["meta"]["warnings"] = [str(w.message) for w in caught if issubclass(w.category, dd.IllConditionedWarning)]
-    return params
+def _lightmap_image(texels, atlas) -> np.ndarray:
+    """Lightmap texels (T, 3) -> (R, R, 3) atlas image (zeros outside the covered texels)."""
+    r = int(atlas["resolution"])
+    image = np.zeros((r * r, 3), np.float32)
+    image[np.asarray(atlas["texel_index"])] = texels
+    return image.reshape(r, r, 3)
+
+
+def _handle(run):
+    from jprt.render.lights import SpotLights
+    from jprt.render.scenes import SceneHandle
+
+    if "handle" not in run.state:
+        first = run.dataset.lights_test
+        run.state["handle"] = SceneHandle(run.config["scene"], SpotLights.create(
+            first["position"][0], first["target"][0], first["intensity"][0], first["cutoff_deg"][0],
+            first["beam_deg"][0]))
+    return run.state["handle"]
+
+
+def _test_lights(run) -> list:
+    from jprt.render.lights import SpotLights
+
+    first = run.dataset.lights_test
+    return [SpotLights.create(first["position"][k], first["target"][k], first["intensity"][k], first["cutoff_deg"][k],
+                              first["beam_deg"][k]) for k in range(len(run.dataset.direct_test))]
+
+
+# --------------------------------------------------------------------------------------------
+# The runner's hooks
+
+
+def fit(run) -> FitResult:
+    """The main fit (lambda by cross-validation), with its warnings."""
+    result = _fit(run)
+    result.info["train_s"] = result.info["fit_s"]
+    return result
+
+
+def held_out(run) -> HeldOut:
+    """The held-out lighting configurations: each lightmap as an atlas image, predicted by the
+    evaluator on the atlas itself (``jprt.methods.atlas.atlas_inputs``)."""
+    data, params = run.dataset, run.result.params
+    inputs = atlas_inputs(int(data.atlas["resolution"]), data.atlas["texel_index"])
+    fine = np.asarray(params["fine_index"])
+    preds = [np.asarray(run.evaluate(inputs, PointRadiance(d[fine]))) for d in data.direct_test]
+    refs = [_lightmap_image(i, data.atlas) for i in data.indirect_test]
+    return HeldOut(preds, refs, [inputs.valid] * len(refs), None, [f"held-out light {k}" for k in range(len(refs))])
+
+
+def frame(run):
+    """A camera view of the asset at ``eval.timing_resolution`` (atlas G-buffer) under the first
+    held-out configuration's direct light at the fine measurement points."""
+    from jprt.render import cameras as cams
+    from jprt.render import lightmap
+
+    e = run.config["eval"]
+    c, tr = e["camera"], int(e["timing_resolution"])
+    cam = cams.look_at(c["origin"], c["target"], fov=float(c["fov"]), width=tr, height=tr)
+    gb = lightmap.atlas_gbuffer(_handle(run), lightmap.Atlas(**run.dataset.atlas), cam)
+    return gb, PointRadiance(np.asarray(run.dataset.direct_test[0][run.result.params["fine_index"]], np.float32))
+
+
+# --------------------------------------------------------------------------------------------
+# Stages
+
+
+def fit_report(run) -> dict:
+    """The main fit: sizes, lambda, conditioning, and its method-vs-projection score."""
+    data, result = run.dataset, run.result
+    s = {"render_train_s": data.meta["render_train_s"], "render_s": data.meta["render_s"],
+         "texels": int(len(data.atlas["texel_index"])), "n_train": int(len(data.direct)),
+         "n_test": int(len(data.direct_test)), "fit_s": result.info["fit_s"], "lambda": result.info["lam"],
+         "lambda_cv": result.info["lambda_cv"], "conditioning": result.info["conditioning"],
+         "fit_warnings": result.info["warnings"]}
+    s["bake_s"] = s["render_train_s"] + s["fit_s"]
+    scores = _scores(result, data.direct_test, data.indirect_test)
+    s["rmse"], s["projection_rmse"] = scores["rmse"], scores["projection_rmse"]
+    s["reference_rms"] = float(np.sqrt(np.mean(np.square(data.indirect_test))))
+    s["relative_rmse"] = s["rmse"] / s["reference_rms"]
+    run.say(f"{s['texels']} texels, {result.info['points']} points; n = {run.method_config['basis']['n']}: RMSE "
+            f"{s['rmse']:.5f} (projection {s['projection_rmse']:.5f}, reference RMS {s['reference_rms']:.4f})")
+    return s
+
+
+def basis_sizes(run) -> dict:
+    """Fig. 14: accuracy against the basis size n, for the method and for projecting the
+    references onto the basis, with both mean conventions; Fig. 3: the spectrum of the data."""
+    data, e, mean = run.dataset, run.config["eval"], run.method_config["basis"]["mean"]
+    other = "linear" if mean == "norm" else "norm"
+    ns = [int(n) for n in e["basis_sizes"]]
+    table = {}
+    for label, extra in ((mean, {}), (other, {"mean": other})):
+        rmse, proj = {}, {}
+        for n in ns:
+            sc = _scores(_fit(run, basis={"n": n, **extra}), data.direct_test, data.indirect_test)
+            rmse[str(n)], proj[str(n)] = sc["rmse"], sc["projection_rmse"]
+            run.say(f"n = {n}, mean {label}: RMSE {sc['rmse']:.5f}, projection {sc['projection_rmse']:.5f}")
+        table[label] = (rmse, proj)
+    (rb, pb), (rbo, pbo) = table[mean], table[other]
+    last = str(ns[-1])
+    s = {"rmse_by_basis": rb, "projection_rmse_by_basis": pb, f"rmse_by_basis_{other}_mean": rbo,
+         f"projection_rmse_by_basis_{other}_mean": pbo, "ratio_last": rb[last] / max(pb[last], 1e-30),
+         f"ratio_last_{other}_mean": rbo[last] / max(pbo[last], 1e-30)}
+    if "64" in rb:
+        s["ratio_64"], s[f"ratio_64_{other}_mean"] = rb["64"] / pb["64"], rbo["64"] / pbo["64"]
+    jeval.plot_series(os.path.join(run.out, "fig14_basis.png"),
+                      {f"data-driven PRT (mean {mean})": (ns, [rb[str(n)] for n in ns]),
+                       "projection onto the basis": (ns, [pb[str(n)] for n in ns]),
+                       f"data-driven PRT (mean {other})": (ns, [rbo[str(n)] for n in ns]),
+                       f"projection (mean {other})": (ns, [pbo[str(n)] for n in ns])},
+                      xlabel="basis elements n", ylabel="lightmap RMSE", title="Fig. 14: accuracy vs basis size",
+                      logx=True, logy=True)
+    norms = np.linalg.norm(data.direct.reshape(len(data.direct), -1), axis=1)
+    a = (data.indirect[norms > 0] / norms[norms > 0, None, None]).reshape(int((norms > 0).sum()), -1)
+    sv = np.linalg.svd(a - a.mean(0), compute_uv=False)
+    s["relative_eigenvalues"] = (sv ** 2 / np.sum(sv ** 2))[:32].tolist()
+    jeval.plot_series(os.path.join(run.out, "fig3_eigenvalues.png"),
+                      {"indirect dataset": (list(range(1, len(s["relative_eigenvalues"]) + 1)),
+                                            s["relative_eigenvalues"])},
+                      xlabel="index", ylabel="relative eigenvalue", title="Fig. 3: spectrum of the indirect data",
+                      logy=True)
+    return s
+
+
+def sweeps(run) -> dict:
+    """Ridge lambda, measurement-point count, gamma space (§5.3), mono vs multi-channel (§5.2)."""
+    data, e, mcfg = run.dataset, run.config["eval"], run.method_config
+    s = {"lambda_sweep": {}, "points_sweep": {}}
+    for lam in e["lambdas"]:
+        r = _fit(run, transfer={"lam": float(lam), "lam_cv": []})
+        s["lambda_sweep"][repr(float(lam))] = {**_scores(r, data.direct_test, data.indirect_test),
+                                               "warnings": len(r.info["warnings"])}
+    for count in e["point_counts"]:
+        if int(count) * int(mcfg["points"]["supersample"]) > int(mcfg["points"]["candidates"]):
+            continue
+        s["points_sweep"][str(count)] = _scores(_fit(run, points={"count": int(count)}), data.direct_test,
+                                                data.indirect_test)["rmse"]
+    lams = [float(k) for k in s["lambda_sweep"]]
+    jeval.plot_series(os.path.join(run.out, "lambda_sweep.png"),
+                      {"RMSE": ([max(v, 1e-6) for v in lams], [v["rmse"] for v in s["lambda_sweep"].values()])},
+                      xlabel="lambda (0 plotted at 1e-6)", ylabel="lightmap RMSE", title="ridge regularisation",
+                      logx=True)
+    counts = [int(k) for k in s["points_sweep"]]
+    jeval.plot_series(os.path.join(run.out, "points_sweep.png"), {"RMSE": (counts, list(s["points_sweep"].values()))},
+                      xlabel="measurement points P", ylabel="lightmap RMSE", title="measurement-point count", logx=True)
+    main_rmse = run.summary["extra"]["rmse"]
+    s["rmse_gamma"] = _scores(_fit(run, basis={"gamma": float(e["gamma"])}), data.direct_test,
+                              data.indirect_test)["rmse"]
+    s["rmse_linear"] = main_rmse if float(mcfg["basis"]["gamma"]) <= 0 else None
+    other = "multi" if mcfg["basis"]["channels"] == "mono" else "mono"
+    s[f"rmse_{mcfg['basis']['channels']}"] = main_rmse
+    s[f"rmse_{other}"] = _scores(_fit(run, basis={"channels": other}), data.direct_test, data.indirect_test)["rmse"]
+    run.say(f"gamma {e['gamma']}: {s['rmse_gamma']:.5f}; {other}-channel: {s[f'rmse_{other}']:.5f}")
+    return s
 
 
 def _oos_lights(config, data, rng):
@@ -130,224 +292,116 @@ def _oos_lights(config, data, rng):
     return {"point": points, "directional": directional}
 
 
-def main(config: dict) -> dict:
-    """Render, fit, evaluate and report; returns the summary (also written as summary.json)."""
-    from jprt.render import cameras as cams
-    from jprt.render import images, lightmap
-    from jprt.render.lights import SpotLights
-    from jprt.render.scenes import SceneHandle
+def out_of_scenario(run) -> dict:
+    """Fig. 8: point lights near the asset and directional lights, outside the training scenario."""
+    data = run.dataset
+    rng = np.random.default_rng(int(run.config["eval"]["seed"]))
+    spp_test = int(run.method_config["data"]["test_spp"])
+    s = {}
+    run.state["oos"] = {}
+    for kind, lightings in _oos_lights(run.config, data, rng).items():
+        d, i = dd_data.render_examples(_handle(run), data.atlas, data.candidates, lightings, spp=spp_test, seed=99,
+                                       desc=f"{kind} lights (out of scenario)")
+        run.state["oos"][kind] = (d, i, lightings)
+        s[kind] = _scores(run.result, d, i)["rmse"]
+        s[f"{kind}_relative"] = s[kind] / float(np.sqrt(np.mean(np.square(i))))
+    s["spot_relative (in scenario)"] = run.summary["extra"]["relative_rmse"]
+    run.say(f"out of scenario: {s}")
+    return {"rmse_out_of_scenario": s}
 
-    t_start = time.perf_counter()
-    config = merge(CONFIG, config)
-    out = os.path.abspath(os.path.join(config["output"]["dir"], config_hash(config)))
-    os.makedirs(out, exist_ok=True)
-    save_resolved(config, out)
-    e = config["eval"]
-    summary: dict = {"config_hash": config_hash(config), "device": str(jax.devices()[0]),
-                     "scene": config["scene"], "objects": config["objects"]}
-    rng = np.random.default_rng(int(e["seed"]))
 
-    # 1. Dataset and the main fit.
-    t0 = time.perf_counter()
-    data = dd.make_dataset(config["scene"], config)
-    summary["dataset_s"] = time.perf_counter() - t0
-    summary["render_train_s"] = data.meta["render_train_s"]
-    summary["render_s"] = data.meta["render_s"]
-    summary["texels"] = int(len(data.atlas["texel_index"]))
-    summary["n_train"], summary["n_test"] = int(len(data.direct)), int(len(data.direct_test))
-    params = _fit(data, config)
-    summary["fit_s"] = params["meta"]["fit_s"]
-    summary["lambda"] = params["meta"]["lam"]
-    summary["lambda_cv"] = params["meta"]["lambda_cv"]
-    summary["bake_s"] = summary["render_train_s"] + summary["fit_s"]
-    summary["model_bytes"] = dd.model_bytes(params)
-    summary["conditioning"] = params["meta"]["conditioning"]
-    summary["fit_warnings"] = params["meta"]["warnings"]
-    main_scores = _scores(params, data.direct_test, data.indirect_test)
-    summary["rmse"] = main_scores["rmse"]
-    summary["projection_rmse"] = main_scores["projection_rmse"]
-    ref_rms = float(np.sqrt(np.mean(np.square(data.indirect_test))))
-    summary["reference_rms"] = ref_rms
-    summary["relative_rmse"] = summary["rmse"] / ref_rms
-    _say(f"{summary['texels']} texels, {params['meta']['points']} points; n = {config['basis']['n']}: RMSE "
-         f"{summary['rmse']:.5f} (projection {summary['projection_rmse']:.5f}, reference RMS {ref_rms:.4f})")
-    io.save_checkpoint(os.path.join(out, "model.npz"), {k: v for k, v in params.items() if k != "meta"},
-                       meta={"config_hash": summary["config_hash"]})
+def sh_prt_baseline(run) -> dict:
+    """§6.4: classic SH PRT of the asset (``jprt.methods.sh_prt``), each light a delta from its
+    direction at the asset centre, on the held-out and out-of-scenario lights."""
+    from jprt.render import lightmap
 
-    # 2. Fig. 14: basis size, method vs projection.
-    summary["rmse_by_basis"], summary["projection_rmse_by_basis"] = {}, {}
-    for n in e["basis_sizes"]:
-        p = _fit(data, config, basis={"n": int(n)})
-        s = _scores(p, data.direct_test, data.indirect_test)
-        summary["rmse_by_basis"][str(n)] = s["rmse"]
-        summary["projection_rmse_by_basis"][str(n)] = s["projection_rmse"]
-        _say(f"n = {n}: RMSE {s['rmse']:.5f}, projection {s['projection_rmse']:.5f}")
-    other_mean = "linear" if config["basis"]["mean"] == "norm" else "norm"
-    summary[f"rmse_by_basis_{other_mean}_mean"], summary[f"projection_rmse_by_basis_{other_mean}_mean"] = {}, {}
-    for n in e["basis_sizes"]:
-        p = _fit(data, config, basis={"n": int(n), "mean": other_mean})
-        s = _scores(p, data.direct_test, data.indirect_test)
-        summary[f"rmse_by_basis_{other_mean}_mean"][str(n)] = s["rmse"]
-        summary[f"projection_rmse_by_basis_{other_mean}_mean"][str(n)] = s["projection_rmse"]
-        _say(f"n = {n}, mean {other_mean}: RMSE {s['rmse']:.5f}, projection {s['projection_rmse']:.5f}")
-    ns = [int(n) for n in e["basis_sizes"]]
-    last = str(ns[-1])
-    summary["ratio_last"] = summary["rmse_by_basis"][last] / max(summary["projection_rmse_by_basis"][last], 1e-30)
-    rb, pb = summary[f"rmse_by_basis_{other_mean}_mean"], summary[f"projection_rmse_by_basis_{other_mean}_mean"]
-    summary[f"ratio_last_{other_mean}_mean"] = rb[last] / max(pb[last], 1e-30)
-    if "64" in summary["rmse_by_basis"]:
-        summary["ratio_64"] = summary["rmse_by_basis"]["64"] / summary["projection_rmse_by_basis"]["64"]
-        summary[f"ratio_64_{other_mean}_mean"] = rb["64"] / pb["64"]
-    jeval.plot_series(os.path.join(out, "fig14_basis.png"),
-                      {f"data-driven PRT (mean {config['basis']['mean']})":
-                           (ns, [summary["rmse_by_basis"][str(n)] for n in ns]),
-                       "projection onto the basis": (ns, [summary["projection_rmse_by_basis"][str(n)] for n in ns]),
-                       f"data-driven PRT (mean {other_mean})": (ns, [rb[str(n)] for n in ns]),
-                       f"projection (mean {other_mean})": (ns, [pb[str(n)] for n in ns])},
-                      xlabel="basis elements n", ylabel="lightmap RMSE", title="Fig. 14: accuracy vs basis size",
-                      logx=True, logy=True)
-    norms = np.linalg.norm(data.direct.reshape(len(data.direct), -1), axis=1)
-    a = (data.indirect[norms > 0] / norms[norms > 0, None, None]).reshape(int((norms > 0).sum()), -1)
-    sv = np.linalg.svd(a - a.mean(0), compute_uv=False)
-    summary["relative_eigenvalues"] = (sv ** 2 / np.sum(sv ** 2))[:32].tolist()
-    jeval.plot_series(os.path.join(out, "fig3_eigenvalues.png"),
-                      {"indirect dataset": (list(range(1, len(summary["relative_eigenvalues"]) + 1)),
-                                            summary["relative_eigenvalues"])},
-                      xlabel="index", ylabel="relative eigenvalue", title="Fig. 3: spectrum of the indirect data",
-                      logy=True)
-
-    # 3. lambda, measurement points, gamma, channels.
-    summary["lambda_sweep"] = {}
-    for lam in e["lambdas"]:
-        p = _fit(data, config, transfer={"lam": float(lam), "lam_cv": []})
-        summary["lambda_sweep"][repr(float(lam))] = {**_scores(p, data.direct_test, data.indirect_test),
-                                                      "warnings": len(p["meta"]["warnings"])}
-    summary["points_sweep"] = {}
-    for count in e["point_counts"]:
-        if int(count) * int(config["points"]["supersample"]) > int(config["points"]["candidates"]):
-            continue
-        p = _fit(data, config, points={"count": int(count)})
-        summary["points_sweep"][str(count)] = _scores(p, data.direct_test, data.indirect_test)["rmse"]
-    lams = [float(k) for k in summary["lambda_sweep"]]
-    jeval.plot_series(os.path.join(out, "lambda_sweep.png"),
-                      {"RMSE": ([max(l, 1e-6) for l in lams], [v["rmse"] for v in summary["lambda_sweep"].values()])},
-                      xlabel="lambda (0 plotted at 1e-6)", ylabel="lightmap RMSE", title="ridge regularisation",
-                      logx=True)
-    counts = [int(k) for k in summary["points_sweep"]]
-    jeval.plot_series(os.path.join(out, "points_sweep.png"),
-                      {"RMSE": (counts, list(summary["points_sweep"].values()))},
-                      xlabel="measurement points P", ylabel="lightmap RMSE", title="measurement-point count",
-                      logx=True)
-    p_gamma = _fit(data, config, basis={"gamma": float(e["gamma"])})
-    summary["rmse_gamma"] = _scores(p_gamma, data.direct_test, data.indirect_test)["rmse"]
-    summary["rmse_linear"] = summary["rmse"] if float(config["basis"]["gamma"]) <= 0 else None
-    other = "multi" if config["basis"]["channels"] == "mono" else "mono"
-    p_other = _fit(data, config, basis={"channels": other})
-    summary[f"rmse_{config['basis']['channels']}"] = summary["rmse"]
-    summary[f"rmse_{other}"] = _scores(p_other, data.direct_test, data.indirect_test)["rmse"]
-    _say(f"gamma {e['gamma']}: {summary['rmse_gamma']:.5f}; {other}-channel: {summary[f'rmse_{other}']:.5f}")
-
-    # 4. Out-of-scenario lights (Fig. 8) and the SH PRT baseline (§6.4).
-    first = data.lights_test
-    handle = SceneHandle(config["scene"], SpotLights.create(first["position"][0], first["target"][0],
-                                                            first["intensity"][0], first["cutoff_deg"][0],
-                                                            first["beam_deg"][0]))
-    atlas = data.atlas
-    spp_test = int(config["data"]["test_spp"])
-    summary["rmse_out_of_scenario"] = {}
-    oos = _oos_lights(config, data, rng)
-    oos_data = {}
-    for kind, lightings in oos.items():
-        d, i = dd.render_examples(handle, atlas, data.candidates, lightings, spp=spp_test, seed=99,
-                                  desc=f"{kind} lights (out of scenario)")
-        oos_data[kind] = (d, i, lightings)
-        summary["rmse_out_of_scenario"][kind] = _scores(params, d, i)["rmse"]
-        summary["rmse_out_of_scenario"][f"{kind}_relative"] = summary["rmse_out_of_scenario"][kind] / float(
-            np.sqrt(np.mean(np.square(i))))
-    summary["rmse_out_of_scenario"]["spot_relative (in scenario)"] = summary["relative_rmse"]
-    _say(f"out of scenario: {summary['rmse_out_of_scenario']}")
-
+    e, data = run.config["eval"], run.dataset
+    handle, atlas = _handle(run), data.atlas
     t0 = time.perf_counter()
     degree = max(sh_prt.order_to_degree(o) for o in e["sh_orders"])
-    transfer = sh_prt.bake(handle, atlas, degree, spp=int(e["sh_spp"]), env_height=int(e["sh_env_height"]))
-    summary["sh_bake_s"] = time.perf_counter() - t0
+    transfer = sh_data.bake(handle, atlas, degree, spp=int(e["sh_spp"]), env_height=int(e["sh_env_height"]))
+    s = {"sh_bake_s": time.perf_counter() - t0, "rmse_sh_prt": {}, "rmse_sh_prt_out_of_scenario": {}}
     center = np.asarray(atlas["position"]).mean(axis=0)
-    test_lights = [SpotLights.create(first["position"][k], first["target"][k], first["intensity"][k],
-                                     first["cutoff_deg"][k], first["beam_deg"][k]) for k in range(len(data.direct_test))]
-    summary["rmse_sh_prt"], summary["rmse_sh_prt_out_of_scenario"] = {}, {}
+
+    def sh_lightmaps(lightings, deg):
+        out = []
+        for lighting in lightings:
+            dirs, irr = lightmap.incident_delta_lights(handle, center, lighting)
+            out.append(sh_prt.lightmap(transfer, sh_prt.delta_light_coefficients(dirs, irr, deg)))
+        return np.stack(out)
+
     for order in e["sh_orders"]:
         deg = sh_prt.order_to_degree(order)
+        s["rmse_sh_prt"][str(order)] = dd.lightmap_rmse(sh_lightmaps(_test_lights(run), deg), data.indirect_test)
+        s["rmse_sh_prt_out_of_scenario"][str(order)] = {
+            kind: dd.lightmap_rmse(sh_lightmaps(v[2], deg), v[1]) for kind, v in run.state.get("oos", {}).items()}
+    s["sh_prt_note"] = ("classic SH PRT (Sloan et al. 2002): transfer vectors baked with Mitsuba from SH environment "
+                        "maps (positive and negative parts), each light projected as a delta from its direction at "
+                        "the asset centre")
+    s["beats_sh_prt"] = run.summary["extra"]["rmse"] < min(s["rmse_sh_prt"].values())
+    run.say(f"SH PRT: {s['rmse_sh_prt']} vs data-driven {run.summary['extra']['rmse']:.5f}")
+    return s
 
-        def sh_lightmaps(lightings):
-            out_ = []
-            for lighting in lightings:
-                dirs, irr = lightmap.incident_delta_lights(handle, center, lighting)
-                out_.append(sh_prt.lightmap(transfer, sh_prt.delta_light_coefficients(dirs, irr, deg)))
-            return np.stack(out_)
 
-        summary["rmse_sh_prt"][str(order)] = dd.lightmap_rmse(sh_lightmaps(test_lights), data.indirect_test)
-        summary["rmse_sh_prt_out_of_scenario"][str(order)] = {
-            kind: dd.lightmap_rmse(sh_lightmaps(v[2]), v[1]) for kind, v in oos_data.items()}
-    summary["sh_prt_note"] = ("classic SH PRT (Sloan et al. 2002): transfer vectors baked with Mitsuba from SH "
-                              "environment maps (positive and negative parts), each light projected as a delta "
-                              "from its direction at the asset centre")
-    summary["beats_sh_prt"] = summary["rmse"] < min(summary["rmse_sh_prt"].values())
-    _say(f"SH PRT: {summary['rmse_sh_prt']} vs data-driven {summary['rmse']:.5f}")
+def camera_images(run) -> dict:
+    """Held-out lights seen by a camera: the method against path-traced references
+    (camera_side_by_side.png, EXRs, tonemapped finals) and the basis pictures."""
+    from jprt.render import cameras as cams
+    from jprt.render import images, lightmap
 
-    # 5. Images: a camera view of held-out lights, method vs path-traced reference.
-    c = e["camera"]
-    res = int(e["image_resolution"])
+    e, data, params = run.config["eval"], run.dataset, run.result.params
+    c, res = e["camera"], int(e["image_resolution"])
     cam = cams.look_at(c["origin"], c["target"], fov=float(c["fov"]), width=res, height=res)
-    atlas_nt = lightmap.Atlas(**atlas)
-    gb = lightmap.atlas_gbuffer(handle, atlas_nt, cam)
-    evaluate = dd.evaluator(params)
-    rows = []
-    for k in range(min(int(e["images"]), len(test_lights))):
-        handle.set_lighting(test_lights[k])
+    handle = _handle(run)
+    gb = lightmap.atlas_gbuffer(handle, lightmap.Atlas(**data.atlas), cam)
+    rows, s = [], {}
+    lights = _test_lights(run)
+    for k in range(min(int(e["images"]), len(lights))):
+        handle.set_lighting(lights[k])
         rad = images.direct_indirect(handle, cam, spp=int(e["image_spp"]), seed=5 + k)
         ref = np.where(gb.valid[..., None], rad.indirect, 0.0)
-        pred = np.asarray(evaluate(gb, data.direct_test[k][params["fine_index"]]))
+        pred = np.asarray(run.evaluate(gb, PointRadiance(data.direct_test[k][params["fine_index"]])))
         rows.append((f"held-out light {k}", ref, pred))
-        io.write_exr(os.path.join(out, f"light{k:02d}_reference.exr"), ref)
-        io.write_exr(os.path.join(out, f"light{k:02d}_datadriven.exr"), pred)
-        io.write_png(os.path.join(out, f"light{k:02d}_final_datadriven.png"), rad.direct + pred,
-                     exposure=float(e["exposure"]))
-        io.write_png(os.path.join(out, f"light{k:02d}_final_reference.png"), rad.direct + ref,
-                     exposure=float(e["exposure"]))
+        io.write_exr(os.path.join(run.out, f"light{k:02d}_reference.exr"), ref)
+        io.write_exr(os.path.join(run.out, f"light{k:02d}_datadriven.exr"), pred)
+        for name, image in (("datadriven", pred), ("reference", ref)):
+            io.write_png(os.path.join(run.out, f"light{k:02d}_final_{name}.png"), rad.direct + image,
+                         exposure=float(e["exposure"]))
     if rows:
-        jeval.side_by_side(os.path.join(out, "side_by_side.png"), rows, exposure=float(e["exposure"]))
-        summary["image_rmse"] = jeval.set_rmse([r[2] for r in rows], [r[1] for r in rows], [gb.valid] * len(rows))
-    r = int(atlas["resolution"])
-    basis_img = np.asarray(params["basis"])[np.asarray(atlas["fill_index"])]
-    tiles = [np.asarray(params["mean"])[np.asarray(atlas["fill_index"])]] + [basis_img[:, j] for j in
-                                                                             range(min(7, basis_img.shape[1]))]
+        jeval.side_by_side(os.path.join(run.out, "camera_side_by_side.png"), rows, exposure=float(e["exposure"]))
+        s["image_rmse"] = jeval.set_rmse([r[2] for r in rows], [r[1] for r in rows], [gb.valid] * len(rows))
+    r = int(data.atlas["resolution"])
+    fill = np.asarray(data.atlas["fill_index"])
+    basis_img = np.asarray(params["basis"])[fill]
+    tiles = [np.asarray(params["mean"])[fill]] + [basis_img[:, j] for j in range(min(7, basis_img.shape[1]))]
     tiles = [t.reshape(r, r) / max(np.abs(t).max(), 1e-30) for t in tiles]
-    io.write_png(os.path.join(out, "basis_mean_and_first7.png"),
+    io.write_png(os.path.join(run.out, "basis_mean_and_first7.png"),
                  np.repeat(0.5 + 0.5 * np.concatenate(tiles, axis=1)[..., None], 3, axis=-1), tonemapped=True)
+    return s
 
-    # 6. Timings: the transfer product alone, and a whole frame at the timing resolution.
+
+def timings(run) -> dict:
+    """The transfer product alone (jitted), and Mitsuba's shading of the fine measurement points."""
+    from jprt.render import lightmap
+
+    e, data, params = run.config["eval"], run.dataset, run.result.params
     x = dd.coarse_direct(data.direct_test[0][params["fine_index"]], params["group"], params["counts"])
-    summary["transfer_us"] = 1e3 * jeval.time_call(evaluate.transfer, jax.numpy.asarray(x, jax.numpy.float32),
-                                                   repeats=int(e["timing_repeats"]) * 5)["median_ms"]
-    tr = int(e["timing_resolution"])
-    tcam = cams.look_at(c["origin"], c["target"], fov=float(c["fov"]), width=tr, height=tr)
-    tgb = lightmap.atlas_gbuffer(handle, atlas_nt, tcam)
-    uv, valid = jax.numpy.asarray(tgb.uv), jax.numpy.asarray(tgb.valid)
-    direct0 = jax.numpy.asarray(data.direct_test[0][params["fine_index"]], jax.numpy.float32)
-    summary["frame_ms"] = jeval.time_call(evaluate.jitted, uv, valid, direct0, repeats=int(e["timing_repeats"]))[
-        "median_ms"]
-    summary["timing_resolution"] = tr
-    if tr == 512:
-        summary["frame_ms_512"] = summary["frame_ms"]
-    handle.set_lighting(test_lights[0])
+    transfer = jax.jit(lambda v: dd.transfer_coefficients(params, v, run.method_config))
+    s = {"transfer_us": 1e3 * jeval.time_call(transfer, jax.numpy.asarray(x, jax.numpy.float32),
+                                               repeats=int(e["timing_repeats"]) * 5)["median_ms"]}
+    handle = _handle(run)
+    handle.set_lighting(_test_lights(run)[0])
     fine_pos = np.asarray(data.candidates["position"])[params["fine_index"]]
     fine_nrm = np.asarray(data.candidates["normal"])[params["fine_index"]]
     lightmap.radiance_at_points(handle, fine_pos, fine_nrm, spp=1)  # warm-up (kernel compile)
-    summary["direct_measure_ms"] = jeval.time_call(
+    s["direct_measure_ms"] = jeval.time_call(
         lambda: lightmap.radiance_at_points(handle, fine_pos, fine_nrm, spp=1), repeats=5, warmup=0)["median_ms"]
-    summary["timing_note"] = ("transfer_us: u = M_n x alone (jitted, CPU); frame_ms: coarse averaging, transfer, "
-                              "lightmap reconstruction and bilinear lookup for every pixel (jitted, CPU); "
-                              "direct_measure_ms: Mitsuba shading of the fine measurement points (outside JAX)")
-    _say(f"transfer {summary['transfer_us']:.1f} us, frame {summary['frame_ms']:.2f} ms at {tr}^2, "
-         f"direct measurement {summary['direct_measure_ms']:.1f} ms")
-    return jeval.write_report(out, summary, t_start, "data-driven PRT")
+    s["timing_note"] = ("transfer_us: u = M_n x alone (jitted, CPU); frame_ms: coarse averaging, transfer, lightmap "
+                        "reconstruction and bilinear lookup for every pixel (jitted, CPU); direct_measure_ms: Mitsuba "
+                        "shading of the fine measurement points (outside JAX)")
+    run.say(f"transfer {s['transfer_us']:.1f} us, direct measurement {s['direct_measure_ms']:.1f} ms")
+    return s
+
+
+#: The stages of the data-driven PRT report, in order.
+STAGES = [fit_report, basis_sizes, sweeps, out_of_scenario, sh_prt_baseline, camera_images, timings]

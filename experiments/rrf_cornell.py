@@ -9,14 +9,9 @@ The report (summary.json with every number, side-by-side images, error plots) go
 results/rrf_cornell/<config hash>/.
 """
 
-from rrf_common import EVAL_DEFAULTS, PAPER_PRESET, run
+from rrf_common import LABEL, METHOD, PAPER_PRESET, STAGES, config, frame, held_out, pathtracer  # noqa: F401
 
-from jprt.config import merge
-from jprt.methods.rrf import DEFAULT_CONFIG
-
-CONFIG = merge({**DEFAULT_CONFIG, "eval": EVAL_DEFAULTS, "output": {"dir": "results/rrf_cornell"}}, {
-    "scene": {"name": "cornell_box", "area_light": False},
-})
+CONFIG = config("results/rrf_cornell", {"scene": {"name": "cornell_box", "area_light": False}})
 
 PRESETS = {
     # The default CONFIG: trains in minutes on a 2-core CPU.
@@ -43,7 +38,3 @@ PRESETS = {
     },
 }
 
-
-def main(config):
-    """Render, fit, evaluate and report (see rrf_common.run)."""
-    return run(config)

@@ -7,12 +7,12 @@ roughness and albedo replace the view direction as inputs).
     jprt run experiments/rrf_glossy.py --preset paper     # the paper's sizes (needs an accelerator)
 """
 
-from rrf_common import EVAL_DEFAULTS, PAPER_PRESET, material_demo, run
+from rrf_common import LABEL, METHOD, PAPER_PRESET, STAGES, config, frame, held_out, material_edit  # noqa: F401
+from rrf_common import pathtracer  # noqa: F401
 
 from jprt.config import merge
-from jprt.methods.rrf import DEFAULT_CONFIG
 
-CONFIG = merge({**DEFAULT_CONFIG, "eval": EVAL_DEFAULTS, "output": {"dir": "results/rrf_glossy"}}, {
+CONFIG = config("results/rrf_glossy", {
     "scene": {"name": "glossy_cornell", "floor_roughness": 0.15, "sphere_roughness": 0.02},
     "eval": {"robustness": 0, "sizes": [], "train_spp": []},
 })
@@ -45,10 +45,5 @@ PRESETS = {
 }
 
 
-def main(config):
-    """The RRF report on the glossy scene, then the material-editing demo."""
-    summary = run({k: v for k, v in config.items() if k != "material_demo"})
-    demo = config["material_demo"]
-    if demo["enabled"]:
-        summary["material_edit"] = material_demo(merge(config, {"data": demo["data"]}))
-    return summary
+#: The RRF report's stages, then the material-editing demo.
+STAGES = STAGES + [material_edit]

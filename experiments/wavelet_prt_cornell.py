@@ -19,13 +19,14 @@ environment maps and their 120 / 240 degree rotations; two maps are held out):
   6. ablations (shorter runs, all at the same step count): hash-table size (Table 3) and the
      reflection encoding (Table 4);
   7. images (reference / ours / baseline / error), loss curve, error-vs-K plot.
-The report goes to results/wavelet_prt_cornell/<config hash>/.
+The report goes to results/wavelet_prt_cornell/<config hash>/ (``jprt.runner``: the common
+summary is over the far views, the equal-error peer is Mitsuba on the same views).
 """
 
 from __future__ import annotations
 
+import json
 import os
-import sys
 import time
 
 import jax
@@ -33,8 +34,14 @@ import numpy as np
 
 from jprt import eval as jeval
 from jprt import io, metrics
-from jprt.config import config_hash, merge, save_resolved
-from jprt.methods import wavelet_prt as wp
+from jprt.inputs import CubeMap
+from jprt.methods.base import FitResult
+from jprt.methods.wavelet_prt import data as wp_data
+from jprt.methods.wavelet_prt import model as wp
+from jprt.runner import HeldOut, PathTracer
+
+METHOD = "wavelet_prt"
+LABEL = "wavelet_prt"
 
 EVAL_DEFAULTS = {
     "ks": [32, 64, 128],
@@ -86,10 +93,6 @@ PRESETS = {
 }
 
 
-def _say(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
-
 def _views(t: dict) -> list[dict]:
     names = [k for k in list(wp.GBUFFER_FIELDS) + list(wp.VERTEX_FIELDS) if k in t]
     return [{k: t[k][i] for k in names} for i in range(len(t["valid"]))]
@@ -103,9 +106,9 @@ def _camera(config: dict, origin, width: int, height: int):
                    height=int(height))
 
 
-def _predict(ev, data: wp.WaveletData, split: str) -> list[np.ndarray]:
+def _predict(evaluate, data: wp.WaveletData, split: str) -> list[np.ndarray]:
     t = data.tests[split]
-    return [np.asarray(ev(g, data.test_envs[int(t["env"][i])])) for i, g in enumerate(_views(t))]
+    return [np.asarray(evaluate(g, CubeMap(data.test_envs[int(t["env"][i])]))) for i, g in enumerate(_views(t))]
 
 
 def _scores(preds, t: dict, exposure: float) -> dict:
@@ -122,8 +125,216 @@ def _scores(preds, t: dict, exposure: float) -> dict:
     return {k: float(np.mean(v)) for k, v in out.items()}
 
 
-def gt_transport_check(config: dict, data: wp.WaveletData, out: str) -> dict:
+def _handle(run, cube):
+    from jprt.render.lights import EnvMap
+    from jprt.render.scenes import SceneHandle
+
+    if "handle" not in run.state:
+        run.state["handle"] = SceneHandle(run.config["scene"], EnvMap.create(wp.render_equirect(cube)))
+    else:
+        run.state["handle"].set_lighting(EnvMap.create(wp.render_equirect(cube)))
+    return run.state["handle"]
+
+
+def _train(run, cfg: dict, data, label: str, progress: bool = True) -> FitResult:
+    """Fit with a checkpoint keyed by the config (an interrupted run resumes, a finished one is
+    reused); ``info["log_path"]`` is its metrics log."""
+    from jprt.cache import cache_root
+
+    folder = os.path.join(cache_root(), "wavelet_prt", "runs", wp.run_key(cfg))
+    os.makedirs(folder, exist_ok=True)
+    run.say(f"{label}: checkpoint {folder}")
+    log_path = os.path.join(folder, "metrics.jsonl")
+    result = wp.fit(data, cfg, checkpoint_path=os.path.join(folder, "ckpt.npz"), log_path=log_path,
+                    progress=progress)
+    result.info["log_path"] = log_path
+    return result
+
+
+def _logged_train_s(log_path: str) -> float | None:
+    """Training wall time from a run's metrics.jsonl: the sum over its segments (a resumed run
+    restarts elapsed_s) of each segment's last elapsed_s."""
+    if not os.path.isfile(log_path):
+        return None
+    total, last = 0.0, 0.0
+    with open(log_path) as f:
+        for line in f:
+            t = float(json.loads(line)["elapsed_s"])
+            if t < last:
+                total += last
+            last = t
+    return total + last
+
+
+# --------------------------------------------------------------------------------------------
+# The runner's hooks
+
+
+def fit(run) -> FitResult:
+    """Training (§5), resumable; a resumed run's train_s is read back from its metrics log."""
+    result = _train(run, run.method_config, run.dataset, "training")
+    result.info["train_s_source"] = "this run"
+    if result.info["resumed_from"]:
+        result.info["train_s"] = _logged_train_s(result.info["log_path"])
+        result.info["train_s_source"] = "metrics.jsonl (resumed run)"
+    return result
+
+
+def held_out(run) -> HeldOut:
+    """The far views (off the training trajectories) under held-out maps."""
+    t = run.dataset.tests["far"]
+    preds = _predict(run.evaluate, run.dataset, "far")
+    run.state["far"] = preds
+    n = len(preds)
+    return HeldOut(preds, list(t["indirect"]), list(t["valid"]), list(t["direct"]), [f"far {i}" for i in range(n)])
+
+
+def _timing_key(run) -> str:
+    keys = [f"{w}x{h}" for w, h in run.config["eval"]["timing_resolutions"]]
+    return "256x256" if "256x256" in keys else keys[0]
+
+
+def frame(run):
+    """The first far view at the timing resolution (256 x 256 when listed) under the first held-out map."""
+    from jprt.render.gbuffer import gbuffer
+
+    w, h = (int(v) for v in _timing_key(run).split("x"))
+    cube = run.dataset.test_envs[0]
+    g = gbuffer(_handle(run, cube), _camera(run.config, run.dataset.cameras["far"][0], w, h))
+    return {k: np.asarray(getattr(g, k)) for k in wp.GBUFFER_FIELDS}, CubeMap(cube)
+
+
+def pathtracer(run) -> PathTracer:
+    """Mitsuba's indirect of the far views (seeds unlike the references'), and its time at the
+    timing resolution."""
+    from jprt.render import images as mimages
+
+    data, config = run.dataset, run.config
+    t = data.tests["far"]
+    far_cams = [_camera(config, o, config["cameras"]["width"], config["cameras"]["height"])
+                for o in data.cameras["far"]]
+
+    def render_at(spp):
+        out = []
+        for i, cam in enumerate(far_cams):
+            handle = _handle(run, data.test_envs[int(t["env"][i])])
+            out.append(mimages.direct_indirect(handle, cam, spp=spp, seed=4242 + i).indirect)
+        return out
+
+    def time_at(spp):
+        w, h = (int(v) for v in _timing_key(run).split("x"))
+        cam = _camera(config, data.cameras["far"][0], w, h)
+        handle = _handle(run, data.test_envs[0])
+        mimages.direct_indirect(handle, cam, spp=1, seed=3)  # warm-up: kernels for this film size
+        return jeval.time_call(lambda: mimages.direct_indirect(handle, cam, spp=spp, seed=3),
+                               repeats=int(config["eval"]["timing_repeats"]), warmup=0)["median_ms"]
+
+    k = run.method_config["render"]["k"]
+    return PathTracer(render_at, time_at, f"Mitsuba llvm_ad_rgb indirect (full max_depth -1 and direct max_depth 2 "
+                                          f"renders, both timed) at {_timing_key(run)} and the equal-error spp, over "
+                                          f"our K={k} frame (JAX on {jax.default_backend()})")
+
+
+# --------------------------------------------------------------------------------------------
+# Stages
+
+
+def dataset_stats(run) -> dict:
+    """Sizes of the training set, the held-out maps, the training curve (loss.png)."""
+    data, info = run.dataset, run.result.info
+    losses = np.asarray(info["losses"])
+    if len(losses):
+        steps_run = np.arange(len(losses)) + 1 + info["resumed_from"]
+        jeval.plot_series(os.path.join(run.out, "loss.png"), {"mu-law L2": (steps_run, losses)},
+                          xlabel="step", ylabel="loss", title="training loss", logy=True)
+    return {"n_train_images": int(np.prod(data.train["valid"].shape[:2])), "n_train_envs": len(data.env_names),
+            "held_out_envs": data.test_env_names, "render_s": data.stats["render_s"],
+            "image_size": list(data.train["valid"].shape[2:]), "train_s_source": info["train_s_source"],
+            "train_resumed_from": info["resumed_from"]}
+
+
+def table1(run) -> dict:
+    """Table 1: near / far views on held-out maps against the baseline indirect = c * direct
+    (the best RGB c on the training data); images with the baseline (side_by_side_baseline.png)."""
+    data, e = run.dataset, run.config["eval"]
+    c = wp.indirect_baseline_scale(data.train["direct"], data.train["indirect"], data.train["valid"])
+    s = {"baseline_scale": c.tolist()}
+    for split in ("near", "far"):
+        if not data.tests[split]:
+            continue
+        preds = run.state["far"] if split == "far" else _predict(run.evaluate, data, split)
+        sc = _scores(preds, data.tests[split], e["exposure"])
+        base = _scores([c[None, None, :] * d for d in data.tests[split]["direct"]], data.tests[split], e["exposure"])
+        for k, v in sc.items():
+            s[f"{k}_{split}"] = v
+            s[f"{k}_{split}_baseline"] = base[k]
+        run.say(f"{split} views: PSNR indirect {sc['psnr_indirect']:.2f} dB (baseline c*direct "
+                f"{base['psnr_indirect']:.2f}), full {sc['psnr_full']:.2f} dB, SSIM indirect {sc['ssim_indirect']:.4f}")
+    t = data.tests["far"]
+    rows = []
+    for i in range(min(3, len(t["valid"]))):
+        rows.append((f"far {i}: ours (K={run.method_config['render']['k']})", t["indirect"][i], run.state["far"][i]))
+        rows.append((f"far {i}: c * direct", t["indirect"][i], c[None, None, :] * t["direct"][i]))
+    jeval.side_by_side(os.path.join(run.out, "side_by_side_baseline.png"), rows, exposure=1.0,
+                       titles=("reference indirect", "prediction", "|difference|"))
+    return s
+
+
+def k_sweep(run) -> dict:
+    """PSNR of the far views by the number K of lighting wavelets at run time."""
+    by_k = {}
+    for k in run.config["eval"]["ks"]:
+        evaluate = run.evaluate if int(k) == int(run.method_config["render"]["k"]) else wp.evaluator(
+            run.result.params, run.with_config({"render": {"k": int(k)}}))
+        by_k[str(k)] = _scores(_predict(evaluate, run.dataset, "far"), run.dataset.tests["far"],
+                               run.config["eval"]["exposure"])["psnr_indirect"]
+    return {"psnr_indirect_far_by_k": by_k}
+
+
+def frame_times(run) -> dict:
+    """Table 2: frame time by resolution and K."""
+    from jprt.render.gbuffer import gbuffer
+
+    e, data = run.config["eval"], run.dataset
+    frame_ms = {}
+    for w, h in e["timing_resolutions"]:
+        g = gbuffer(_handle(run, data.test_envs[0]), _camera(run.config, data.cameras["far"][0], w, h))
+        g = {k: jax.device_put(np.asarray(getattr(g, k))) for k in wp.GBUFFER_FIELDS}
+        for k in e["ks"]:
+            evaluate = wp.evaluator(run.result.params, run.with_config({"render": {"k": int(k)}}))
+            ms = jeval.time_call(evaluate, g, CubeMap(data.test_envs[0]), repeats=int(e["timing_repeats"]),
+                                 warmup=1)["median_ms"]
+            frame_ms.setdefault(f"{w}x{h}", {})[str(k)] = ms
+            run.say(f"frame {w}x{h}, K={k}: {ms:.0f} ms")
+    return {"frame_ms_by_resolution": frame_ms}
+
+
+def ablations(run) -> dict:
+    """Tables 3, 4 and 6 at a reduced, common step count: hash-table size, reflection encoding,
+    the spatial feature field (multiresolution hash grid, one grid, per-vertex features)."""
+    e, data = run.config["eval"], run.dataset
+    steps = int(e["ablation_steps"])
+    out = {}
+    for key, values in e["ablations"].items():
+        rows = {}
+        variants = values.items() if isinstance(values, dict) else ((v, {key: v}) for v in values)
+        for value, overrides in variants:
+            cfg = run.with_config({"model": overrides, "train": {"steps": steps}})
+            d = data
+            if cfg["model"]["spatial"] == "vertex":
+                d = wp_data.add_vertex_interpolation(data, run.config["scene"], float(cfg["model"]["vertex_edge"]))
+            r = _train(run, cfg, d, f"ablation {key}={value}", progress=False)
+            sc = _scores(_predict(wp.evaluator(r.params, cfg), d, "far"), d.tests["far"], e["exposure"])
+            rows[str(value)] = {"psnr_indirect_far": sc["psnr_indirect"], "psnr_full_far": sc["psnr_full"],
+                                "ssim_indirect_far": sc["ssim_indirect"], "model_bytes": wp.model_bytes(r.params)}
+            run.say(f"ablation {key}={value}: PSNR indirect far {sc['psnr_indirect']:.2f} dB")
+        out[key] = rows
+    return {"ablations": out, "ablation_steps": steps}
+
+
+def gt_transport_check(run) -> dict:
     """Step 1: Mitsuba transport of a small far view -> Haar -> top-K relighting vs Mitsuba."""
+    config, data, out = run.config, run.dataset, run.out
     from jprt.render.cameras import camera_rays
     from jprt.render.images import indirect_rays
     from jprt.render.lights import EnvMap
@@ -170,184 +381,12 @@ def gt_transport_check(config: dict, data: wp.WaveletData, out: str) -> dict:
     h, w = int(gc["height"]), int(gc["width"])
     io.write_exr(os.path.join(out, "gt_transport_mitsuba.exr"), ref.reshape(h, w, 3))
     io.write_exr(os.path.join(out, "gt_transport_wavelets_all.exr"), res["wavelet_all"].reshape(h, w, 3))
-    _say("transport check: rel. error vs Mitsuba " + ", ".join(
+    run.say("transport check: rel. error vs Mitsuba " + ", ".join(
         f"K={k}: {v:.3f}" for k, v in summary["gt_transport_rel_err_by_k"].items())
         + f"; all wavelets {summary['gt_transport_rel_err_all']:.3f}; noise floor "
         f"{summary['gt_transport_noise_floor']:.3f}")
     return summary
 
 
-def _logged_train_s(log_path: str) -> float | None:
-    """Training wall time from a run's metrics.jsonl: the sum over its segments (a resumed run
-    restarts elapsed_s) of each segment's last elapsed_s."""
-    import json
-
-    if not os.path.isfile(log_path):
-        return None
-    total, last = 0.0, 0.0
-    with open(log_path) as f:
-        for line in f:
-            t = float(json.loads(line)["elapsed_s"])
-            if t < last:
-                total += last
-            last = t
-    return total + last
-
-
-def _train(config: dict, data, label: str, progress: bool = True) -> dict:
-    from jprt.render.dataset import cache_root
-
-    folder = os.path.join(cache_root(), "wavelet_prt", "runs", wp.run_key(config))
-    os.makedirs(folder, exist_ok=True)
-    _say(f"{label}: checkpoint {folder}")
-    log_path = os.path.join(folder, "metrics.jsonl")
-    run = wp.fit(data, config, checkpoint_path=os.path.join(folder, "ckpt.npz"), log_path=log_path, progress=progress)
-    return dict(run, log_path=log_path)
-
-
-def main(config: dict) -> dict:
-    """Run the experiment; returns the summary (also written as summary.json)."""
-    config = merge(CONFIG, config)
-    e = config["eval"]
-    out = os.path.join(config["output"]["dir"], config_hash(config))
-    os.makedirs(out, exist_ok=True)
-    save_resolved(config, out)
-    t_start = time.perf_counter()
-    summary: dict = {"config_hash": config_hash(config)}
-
-    data = wp.make_dataset(None, config)
-    summary.update(n_train_images=int(np.prod(data.train["valid"].shape[:2])), n_train_envs=len(data.env_names),
-                   held_out_envs=data.test_env_names, render_s=data.stats["render_s"],
-                   image_size=list(data.train["valid"].shape[2:]))
-    summary.update(gt_transport_check(config, data, out))
-
-    run = _train(config, data, "training")
-    params = run["params"]
-    summary["train_s"], summary["train_s_source"] = run["train_s"], "this run"
-    if run["resumed_from"]:
-        summary["train_s"], summary["train_s_source"] = _logged_train_s(run["log_path"]), "metrics.jsonl (resumed run)"
-    summary["train_resumed_from"] = run["resumed_from"]
-    summary["model_bytes"] = wp.model_bytes(params)
-    losses = np.asarray(run["losses"])
-    if len(losses):
-        steps_run = np.arange(len(losses)) + 1 + run["resumed_from"]
-        jeval.plot_series(os.path.join(out, "loss.png"), {"mu-law L2": (steps_run, losses)},
-                          xlabel="step", ylabel="loss", title="training loss", logy=True)
-
-    # Table 1: near / far views on held-out maps, and the c * direct baseline
-    c = wp.indirect_baseline_scale(data.train["direct"], data.train["indirect"], data.train["valid"])
-    summary["baseline_scale"] = c.tolist()
-    preds = {}
-    ev_default = wp.evaluator(params, config)
-    for split in ("near", "far"):
-        if not data.tests[split]:
-            continue
-        ev = ev_default
-        preds[split] = _predict(ev, data, split)
-        s = _scores(preds[split], data.tests[split], e["exposure"])
-        base = _scores([c[None, None, :] * d for d in data.tests[split]["direct"]], data.tests[split], e["exposure"])
-        for k, v in s.items():
-            summary[f"{k}_{split}"] = v
-            summary[f"{k}_{split}_baseline"] = base[k]
-        _say(f"{split} views: PSNR indirect {s['psnr_indirect']:.2f} dB (baseline c*direct "
-             f"{base['psnr_indirect']:.2f}), full {s['psnr_full']:.2f} dB, SSIM indirect {s['ssim_indirect']:.4f}")
-    by_k = {}
-    for k in e["ks"]:
-        ev = ev_default if int(k) == int(config["render"]["k"]) else wp.evaluator(params, config, k=int(k))
-        by_k[str(k)] = _scores(_predict(ev, data, "far"), data.tests["far"], e["exposure"])["psnr_indirect"]
-    summary["psnr_indirect_far_by_k"] = by_k
-
-    # images
-    t = data.tests["far"]
-    rows = []
-    for i in range(min(3, len(t["valid"]))):
-        rows.append((f"far {i}: ours (K={config['render']['k']})", t["indirect"][i], preds["far"][i], t["valid"][i]))
-        rows.append((f"far {i}: c * direct", t["indirect"][i], c[None, None, :] * t["direct"][i], t["valid"][i]))
-        io.write_exr(os.path.join(out, f"far_{i}_ours.exr"), preds["far"][i])
-        io.write_exr(os.path.join(out, f"far_{i}_reference.exr"), t["indirect"][i])
-    jeval.side_by_side(os.path.join(out, "side_by_side.png"), rows, exposure=1.0,
-                       titles=("reference indirect", "prediction", "|difference|"))
-
-    # Table 2: frame time by resolution and K; equal error against Mitsuba
-    from jprt.render import images as mimages
-    from jprt.render.lights import EnvMap
-    from jprt.render.scenes import SceneHandle
-
-    handle = SceneHandle(config["scene"], EnvMap.create(wp.render_equirect(data.test_envs[0])))
-    origin = data.cameras["far"][0]
-    frame_ms = {}
-    for w, h in e["timing_resolutions"]:
-        cam = _camera(config, origin, w, h)
-        g = wp._gbuffer_arrays(handle, cam)
-        g = {k: jax.device_put(v) for k, v in g.items()}
-        for k in e["ks"]:
-            ev = wp.evaluator(params, config, k=int(k))
-            ms = jeval.time_call(ev, g, data.test_envs[0], repeats=int(e["timing_repeats"]), warmup=1)["median_ms"]
-            frame_ms.setdefault(f"{w}x{h}", {})[str(k)] = ms
-            _say(f"frame {w}x{h}, K={k}: {ms:.0f} ms")
-    summary["frame_ms_by_resolution"] = frame_ms
-    timing_key = "256x256" if "256x256" in frame_ms else next(iter(frame_ms))
-    summary["frame_ms"] = frame_ms[timing_key]
-    summary["frame_ms_resolution"] = timing_key
-
-    refs, valids = t["indirect"], t["valid"]
-    target_rmse = jeval.set_rmse(preds["far"], refs, valids)
-    summary["rmse_indirect_far_set"] = target_rmse
-    far_cams = [_camera(config, o, config["cameras"]["width"], config["cameras"]["height"])
-                for o in data.cameras["far"]]
-
-    def render_at(spp):
-        out_images = []
-        for i, cam in enumerate(far_cams):
-            handle.set_lighting(EnvMap.create(wp.render_equirect(data.test_envs[int(t["env"][i])])))
-            out_images.append(mimages.direct_indirect(handle, cam, spp=spp, seed=4242 + i).indirect)
-        return out_images
-
-    eq = jeval.equal_error_spp(render_at, refs, target_rmse, e["equal_error_spp"], valids, _say)
-    summary["equal_error_spp"] = eq["spp"]
-    summary["pathtrace_rmse_by_spp"] = eq["tried"]
-    jeval.plot_series(os.path.join(out, "equal_error.png"),
-                      {"Mitsuba path tracing": ([x["spp"] for x in eq["tried"]], [x["rmse"] for x in eq["tried"]])},
-                      xlabel="spp", ylabel="indirect RMSE (far views)", title="path tracing vs neural-wavelet PRT",
-                      logx=True, logy=True, hlines={"neural-wavelet PRT (K=64)": target_rmse})
-    spp_eq = eq["spp"] or max(int(s) for s in e["equal_error_spp"])
-    w, h = (int(v) for v in timing_key.split("x"))
-    cam = _camera(config, origin, w, h)
-    handle.set_lighting(EnvMap.create(wp.render_equirect(data.test_envs[0])))
-    mimages.direct_indirect(handle, cam, spp=1, seed=3)  # warm-up: kernels for this film size
-    pt = jeval.time_call(lambda: mimages.direct_indirect(handle, cam, spp=spp_eq, seed=3),
-                         repeats=int(e["timing_repeats"]), warmup=0)
-    summary["pathtrace_ms_equal_error"] = pt["median_ms"]
-    summary["pathtrace_spp_timed"] = spp_eq
-    k_default = str(config["render"]["k"])
-    ours_ms = summary["frame_ms"].get(k_default, next(iter(summary["frame_ms"].values())))
-    summary["speedup_equal_error"] = pt["median_ms"] / ours_ms
-    summary["speedup_note"] = (f"Mitsuba llvm_ad_rgb indirect (full max_depth -1 and direct max_depth 2 renders, both "
-                               f"timed) at {timing_key} and the equal-error spp, over our K={k_default} frame at "
-                               f"{timing_key} (JAX on {jax.default_backend()})"
-                               + ("" if eq["spp"] else "; equal error NOT reached: timed at the largest spp tried"))
-    _say(f"equal-error spp {eq['spp']}: Mitsuba {pt['median_ms']:.0f} ms vs ours {ours_ms:.0f} ms -> speedup "
-         f"{summary['speedup_equal_error']:.2f}x")
-
-    # Tables 3 and 4: ablations at a reduced, common step count
-    steps = int(e["ablation_steps"])
-    ablations = {}
-    for key, values in e["ablations"].items():
-        rows = {}
-        variants = values.items() if isinstance(values, dict) else ((v, {key: v}) for v in values)
-        for value, overrides in variants:
-            cfg = merge(config, {"model": overrides, "train": {"steps": steps}})
-            d = data
-            if cfg["model"]["spatial"] == "vertex":
-                d = wp.add_vertex_interpolation(data, config["scene"], float(cfg["model"]["vertex_edge"]))
-            r = _train(cfg, d, f"ablation {key}={value}", progress=False)
-            ev = wp.evaluator(r["params"], cfg)
-            s = _scores(_predict(ev, d, "far"), d.tests["far"], e["exposure"])
-            rows[str(value)] = {"psnr_indirect_far": s["psnr_indirect"], "psnr_full_far": s["psnr_full"],
-                                "ssim_indirect_far": s["ssim_indirect"], "model_bytes": wp.model_bytes(r["params"])}
-            _say(f"ablation {key}={value}: PSNR indirect far {s['psnr_indirect']:.2f} dB")
-        ablations[key] = rows
-    summary["ablations"] = ablations
-    summary["ablation_steps"] = steps
-    return jeval.write_report(out, summary, t_start, "Neural-wavelet PRT")
-
+#: The stages of the neural-wavelet PRT report, in order.
+STAGES = [dataset_stats, gt_transport_check, table1, k_sweep, frame_times, ablations]

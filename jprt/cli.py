@@ -22,7 +22,8 @@ __all__ = ["main", "load_experiment", "resolve_config"]
 
 
 def load_experiment(path: str) -> ModuleType:
-    """Import an experiment file and check it defines CONFIG and main."""
+    """Import an experiment file and check it defines CONFIG and either METHOD (a REGISTRY name:
+    ``jprt.runner`` runs it) or its own ``main(config)``."""
     if not os.path.isfile(path):
         raise FileNotFoundError(f"experiment file not found: {path}")
     name = "jprt_experiment_" + os.path.splitext(os.path.basename(path))[0]
@@ -33,8 +34,10 @@ def load_experiment(path: str) -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     spec.loader.exec_module(module)
-    if not isinstance(getattr(module, "CONFIG", None), dict) or not callable(getattr(module, "main", None)):
-        raise ValueError(f"{path} must define CONFIG (a dict) and main(config)")
+    runnable = isinstance(getattr(module, "METHOD", None), str) or callable(getattr(module, "main", None))
+    if not isinstance(getattr(module, "CONFIG", None), dict) or not runnable:
+        raise ValueError(f"{path} must define CONFIG (a dict) and METHOD (a jprt.methods.REGISTRY name) or "
+                         f"main(config)")
     return module
 
 
@@ -77,7 +80,7 @@ def _info() -> int:
         lines.append("jax devices: " + ", ".join(str(d) for d in jax.devices()))
     except Exception as e:
         lines.append(f"jax devices: unavailable ({e})")
-    from jprt.render.dataset import cache_root
+    from jprt.cache import cache_root
 
     lines.append(f"cache: {cache_root()}")
     print("\n".join(lines))
@@ -90,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("info", help="versions, Mitsuba variant, LLVM library, JAX devices")
     for name, help_text in (("render", "render the dataset of an experiment config"),
-                            ("run", "run an experiment file (CONFIG + main)")):
+                            ("run", "run an experiment file (CONFIG + METHOD, or main)")):
         p = sub.add_parser(name, help=help_text)
         p.add_argument("experiment", help="path to an experiment .py file")
         p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -115,7 +118,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"dataset: {ds.folder} ({len(ds)} items; rendered {ds.stats['rendered']} entries, "
                   f"reused {ds.stats['cached']})")
             return 0
-        module.main(config)
+        if callable(getattr(module, "main", None)):
+            module.main(config)
+        else:
+            from jprt.runner import run
+
+            run(module, config)
         return 0
     except (ConfigError, LLVMNotFoundError, FileNotFoundError, ValueError) as e:
         print(f"jprt: error: {e}", file=sys.stderr)

@@ -10,17 +10,20 @@ from __future__ import annotations
 from typing import Callable
 
 import jax
+import numpy as np
 
 __all__ = ["export_function", "load_function"]
 
 
 def export_function(fn: Callable, *example_args, platforms: tuple[str, ...] | None = None) -> bytes:
-    """Serialise ``fn`` (jitted or not) for arguments shaped like ``example_args``.
+    """Serialise ``fn`` (jitted or not) for arguments shaped like ``example_args`` (pytrees of
+    arrays: a method's (inputs, lighting), e.g. ``jprt.inputs`` NamedTuples).
 
     ``platforms`` (e.g. ("cpu", "cuda")) lowers for several backends; default: the current one.
     """
     jitted = fn if hasattr(fn, "lower") else jax.jit(fn)
-    shapes = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in example_args]
+    shapes = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(np.shape(a), jax.numpy.asarray(a).dtype),
+                                    example_args)
     exported = jax.export.export(jitted, platforms=platforms)(*shapes)
     return bytes(exported.serialize())
 

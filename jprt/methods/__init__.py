@@ -1,10 +1,20 @@
-"""The published systems, each composing the layers below (DESIGN.md, "Methods").
+"""The published systems (and baselines), one package each behind one contract
+(``jprt.methods.base``): ``REGISTRY`` maps names to ``Method`` tuples.
 
-Every method module exposes ``make_dataset(scene, config)``, ``fit(data, config)`` and
-``evaluator(params, config)``; evaluation and reports go through ``jprt.eval`` and the
-experiment files.
-
-* ``rrf`` + ``kdtree``: Radiance Regression Functions (Ren et al. 2013).
+* ``rrf``: Radiance Regression Functions (Ren et al. 2013).
 * ``wavelet_prt``: neural-wavelet PRT, environment-map relighting from any view (Raghavan et al. 2023).
-* ``datadriven`` (+ ``sh_prt``, the SH PRT baseline): data-driven PRT (Belcour et al. 2022).
+* ``datadriven``: data-driven PRT (Belcour et al. 2022).
+* ``sh_prt``: classic SH PRT (Sloan et al. 2002), data-driven PRT's baseline.
+
+Each package has ``model.py`` (the paper's math in pure JAX, in the paper's order, no Mitsuba),
+``data.py`` (its training data rendered through ``jprt.render``) and ``METHOD``.
 """
+
+from jprt.methods import datadriven, rrf, sh_prt, wavelet_prt
+from jprt.methods.base import FitResult, Method
+
+__all__ = ["REGISTRY", "Method", "FitResult", "datadriven", "rrf", "sh_prt", "wavelet_prt"]
+
+#: Every method by name, in the order of the mission statement.
+REGISTRY: dict[str, Method] = {m.name: m for m in (rrf.METHOD, wavelet_prt.METHOD, datadriven.METHOD,
+                                                   sh_prt.METHOD)}

@@ -7,36 +7,12 @@ over exactly its footprint (the G-buffer samples the pixel centre of the same fo
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import numpy as np
 
+from jprt.inputs import Camera
+from jprt.inputs import vec3 as _vec3
+
 __all__ = ["Camera", "look_at", "orbit", "helix", "random_in_box", "to_sensor_dict", "camera_rays", "random_rays", "check_rays"]
-
-
-class Camera(NamedTuple):
-    """A pinhole camera looking from ``origin`` at ``target``.
-
-    ``fov`` is the field of view in degrees along the smaller image axis (Mitsuba's
-    ``fov_axis='smaller'``).
-    """
-
-    origin: tuple[float, float, float]
-    target: tuple[float, float, float]
-    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
-    fov: float = 39.3077
-    width: int = 256
-    height: int = 256
-
-    def describe(self) -> dict:
-        return {k: (list(map(float, v)) if isinstance(v, tuple) else v) for k, v in self._asdict().items()}
-
-
-def _vec3(v) -> tuple[float, float, float]:
-    v = np.asarray(v, dtype=np.float64).reshape(-1)
-    if v.shape != (3,) or not np.isfinite(v).all():
-        raise ValueError(f"expected a finite 3-vector, got {v!r}")
-    return (float(v[0]), float(v[1]), float(v[2]))
 
 
 def look_at(origin, target, up=(0.0, 1.0, 0.0), *, fov: float = 39.3077, width: int = 256, height: int = 256) -> Camera:

@@ -16,7 +16,6 @@ truncated or corrupt file is detected, reported and re-rendered, never used.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import sys
@@ -26,44 +25,15 @@ from typing import Any, Callable, NamedTuple, Sequence
 import numpy as np
 
 from jprt.config import stable_hash
-from jprt.io import atomic_path, atomic_write_bytes, write_json
+from jprt.cache import cache_root, entry_state, save_npz
+from jprt.io import write_json
 from jprt.render import cameras as cams
 from jprt.render.lights import EnvMap, Lighting, PointLights, lighting_description, validate_lighting
 
-__all__ = ["Dataset", "cache_root", "render_dataset", "open_dataset", "from_config", "cameras_from_config",
+__all__ = ["Dataset", "render_dataset", "open_dataset", "from_config", "cameras_from_config",
            "lightings_from_config", "DEFAULT_DATASET_CONFIG"]
 
 FORMAT_VERSION = 1
-
-
-def cache_root() -> str:
-    """``$JPRT_CACHE`` or ``~/.cache/jprt``."""
-    return os.path.abspath(os.path.expanduser(os.environ.get("JPRT_CACHE", "~/.cache/jprt")))
-
-
-def _sha256(path: str) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def _save_npz(path: str, arrays: dict) -> None:
-    with atomic_path(path, suffix=".npz") as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
-    atomic_write_bytes(path + ".sha256", _sha256(path).encode())
-
-
-def _entry_state(path: str) -> str:
-    """'ok', 'missing' or 'corrupt'."""
-    if not os.path.exists(path + ".sha256"):
-        return "missing"
-    if not os.path.exists(path):
-        return "corrupt"
-    with open(path + ".sha256") as f:
-        return "ok" if f.read().strip() == _sha256(path) else "corrupt"
 
 
 class Item(NamedTuple):
@@ -99,7 +69,7 @@ class Dataset:
 
     def _load(self, name: str) -> dict:
         path = os.path.join(self.folder, name)
-        state = _entry_state(path)
+        state = entry_state(path)
         if state != "ok":
             raise ValueError(f"dataset entry {path} is {state}; re-run render_dataset to repair it")
         with np.load(path) as data:
@@ -193,7 +163,7 @@ def render_dataset(scene, cameras: Sequence[cams.Camera], lightings: Sequence[Li
     stats = {"rendered": 0, "cached": 0, "corrupt": 0}
 
     def plan(name: str, produce: Callable[[Any], dict], needs_lighting: Any) -> None:
-        state = _entry_state(os.path.join(folder, name))
+        state = entry_state(os.path.join(folder, name))
         if state == "ok":
             stats["cached"] += 1
             return
@@ -233,7 +203,7 @@ def render_dataset(scene, cameras: Sequence[cams.Camera], lightings: Sequence[Li
                     elif isinstance(needs, int):
                         handle.set_lighting(lightings[needs])
                 arrays = produce(handle)
-                _save_npz(os.path.join(folder, name), arrays)
+                save_npz(os.path.join(folder, name), arrays)
                 stats["rendered"] += 1
                 if on_entry is not None:
                     on_entry(name)

@@ -17,42 +17,14 @@ read from the BSDF's parameters (diffuse objects: specular 0, roughness 1).
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import numpy as np
+
+from jprt.inputs import GBuffer
 
 from jprt.render.cameras import Camera, check_rays, to_sensor_dict
 from jprt.render.scenes import SceneHandle
 
 __all__ = ["GBuffer", "gbuffer", "gbuffer_rays", "object_materials"]
-
-
-class GBuffer(NamedTuple):
-    """Per-pixel surface attributes of the first hit, all (H, W, ...) NumPy arrays.
-
-    Fields:
-      position:        (H, W, 3) float32 world position.
-      normal:          (H, W, 3) float32 unit shading normal, facing the viewer.
-      view:            (H, W, 3) float32 unit direction from the surface to the camera.
-      reflected:       (H, W, 3) float32 unit mirror direction reflect(-view, normal).
-      uv:              (H, W, 2) float32 surface texture coordinates.
-      diffuse_albedo:  (H, W, 3) float32.
-      specular_albedo: (H, W, 3) float32.
-      roughness:       (H, W)    float32 GGX alpha (1 for diffuse surfaces).
-      object_id:       (H, W)    int32 index into the scene's shapes, -1 where invalid.
-      valid:           (H, W)    bool, the primary ray hit a surface.
-    """
-
-    position: np.ndarray
-    normal: np.ndarray
-    view: np.ndarray
-    reflected: np.ndarray
-    uv: np.ndarray
-    diffuse_albedo: np.ndarray
-    specular_albedo: np.ndarray
-    roughness: np.ndarray
-    object_id: np.ndarray
-    valid: np.ndarray
 
 
 def _first_value(params, suffixes) -> np.ndarray | None:

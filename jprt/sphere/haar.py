@@ -48,7 +48,8 @@ __all__ = [
 BAND_SCALING, BAND_H, BAND_V, BAND_D = 0, 1, 2, 3
 
 
-def _levels(n: int) -> int:
+def check_face_size(n: int) -> int:
+    """The number of Haar levels log2(n) of a cube-map face size n; ValueError unless n is a power of two."""
     levels = int(np.log2(n))
     if n < 1 or 2**levels != n:
         raise ValueError(f"Haar face size must be a power of two, got {n}")
@@ -75,7 +76,7 @@ def forward(cubemap, *, premultiply: bool = False):
     """
     cubemap = jnp.asarray(cubemap)
     n = cubemap.shape[1]
-    levels = _levels(n)
+    levels = check_face_size(n)
     if premultiply:
         cubemap = cubemap * texel_solid_angles(n).reshape((6, n, n) + (1,) * (cubemap.ndim - 3))
     a = _to_face_last(cubemap)
@@ -99,7 +100,7 @@ def inverse(coeffs, *, premultiplied: bool = False):
     """Inverse of ``forward`` (divides by the texel solid angles if ``premultiplied``)."""
     coeffs = jnp.asarray(coeffs)
     n = coeffs.shape[1]
-    levels = _levels(n)
+    levels = check_face_size(n)
     c = _to_face_last(coeffs)
     a = c[..., :1, :1]
     r = 1
@@ -134,7 +135,7 @@ class WaveletIndex(NamedTuple):
 
 def flat_index(face, level, band, i, j, n: int):
     """Flat index over the whole cube map of (face, level, band, i, j) for face size ``n``."""
-    _levels(n)
+    check_face_size(n)
     face, level, band, i, j = (jnp.asarray(t, jnp.int32) for t in (face, level, band, i, j))
     r = jnp.left_shift(1, level)
     row = jnp.where(band == BAND_SCALING, 0, jnp.where(band == BAND_H, i, r + i))
@@ -144,7 +145,7 @@ def flat_index(face, level, band, i, j, n: int):
 
 def unflatten_index(index, n: int) -> WaveletIndex:
     """Inverse of ``flat_index``."""
-    _levels(n)
+    check_face_size(n)
     index = jnp.asarray(index, jnp.int32)
     face = index // (n * n)
     rem = index % (n * n)
@@ -161,7 +162,7 @@ def unflatten_index(index, n: int) -> WaveletIndex:
 
 def support_area(n: int):
     """(6, n, n) support size, as a fraction of one face, of each coefficient in Mallat layout."""
-    _levels(n)
+    check_face_size(n)
     rows = np.arange(n)
     m = np.maximum(rows[:, None], rows[None, :])
     level = np.where(m == 0, 0, np.floor(np.log2(np.maximum(m, 1))).astype(int))

@@ -10,7 +10,11 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from scipy.spatial.distance import pdist
 
-from jprt.methods import datadriven as dd
+import jax
+
+from jprt.inputs import PointRadiance
+from jprt.methods.atlas import atlas_inputs
+from jprt.methods.datadriven import model as dd
 
 
 def _layout(params, texels, res=8):
@@ -20,7 +24,6 @@ def _layout(params, texels, res=8):
     fill = np.minimum(np.arange(res * res), texels - 1).astype(np.int32)
     params["fill_index"] = fill
     params["fine_index"] = np.arange(len(params["group"]), dtype=np.int32)
-    params["meta"] = dict(params["meta"], resolution=res)
     return params
 
 
@@ -46,8 +49,8 @@ def test_recovers_known_linear_transport_exactly(channels):
     n = 40 if channels == "mono" else 80  # multi needs N >= 3P examples for a full-rank D
     m_true, direct, indirect = _linear_transport(rng, p, t, n, colour_mix=channels == "multi")
     rank = p if channels == "mono" else 3 * p
-    params = dd.fit_arrays(direct, indirect, np.arange(p),
-                           {"basis": {"n": rank, "center": False, "channels": channels}, "transfer": {"lam": 0.0}})
+    cfg = {"basis": {"n": rank, "center": False, "channels": channels}, "transfer": {"lam": 0.0}}
+    params = dd.fit_arrays(direct, indirect, np.arange(p), cfg).params
     # effective operator U_n M_n equals the true transport
     u, m = params["basis"].astype(np.float64), params["transfer"].astype(np.float64)
     if channels == "mono":
@@ -55,14 +58,13 @@ def test_recovers_known_linear_transport_exactly(channels):
             np.testing.assert_allclose(u @ m[c], m_true, atol=2e-5 * np.abs(m_true).max())
     else:
         np.testing.assert_allclose(u @ m, m_true, atol=2e-5 * np.abs(m_true).max())
-    # and held-out lighting is reproduced through the jitted evaluator
-    evaluate = dd.evaluator(_layout(params, t))
+    # and held-out lighting is reproduced through the jitted lightmap
     fresh = rng.random((4, p, 3))
     if channels == "mono":
         expected = np.einsum("tp,npc->ntc", m_true, fresh)
     else:
         expected = (fresh.reshape(4, -1) @ m_true.T).reshape(4, t, 3)
-    got = np.stack([np.asarray(evaluate.lightmap(f)) for f in fresh])
+    got = np.asarray(dd.lightmap(params, fresh, cfg))
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-4 * np.abs(expected).max())
 
 
@@ -71,9 +73,8 @@ def test_centred_basis_interpolates_training_examples():
     rng = np.random.default_rng(1)
     p, t, n = 30, 80, 20
     _, direct, indirect = _linear_transport(rng, p, t, n)
-    params = dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": p + 1}, "transfer": {"lam": 0.0}})
-    evaluate = dd.evaluator(_layout(params, t))
-    got = np.stack([np.asarray(evaluate.lightmap(d)) for d in direct])
+    params = dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": p + 1}, "transfer": {"lam": 0.0}}).params
+    got = np.asarray(dd.lightmap(params, direct))
     np.testing.assert_allclose(got, indirect, rtol=1e-4, atol=1e-4 * np.abs(indirect).max())
     # the projection of the training set onto its own full basis is exact too
     np.testing.assert_allclose(dd.project(params, direct, indirect), indirect, atol=1e-5 * np.abs(indirect).max())
@@ -83,10 +84,10 @@ def test_intensity_scaling_is_linear():
     """Normalising by |x| and scaling the mean back makes the output homogeneous of degree 1."""
     rng = np.random.default_rng(2)
     _, direct, indirect = _linear_transport(rng, 8, 30, 50)
-    params = dd.fit_arrays(direct, indirect + 0.01 * rng.random(indirect.shape), np.arange(8), {"basis": {"n": 5}})
-    evaluate = dd.evaluator(_layout(params, 30))
+    cfg = {"basis": {"n": 5}}
+    params = dd.fit_arrays(direct, indirect + 0.01 * rng.random(indirect.shape), np.arange(8), cfg).params
     x = rng.random((8, 3))
-    np.testing.assert_allclose(np.asarray(evaluate.lightmap(7.5 * x)), 7.5 * np.asarray(evaluate.lightmap(x)),
+    np.testing.assert_allclose(np.asarray(dd.lightmap(params, 7.5 * x, cfg)), 7.5 * np.asarray(dd.lightmap(params, x, cfg)),
                                rtol=1e-5, atol=1e-6)
 
 
@@ -133,15 +134,14 @@ def test_ill_conditioned_direct_matrix_warns_and_stays_finite():
     direct[:, 3] = direct[:, 2]  # duplicate measurement points
     direct[4] = 0.0  # a configuration whose light reaches no measurement point
     with pytest.warns(dd.IllConditionedWarning) as record:
-        params = dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": 8}, "transfer": {"lam": 0.0}})
+        params = dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": 8}, "transfer": {"lam": 0.0}}).params
     messages = " ".join(str(w.message) for w in record)
     assert "condition number" in messages and "zero direct vector" in messages
     for key in ("mean", "basis", "transfer"):
         assert np.isfinite(params[key]).all(), key
-    evaluate = dd.evaluator(_layout(params, t))
-    assert np.isfinite(np.asarray(evaluate.lightmap(direct[0]))).all()
-    assert np.isfinite(np.asarray(evaluate.lightmap(np.zeros((p, 3))))).all()  # zero light -> finite (zero)
-    np.testing.assert_allclose(np.asarray(evaluate.lightmap(np.zeros((p, 3)))), 0.0)
+    assert np.isfinite(np.asarray(dd.lightmap(params, direct[0]))).all()
+    assert np.isfinite(np.asarray(dd.lightmap(params, np.zeros((p, 3))))).all()  # zero light -> finite (zero)
+    np.testing.assert_allclose(np.asarray(dd.lightmap(params, np.zeros((p, 3)))), 0.0)
 
 
 def test_all_zero_direct_is_an_error():
@@ -169,12 +169,11 @@ def test_gamma_transfer_reproduces_data_linear_in_gamma_space():
     p, t, n, gamma = 8, 30, 40, 2.2
     m_true, direct_g, indirect_g = _linear_transport(rng, p, t, n)
     direct, indirect = dd.gamma_decode(direct_g, gamma), dd.gamma_decode(indirect_g, gamma)
-    params = dd.fit_arrays(direct, indirect, np.arange(p),
-                           {"basis": {"n": p, "center": False, "gamma": gamma}, "transfer": {"lam": 0.0}})
-    evaluate = dd.evaluator(_layout(params, t))
+    cfg = {"basis": {"n": p, "center": False, "gamma": gamma}, "transfer": {"lam": 0.0}}
+    params = dd.fit_arrays(direct, indirect, np.arange(p), cfg).params
     fresh_g = rng.random((3, p, 3))
     expected = dd.gamma_decode(np.einsum("tp,npc->ntc", m_true, fresh_g), gamma)
-    got = np.stack([np.asarray(evaluate.lightmap(dd.gamma_decode(f, gamma))) for f in fresh_g])
+    got = np.asarray(dd.lightmap(params, dd.gamma_decode(fresh_g, gamma), cfg))
     np.testing.assert_allclose(got, expected, rtol=2e-4, atol=2e-4 * np.abs(expected).max())
 
 
@@ -250,7 +249,7 @@ def test_image_lookup_at_texel_centres_returns_texels():
     rng = np.random.default_rng(8)
     p, t, res = 6, 64, 8
     _, direct, indirect = _linear_transport(rng, p, t, 30)
-    params = _layout(dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": 6}}), t, res)
+    params = _layout(dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": 6}}).params, t, res)
     params["fill_index"] = np.arange(res * res, dtype=np.int32)
     evaluate = dd.evaluator(params)
     rows, cols = np.divmod(np.arange(t), res)
@@ -263,14 +262,14 @@ def test_image_lookup_at_texel_centres_returns_texels():
     gb.uv, gb.valid = uv, np.ones((8, 8), bool)
     gb.valid[0, 0] = False
     x = direct[3]
-    image = np.asarray(evaluate(gb, x))
-    lm = np.asarray(evaluate.lightmap(x))
+    image = np.asarray(evaluate(gb, PointRadiance(x)))
+    lm = np.asarray(dd.lightmap(params, x))
     np.testing.assert_allclose(image.reshape(-1, 3)[1:], lm[1:], rtol=1e-5, atol=1e-6)
     assert np.all(image[0, 0] == 0)
     with pytest.raises(ValueError, match="fine measurement points"):
-        evaluate(gb, np.zeros((p + 1, 3)))
+        evaluate(gb, PointRadiance(np.zeros((p + 1, 3))))
     # transfer alone = M_n x
-    coeffs = np.asarray(evaluate.transfer(jnp.asarray(x, jnp.float32)))
+    coeffs = np.asarray(dd.transfer_coefficients(params, x))
     np.testing.assert_allclose(coeffs, np.einsum("cnp,pc->nc", params["transfer"], x), rtol=1e-5, atol=1e-6)
 
 
@@ -285,16 +284,20 @@ def test_fit_input_errors():
         dd.fit_arrays(np.ones((3, 4, 3)), np.ones((3, 5, 3)), np.arange(4), {"basis": {"channels": "rgb"}})
 
 
-def test_numpy_batch_prediction_matches_the_jitted_evaluator_and_cv_picks_a_candidate():
+def test_batched_lightmap_matches_the_evaluator_and_cv_picks_a_candidate():
     rng = np.random.default_rng(9)
     p, t = 8, 40
     _, direct, indirect = _linear_transport(rng, p, t, 40)
     noisy = indirect + 0.05 * rng.normal(size=indirect.shape)
+    atlas = atlas_inputs(8, np.arange(t))
     for channels, gamma in (("mono", 0.0), ("multi", 0.0), ("mono", 2.2)):
-        params = dd.fit_arrays(direct, noisy, np.arange(p), {"basis": {"n": 6, "channels": channels, "gamma": gamma}})
-        evaluate = dd.evaluator(_layout(params, t))
-        want = np.stack([np.asarray(evaluate.lightmap(d)) for d in direct[:5]])
-        np.testing.assert_allclose(dd._predict_np(params, direct[:5]), want, rtol=1e-4, atol=1e-4)
+        cfg = {"basis": {"n": 6, "channels": channels, "gamma": gamma}}
+        params = _layout(dd.fit_arrays(direct, noisy, np.arange(p), cfg).params, t)
+        params["fill_index"] = np.arange(64, dtype=np.int32) % t
+        evaluate = dd.evaluator(params, cfg)
+        batch = np.asarray(dd.lightmap(params, direct[:5], cfg))  # one call over a batch of lightings
+        images = np.stack([np.asarray(evaluate(atlas, PointRadiance(d))) for d in direct[:5]])
+        np.testing.assert_allclose(images.reshape(5, -1, 3)[:, :t], batch, rtol=1e-5, atol=1e-6)
     cv = dd.cross_validate_lambda(direct, noisy, np.arange(p), {"basis": {"n": 6}}, [1e-6, 1e-2, 1e3], folds=4)
     assert cv["best"] in (1e-6, 1e-2, 1e3) and len(cv["rmse"]) == 3
     assert cv["rmse"][2] > min(cv["rmse"][:2])  # a huge lambda shrinks the transfer to zero: clearly worse
@@ -306,12 +309,16 @@ def test_linear_mean_recovers_known_transport_with_centring():
     rng = np.random.default_rng(10)
     p, t = 10, 50
     m_true, direct, indirect = _linear_transport(rng, p, t, 40)
-    params = dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": p + 1, "mean": "linear"},
-                                                            "transfer": {"lam": 0.0}})
+    cfg = {"basis": {"n": p + 1, "mean": "linear"}, "transfer": {"lam": 0.0}}
+    params = dd.fit_arrays(direct, indirect, np.arange(p), cfg).params
     np.testing.assert_allclose(params["mean"], 0.0)
     fresh = rng.random((4, p, 3))
     expected = np.einsum("tp,npc->ntc", m_true, fresh)
-    got = dd._predict_np(params, fresh)
+    paper = dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": p + 1}, "transfer": {"lam": 0.0}}).params
+    with jax.enable_x64(True):  # the lightmap in float64: exact recovery is checked at 1e-6
+        f64 = lambda ps: {k: np.asarray(v, np.float64) if np.asarray(v).dtype.kind == "f" else v  # noqa: E731
+                          for k, v in ps.items()}
+        got = np.asarray(dd.lightmap(f64(params), fresh, cfg))
+        paper_got = np.asarray(dd.lightmap(f64(paper), fresh))
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6 * np.abs(expected).max())
-    paper = dd.fit_arrays(direct, indirect, np.arange(p), {"basis": {"n": p + 1}, "transfer": {"lam": 0.0}})
-    assert np.abs(dd._predict_np(paper, fresh) - expected).max() > 1e-3 * np.abs(expected).max()
+    assert np.abs(paper_got - expected).max() > 1e-3 * np.abs(expected).max()

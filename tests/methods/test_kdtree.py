@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from jprt.methods import kdtree
+from jprt.methods.rrf import kdtree
 
 
 def _linear_fitter(x, y):

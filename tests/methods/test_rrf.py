@@ -5,7 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jprt.methods import kdtree, rrf
+from jprt.methods.rrf import data as rrf_data
+from jprt.methods.rrf import kdtree
+from jprt.methods.rrf import model as rrf
 from jprt.render.gbuffer import GBuffer
 from jprt.render.lights import PointLights
 
@@ -50,7 +52,7 @@ def test_smooth_target_single_leaf():
     cfg = {"model": {"hidden": [8, 4]}, "train": {"max_iters": 40, "progress": False}, "tree": {"min_samples": 50}}
     params, info = rrf.fit_arrays(x, y, np.zeros(len(x), np.int32), cfg)
     assert kdtree.KDTree(**params["tree"]).n_leaves == 1
-    assert info.leaf_val_error[0] < 0.01  # stated: a smooth target is fit below 1 % relative error
+    assert info["leaf_val_error"][0] < 0.01  # stated: a smooth target is fit below 1 % relative error
     test = rng.random((500, 3)).astype(np.float32)
     ref = 1.0 + 0.5 * np.sin(2.0 * test[:, 0]) + 0.3 * test[:, 1] * test[:, 2]
     pred = np.asarray(rrf._predict(params, jnp.asarray(test), jnp.zeros(500, jnp.int32)))
@@ -89,13 +91,13 @@ def test_eq9_linearity(model):
 
 def test_no_recompile_for_same_light_count(model):
     params, _ = model
-    evaluate = rrf.evaluator(params)
+    evaluate = jax.jit(rrf.evaluator(params))
     gb = _fake_gbuffer()
     for k in range(3):
         evaluate(gb, PointLights.create([[0.1 * k, 0.5, 0.0], [0.0, 0.6, 0.1 * k]], [1.0, 1.0, 1.0]))
-    assert evaluate.traces[0] == 1
+    assert evaluate._cache_size() == 1
     evaluate(gb, PointLights.create([[0.0, 0.5, 0.0]], [1.0, 1.0, 1.0]))
-    assert evaluate.traces[0] == 2
+    assert evaluate._cache_size() == 2
 
 
 def test_traversal_in_evaluator_matches_brute_force(model):
@@ -115,10 +117,10 @@ def test_bad_input(model):
     outside = PointLights.create([[2.0, 0.5, 0.0]], [1.0, 1.0, 1.0])
     with pytest.raises(ValueError, match="outside the trained light box"):
         evaluate(gb, outside)
-    clamped = rrf.evaluator(params, extrapolation="clamp")(gb, outside)
+    clamped = rrf.evaluator(params, {"render": {"extrapolation": "clamp"}})(gb, outside)
     np.testing.assert_allclose(np.asarray(clamped), np.asarray(evaluate(gb, PointLights.create(
         [[0.5, 0.5, 0.0]], [1.0, 1.0, 1.0]))), rtol=1e-6, atol=1e-7)
-    rrf.evaluator(params, extrapolation="allow")(gb, outside)  # documented: evaluates anyway
+    rrf.evaluator(params, {"render": {"extrapolation": "allow"}})(gb, outside)  # documented: evaluates anyway
     empty = GBuffer(*(np.asarray(a)[:0] for a in gb))
     with pytest.raises(ValueError, match="empty G-buffer"):
         evaluate(empty, inside)
@@ -130,7 +132,7 @@ def test_bad_input(model):
     ok_nan = gb._replace(normal=np.where(~gb.valid[..., None], np.nan, gb.normal))  # NaN at invalid pixels only
     assert np.all(np.isfinite(np.asarray(evaluate(ok_nan, inside))))
     with pytest.raises(ValueError, match="extrapolation"):
-        rrf.evaluator(params, extrapolation="extrapolate")
+        rrf.evaluator(params, {"render": {"extrapolation": "extrapolate"}})
     with pytest.raises(ValueError, match="NaN"):
         rrf.fit_arrays(np.full((10, 3), np.nan), np.ones((10, 3)), np.zeros(10, int), TINY)
 
@@ -142,16 +144,15 @@ def test_export_roundtrip(model):
     evaluate = rrf.evaluator(params)
     gb = _fake_gbuffer()
     lights = PointLights.create([[0.1, 0.5, 0.0], [0.2, 0.7, -0.1]], [[1.0, 0.5, 2.0], [1, 1, 1]])
-    args = rrf.evaluator_arguments(gb, lights)
-    blob = export_function(evaluate.jitted, *args)
+    blob = export_function(evaluate, gb, lights)
     loaded = load_function(blob)
-    np.testing.assert_allclose(np.asarray(loaded(*args)), np.asarray(evaluate(gb, lights)), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(np.asarray(loaded(gb, lights)), np.asarray(evaluate(gb, lights)), rtol=1e-6, atol=1e-7)
 
 
 def test_refit_leaves_variants(model):
     params, info = model
     rng = np.random.default_rng(1)
-    n = info.n_samples
+    n = info["n_samples"]
     data = rrf.RRFData(position=rng.uniform(-1, 1, (n, 3)), view=rng.normal(size=(n, 3)),
                        light=rng.uniform([-0.5, 0.3, -0.5], [0.5, 0.9, 0.5], (n, 3)), normal=rng.normal(size=(n, 3)),
                        brdf=rng.random((n, 7)), edit=np.zeros((n, 0)), object_id=rng.integers(0, 2, n),
@@ -169,7 +170,7 @@ def test_make_dataset_tiny(mi, tmp_path):
     from jprt.render.images import RENDER_STATS
 
     cfg = {"data": {"n_lights": 3, "n_views": 2, "n_rays": 24, "spp": 4}}
-    data = rrf.make_dataset({"name": "cornell_box", "area_light": False}, cfg, cache_dir=str(tmp_path),
+    data = rrf_data.make_dataset({"name": "cornell_box", "area_light": False}, cfg, cache_dir=str(tmp_path),
                             progress=False)
     assert 0.8 * 3 * 2 * 24 <= len(data) <= 3 * 2 * 24
     assert data.brdf.shape == (len(data), 7) and data.edit.shape == (len(data), 0)
@@ -183,25 +184,25 @@ def test_make_dataset_tiny(mi, tmp_path):
     strata = np.floor((lights - lo) / (hi - lo) * 3).astype(int)
     assert all(sorted(strata[:, a]) == [0, 1, 2] for a in range(3))
     before = dict(RENDER_STATS)
-    again = rrf.make_dataset({"name": "cornell_box", "area_light": False}, cfg, cache_dir=str(tmp_path),
+    again = rrf_data.make_dataset({"name": "cornell_box", "area_light": False}, cfg, cache_dir=str(tmp_path),
                              progress=False)
     assert dict(RENDER_STATS) == before
     np.testing.assert_array_equal(again.indirect, data.indirect)
-    x = rrf._data_features(data, "augmented")
+    x = rrf.data_features(data, "augmented")
     assert x.shape == (len(data), rrf.input_size("augmented")) and rrf.input_size("basic") == 9
 
 
 def test_make_dataset_material_mode(mi, tmp_path):
     cfg = {"data": {"mode": "material", "n_lights": 2, "n_rays": 16, "spp": 2,
                     "material": {"object": "floor", "n_materials": 2}}}
-    data = rrf.make_dataset("glossy_cornell", cfg, cache_dir=str(tmp_path), progress=False)
+    data = rrf_data.make_dataset("glossy_cornell", cfg, cache_dir=str(tmp_path), progress=False)
     assert data.edit.shape == (len(data), 2)
     assert len(np.unique(data.edit[:, 0])) == 2
-    assert rrf._data_features(data, "augmented").shape[1] == rrf.input_size("augmented", "material")
+    assert rrf.data_features(data, "augmented").shape[1] == rrf.input_size("augmented", "material")
     with pytest.raises(ValueError, match="without emitters"):
-        rrf.make_dataset("cornell_box", cfg, cache_dir=str(tmp_path), progress=False)  # has its area light
+        rrf_data.make_dataset("cornell_box", cfg, cache_dir=str(tmp_path), progress=False)  # has its area light
     with pytest.raises(ValueError, match="not an object"):
-        rrf.make_dataset("glossy_cornell", {"data": {"mode": "material", "material": {"object": "teapot"}}},
+        rrf_data.make_dataset("glossy_cornell", {"data": {"mode": "material", "material": {"object": "teapot"}}},
                          cache_dir=str(tmp_path), progress=False)
 
 
@@ -247,4 +248,4 @@ def test_discontinuity_splits_only_near_it():
     assert np.all((lo <= 0.3) & (hi > 0.3))
     _, leaf_lo, leaf_hi = kdtree.leaf_cells(tree)
     away = (np.nan_to_num(leaf_hi[:, 0], posinf=1.0) <= 0.3) | (np.nan_to_num(leaf_lo[:, 0], neginf=0.0) > 0.3)
-    assert away.sum() == tree.n_leaves - 1 and np.all(info.leaf_val_error[away] < 0.01)
+    assert away.sum() == tree.n_leaves - 1 and np.all(info["leaf_val_error"][away] < 0.01)

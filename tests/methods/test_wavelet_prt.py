@@ -10,7 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from jax.test_util import check_grads
 
-from jprt.methods import wavelet_prt as wp
+from jprt.inputs import CubeMap
+from jprt.methods.wavelet_prt import model as wp
 from jprt.nn.mlp import mlp
 from jprt.solve import losses
 from jprt.sphere import cubemap, haar
@@ -261,12 +262,12 @@ def test_training_resumes_bit_identically(tmp_path):
     data = _fake_data(n=4)
     full = wp.fit(data, TINY, checkpoint_path=str(tmp_path / "a.npz"), progress=False)
     part = wp.fit(data, TINY, checkpoint_path=str(tmp_path / "b.npz"), progress=False, stop_after=5)
-    assert part["step"] == 5
+    assert part.info["step"] == 5
     rest = wp.fit(data, TINY, checkpoint_path=str(tmp_path / "b.npz"), progress=False)
-    assert rest["resumed_from"] == 5 and rest["step"] == TINY["train"]["steps"]
-    for a, b in zip(jax.tree_util.tree_leaves(full["params"]), jax.tree_util.tree_leaves(rest["params"])):
+    assert rest.info["resumed_from"] == 5 and rest.info["step"] == TINY["train"]["steps"]
+    for a, b in zip(jax.tree_util.tree_leaves(full.params), jax.tree_util.tree_leaves(rest.params)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    np.testing.assert_array_equal(full["losses"][5:], rest["losses"])
+    np.testing.assert_array_equal(full.info["losses"][5:], rest.info["losses"])
 
 
 def test_fit_rejects_mismatched_face_size():
@@ -277,13 +278,13 @@ def test_fit_rejects_mismatched_face_size():
 def test_evaluator_masks_invalid_pixels_and_checks_k():
     data = _fake_data(n=4)
     res = wp.fit(data, dict(TINY, train=dict(TINY["train"], steps=2)), progress=False)
-    ev = wp.evaluator(res["params"], TINY)
+    ev = wp.evaluator(res.params, TINY)
     g = {f: data.train[f][0, 0] for f in wp.GBUFFER_FIELDS}
-    out = np.asarray(ev(g, data.envs[0]))
+    out = np.asarray(ev(g, CubeMap(data.envs[0])))
     assert out.shape == g["valid"].shape + (3,)
     assert np.all(out[~g["valid"]] == 0) and np.all(np.isfinite(out))
-    with pytest.raises(ValueError, match="K must be"):
-        wp.evaluator(res["params"], TINY, k=6 * 16 + 1)
+    with pytest.raises(ValueError, match="render.k must be"):
+        wp.evaluator(res.params, dict(TINY, render={"k": 6 * 16 + 1}))
 
 
 def test_per_vertex_variant_trains_and_renders():
@@ -298,7 +299,7 @@ def test_per_vertex_variant_trains_and_renders():
         wp.fit(data, cfg, progress=False)
     data = data._replace(train={**data.train, **extra}, stats={"n_vertices": n_vertices})
     res = wp.fit(data, cfg, progress=False)
-    assert res["params"]["field"]["S"]["vertex"].shape[0] == n_vertices
+    assert res.params["field"]["S"]["vertex"].shape[0] == n_vertices
     g = {f: data.train[f][0, 0] for f in list(wp.GBUFFER_FIELDS) + list(wp.VERTEX_FIELDS)}
-    out = np.asarray(wp.evaluator(res["params"], cfg)(g, data.envs[0]))
+    out = np.asarray(wp.evaluator(res.params, cfg)(g, CubeMap(data.envs[0])))
     assert out.shape == g["valid"].shape + (3,) and np.all(np.isfinite(out))

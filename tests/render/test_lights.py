@@ -6,9 +6,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jprt.render import cameras, images
-from jprt.render.lights import (EnvMap, PointLights, direction_to_equirect, equirect_directions, from_mitsuba_envmap,
+from jprt.render.lights import (EnvMap, PointLights, direction_to_equirect, from_mitsuba_envmap,
                                 mitsuba_envmap_data, to_mitsuba_envmap)
 from jprt.render.scenes import SceneHandle, cornell_box, empty
+from jprt.sphere.cubemap import equirect_directions
 
 
 @settings(max_examples=25, deadline=None)
@@ -26,7 +27,11 @@ def test_conversion_round_trip_and_halo(h, w, seed):
 
 
 def test_direction_texel_round_trip():
-    d = equirect_directions(16, 32)
+    import jax
+
+    with jax.enable_x64(True):  # the one equirect formula (jprt.sphere), evaluated in float64
+        d = np.asarray(equirect_directions(16, 32))
+    assert d.dtype == np.float64
     np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-12)
     rows, cols = direction_to_equirect(d, 16, 32)
     np.testing.assert_allclose(rows, np.arange(16)[:, None] + 0 * cols, atol=1e-9)
@@ -62,7 +67,7 @@ def test_one_hot_texel_lights_exactly_its_direction(mi):
     radiance = np.zeros((h, w, 3), np.float32)
     radiance[3, 5] = 1.0
     handle = SceneHandle(empty(), EnvMap.create(radiance))
-    dirs = equirect_directions(h, w).reshape(-1, 3)
+    dirs = np.asarray(equirect_directions(h, w)).reshape(-1, 3)
     seen = _probe(handle, dirs).reshape(h, w, 3)
     np.testing.assert_allclose(seen[3, 5], 1.0, atol=1e-5)
     seen[3, 5] = 0.0
@@ -109,7 +114,7 @@ def test_swapping_lights_needs_no_rebuild_and_matches_a_fresh_scene(mi):
     probe = SceneHandle(empty(), env1)
     probe.set_lighting(env2)
     assert probe.builds == 1
-    np.testing.assert_allclose(_probe(probe, equirect_directions(4, 8).reshape(-1, 3)), 3.0, rtol=1e-5)
+    np.testing.assert_allclose(_probe(probe, np.asarray(equirect_directions(4, 8)).reshape(-1, 3)), 3.0, rtol=1e-5)
     probe.set_lighting(EnvMap.create(np.ones((8, 16, 3), np.float32)))  # new shape: rebuild
     assert probe.builds == 2
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jprt.methods import wavelet_prt as wp
+from jprt.methods.wavelet_prt import model as wp
 from jprt.render.cameras import camera_rays, look_at
 from jprt.render.images import indirect_rays
 from jprt.render.lights import EnvMap

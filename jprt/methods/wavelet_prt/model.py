@@ -42,16 +42,16 @@ same piecewise-constant map, so the reported errors are the method's, not a resa
 from __future__ import annotations
 
 import math
-import os
 import time
-from functools import partial
 from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jprt.config import merge, stable_hash
+from jprt.config import stable_hash
+from jprt.inputs import CubeMap
+from jprt.methods.base import FitResult, resolve
 from jprt.nn import encoding
 from jprt.nn.factor import factor_field
 from jprt.nn.mlp import mlp
@@ -63,14 +63,12 @@ __all__ = [
     "GBUFFER_FIELDS",
     "VERTEX_FIELDS",
     "WaveletData",
-    "add_vertex_interpolation",
     "prepare_environment",
     "synthetic_environments",
     "rotate_equirect",
     "render_equirect",
     "trajectory",
     "importance_maps",
-    "make_dataset",
     "pixel_features",
     "Model",
     "model",
@@ -82,12 +80,10 @@ __all__ = [
     "run_key",
     "fit",
     "evaluator",
+    "example",
     "indirect_baseline_scale",
     "model_bytes",
 ]
-
-SHARED_ENVMAPS = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "assets",
-                                              "envmaps"))
 
 DEFAULT_CONFIG = {
     # the glossy Cornell box opened at the top so the environment lights it from above and the front
@@ -141,8 +137,8 @@ VERTEX_FIELDS = {"vertex_index": (4,), "vertex_weight": (4,)}
 
 
 def _cfg(config: dict | None) -> dict:
-    config = config or {}
-    return merge(DEFAULT_CONFIG, {k: v for k, v in config.items() if k in DEFAULT_CONFIG})
+    """``DEFAULT_CONFIG`` merged strictly with ``config`` (an unknown key raises ConfigError)."""
+    return resolve(DEFAULT_CONFIG, config)
 
 
 # --------------------------------------------------------------------------------------------
@@ -252,7 +248,7 @@ def trajectory(kind: str, n: int, spec: dict, target, *, phase: float = 0.0) -> 
     return _on_sphere(float(spec["radius"]), az, el, target)
 
 
-def _camera_sets(ccfg: dict, seed: int):
+def camera_sets(ccfg: dict, seed: int):
     """Origins of the training, near and far views."""
     target = np.asarray(ccfg["target"], np.float64)
     train, near = [], []
@@ -370,158 +366,6 @@ class WaveletData(NamedTuple):
     stats: dict
 
 
-def _environment_sets(ecfg: dict, seed: int):
-    n = int(ecfg["face_size"])
-    haar._levels(n)
-    rotations = [float(r) for r in ecfg["rotations_deg"]] or [0.0]
-    if int(ecfg["synthetic"]) > 0:
-        maps = synthetic_environments(int(ecfg["synthetic"]) + 1, n, seed)
-        train = [maps[i] for i in range(len(maps) - 1)]
-        names = [f"synthetic_{i}" for i in range(len(train))]
-        return np.stack(train), names, maps[-1:], ["synthetic_held_out"]
-    folder = ecfg["folder"] or SHARED_ENVMAPS
-    if not os.path.isdir(folder):
-        raise FileNotFoundError(f"environment maps not found at {folder} (set envmaps.folder, or "
-                                f"envmaps.synthetic > 0 for procedural maps)")
-    from jprt.render.lights import EnvMap
-
-    stems = sorted(os.path.splitext(f)[0] for f in os.listdir(folder) if f.lower().endswith((".hdr", ".exr")))
-    files = {os.path.splitext(f)[0]: os.path.join(folder, f) for f in os.listdir(folder)}
-    held = list(ecfg["held_out"])
-    missing = [s for s in held + list(ecfg["train"]) if s not in files]
-    if missing:
-        raise FileNotFoundError(f"environment maps {missing} not in {folder}; available: {stems}")
-    train_stems = list(ecfg["train"]) or [s for s in stems if s not in held]
-    overlap = set(train_stems) & set(held)
-    if overlap:
-        raise ValueError(f"maps {sorted(overlap)} are both training and held-out maps")
-    envs, names = [], []
-    for stem in train_stems:
-        radiance = EnvMap.from_file(files[stem]).radiance
-        for r in rotations:
-            envs.append(prepare_environment(rotate_equirect(radiance, r), n, normalise=bool(ecfg["normalise"])))
-            names.append(f"{stem}@{r:g}")
-    tests = [prepare_environment(EnvMap.from_file(files[s]).radiance, n, normalise=bool(ecfg["normalise"]))
-             for s in held]
-    return np.stack(envs), names, np.stack(tests) if tests else np.zeros((0, 6, n, n, 3), np.float32), held
-
-
-def _render_view(handle, camera, cube, spp: int, seed: int, max_depth: int):
-    from jprt.render import images
-    from jprt.render.lights import EnvMap
-
-    handle.set_lighting(EnvMap.create(render_equirect(cube)))
-    r = images.direct_indirect(handle, camera, spp=spp, seed=seed, max_depth=max_depth)
-    return r.direct, r.indirect
-
-
-def _gbuffer_arrays(handle, camera) -> dict:
-    from jprt.render.gbuffer import gbuffer
-
-    g = gbuffer(handle, camera)
-    return {k: np.asarray(getattr(g, k)) for k in GBUFFER_FIELDS}
-
-
-def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
-                 progress: bool = True) -> WaveletData:
-    """Render the training images (§5) and held-out near / far test views of ``scene``
-    (default ``config['scene']``) lit by environment maps; cached by content hash under
-    ``$JPRT_CACHE/wavelet_prt/<hash>.npz`` (checksummed, atomic).
-
-    Each training camera is rendered under ``data.envs_per_view`` training environments, assigned
-    so that every environment lights the same number V of images; each image has its G-buffer
-    (exact pixel-centre rays), direct (Mitsuba ``max_depth=2``) and indirect (full minus direct,
-    same seed) radiance. Test views are lit by held-out maps only and rendered at ``test_spp``.
-    """
-    from tqdm import tqdm
-
-    from jprt.render.cameras import look_at
-    from jprt.render.dataset import _entry_state, _save_npz, cache_root
-    from jprt.render.scenes import SceneHandle, describe
-
-    cfg = _cfg(config)
-    desc = describe(scene if scene is not None else cfg["scene"])
-    if desc.get("area_light") or desc.get("keep_emitters"):
-        raise ValueError("wavelet PRT relights with environment maps only: use a scene without emitters of its own")
-    ecfg, ccfg, dcfg = cfg["envmaps"], cfg["cameras"], cfg["data"]
-    seed = int(dcfg["seed"])
-    files_key = None
-    if int(ecfg["synthetic"]) <= 0:
-        folder = ecfg["folder"] or SHARED_ENVMAPS
-        files_key = sorted((f, os.path.getsize(os.path.join(folder, f))) for f in os.listdir(folder)) \
-            if os.path.isdir(folder) else None
-    spec = {"format": 1, "scene": desc, "envmaps": {k: v for k, v in ecfg.items() if k != "folder"},
-            "files": files_key, "cameras": ccfg, "data": dcfg}
-    path = os.path.join(cache_dir or cache_root(), "wavelet_prt", stable_hash(spec) + ".npz")
-    if _entry_state(path) == "ok":
-        with np.load(path, allow_pickle=False) as f:
-            return _unpack({k: f[k] for k in f.files})
-    t0 = time.perf_counter()
-    envs, names, test_envs, test_names = _environment_sets(ecfg, seed)
-    train_o, near_o, far_o = _camera_sets(ccfg, seed)
-    n_env, per_view = len(envs), int(dcfg["envs_per_view"])
-    n_img = len(train_o) * per_view
-    if n_img % n_env:
-        raise ValueError(f"{len(train_o)} training cameras x {per_view} environments each = {n_img} images do not "
-                         f"split evenly over {n_env} environments: change cameras.sphere.n / cameras.helix.n")
-    rng = np.random.default_rng(seed)
-    # image j (of camera j // per_view) gets environment perm[j] % n_env: every environment equally often
-    assign = rng.permutation(n_img) % n_env
-    cam_kw = {"fov": float(ccfg["fov"]), "width": int(ccfg["width"]), "height": int(ccfg["height"])}
-    target = tuple(ccfg["target"])
-    handle = SceneHandle(desc)
-    spp, max_depth = int(dcfg["spp"]), int(dcfg["max_depth"])
-    groups: list[list[dict]] = [[] for _ in range(n_env)]
-    bar = tqdm(total=n_img + len(near_o) + len(far_o), desc="wavelet PRT images", disable=not progress)
-    for c, origin in enumerate(train_o):
-        cam = look_at(origin, target, **cam_kw)
-        g = _gbuffer_arrays(handle, cam)
-        for j in range(per_view):
-            e = int(assign[c * per_view + j])
-            direct, indirect = _render_view(handle, cam, envs[e], spp, seed * 100003 + c * per_view + j, max_depth)
-            groups[e].append(dict(g, direct=direct, indirect=indirect))
-            bar.update(1)
-    train = {k: np.stack([np.stack([img[k] for img in grp]) for grp in groups])
-             for k in list(GBUFFER_FIELDS) + ["direct", "indirect"]}
-    importance = np.stack([importance_maps(train["indirect"][e], train["position"][e], train["valid"][e],
-                                           train["specular_albedo"][e], train["roughness"][e],
-                                           mu=float(cfg["train"]["mu"])) for e in range(n_env)])
-    t_train = time.perf_counter() - t0
-    tests = {}
-    for name, origins in (("near", near_o), ("far", far_o)):
-        views = []
-        for i, origin in enumerate(origins):
-            cam = look_at(origin, target, **cam_kw)
-            e = i % max(len(test_envs), 1)
-            direct, indirect = _render_view(handle, cam, test_envs[e], int(dcfg["test_spp"]),
-                                            seed * 7 + 1000003 + i + (0 if name == "near" else 5003), max_depth)
-            views.append(dict(_gbuffer_arrays(handle, cam), direct=direct, indirect=indirect, env=np.int32(e)))
-            bar.update(1)
-        tests[name] = {k: np.stack([v[k] for v in views]) for k in views[0]} if views else {}
-    bar.close()
-    arrays = {f"train_{k}": v for k, v in train.items()}
-    for name, t in tests.items():
-        arrays.update({f"{name}_{k}": v for k, v in t.items()})
-    arrays.update(importance=importance, envs=envs, test_envs=test_envs, env_names=np.array(names),
-                  test_env_names=np.array(test_names), cam_train=train_o, cam_near=near_o, cam_far=far_o,
-                  render_train_s=np.array(t_train), render_s=np.array(time.perf_counter() - t0),
-                  spp=np.array(spp), test_spp=np.array(int(dcfg["test_spp"])))
-    _save_npz(path, arrays)
-    return _unpack(arrays)
-
-
-def _unpack(a: dict) -> WaveletData:
-    fields = list(GBUFFER_FIELDS) + ["direct", "indirect"]
-    tests = {name: {k: a[f"{name}_{k}"] for k in fields + ["env"] if f"{name}_{k}" in a} for name in ("near", "far")}
-    return WaveletData(
-        train={k: a[f"train_{k}"] for k in fields}, importance=a["importance"], envs=a["envs"], tests=tests,
-        test_envs=a["test_envs"], env_names=[str(s) for s in a["env_names"]],
-        test_env_names=[str(s) for s in a["test_env_names"]],
-        cameras={"train": a["cam_train"], "near": a["cam_near"], "far": a["cam_far"]},
-        stats={"render_train_s": float(a["render_train_s"]), "render_s": float(a["render_s"]),
-               "spp": int(a["spp"]), "test_spp": int(a["test_spp"])})
-
-
 # --------------------------------------------------------------------------------------------
 # Model (§4, Eq. 4-7)
 # --------------------------------------------------------------------------------------------
@@ -614,25 +458,6 @@ def model(config: dict | None = None, *, n_vertices: int | None = None) -> Model
         return (z @ layers[-1]["w"] + layers[-1]["b"][None, None, :]) * out_scale
 
     return Model(init, transport, n, fields)
-
-
-def add_vertex_interpolation(data: WaveletData, scene, edge: float = 0.1) -> WaveletData:
-    """``data`` with the VERTEX_FIELDS of every training and test pixel
-    (``jprt.render.lightmap.vertex_interpolation`` on ``scene``); ``stats["n_vertices"]``."""
-    from jprt.render.lightmap import vertex_interpolation
-    from jprt.render.scenes import SceneHandle
-
-    handle = SceneHandle(scene)
-    _, _, verts = vertex_interpolation(handle, np.zeros((1, 3)), edge=edge)
-
-    def add(arrays: dict) -> dict:
-        if not arrays:
-            return arrays
-        idx, w, _ = vertex_interpolation(handle, arrays["position"], edge=edge)
-        return dict(arrays, vertex_index=idx, vertex_weight=w)
-
-    return data._replace(train=add(data.train), tests={k: add(v) for k, v in data.tests.items()},
-                         stats=dict(data.stats, n_vertices=int(len(verts))))
 
 
 def model_bytes(params) -> int:
@@ -755,9 +580,10 @@ def run_key(config: dict | None = None) -> str:
 
 
 def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str | None = None,
-        log_path: str | None = None, progress: bool = True, stop_after: int | None = None) -> dict:
+        log_path: str | None = None, progress: bool = True, stop_after: int | None = None) -> FitResult:
     """Train the transport network on ``data`` (§5) with Adam; resumes bit-identically from
-    ``checkpoint_path`` when it exists. Returns {"params", "losses", "train_s", "resumed_from"}."""
+    ``checkpoint_path`` when it exists. Returns ``FitResult(params, info)``, info {"losses",
+    "train_s", "resumed_from", "step"}."""
     from jprt.solve.adam import train
     import optax
 
@@ -803,8 +629,9 @@ def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str |
                    log_path=log_path, log_every=int(tc["log_every"]), progress=progress, stop_after=stop_after,
                    data=dev)
     params = jax.tree_util.tree_map(jnp.asarray, result.state.params)  # a resumed state is NumPy
-    return {"params": params, "losses": result.losses, "train_s": time.perf_counter() - t0,
-            "resumed_from": result.resumed_from, "step": int(result.state.step)}
+    return FitResult(params, {"losses": result.losses, "train_s": time.perf_counter() - t0,
+                              "resumed_from": result.resumed_from, "step": int(result.state.step),
+                              "model_bytes": model_bytes(params)})
 
 
 # --------------------------------------------------------------------------------------------
@@ -812,26 +639,41 @@ def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str |
 # --------------------------------------------------------------------------------------------
 
 
-def evaluator(params, config: dict | None = None, *, k: int | None = None, chunk: int | None = None):
-    """A jit-compiled ``fn(g, cube) -> (H, W, 3)`` indirect radiance for a G-buffer ``g`` (dict of
-    (H, W, ...) GBUFFER_FIELDS arrays, plus VERTEX_FIELDS for the per-vertex variant) relit by
-    the environment ``cube`` (6, n, n, 3):
-    Haar transform (Eq. 3), the top-K area-weighted wavelets, T_k of every pixel in chunks, the
-    dot product (Algorithm 1). Pixels whose primary ray missed are 0."""
+def evaluator(params, config: dict | None = None):
+    """``evaluate(inputs, lighting) -> (H, W, 3)`` indirect radiance (Algorithm 1).
+
+    ``inputs`` is a G-buffer dict of (H, W, ...) ``GBUFFER_FIELDS`` arrays (plus
+    ``VERTEX_FIELDS`` for the per-vertex variant); ``lighting`` a ``CubeMap`` (6, n, n, 3).
+    Haar transform (Eq. 3), the top-K area-weighted wavelets (K = ``render.k``, the one place K is
+    set), T_k of every pixel in chunks of ``render.chunk`` pixels, the dot product. Pixels whose
+    primary ray missed are 0. Pure and jitted.
+    """
     cfg = _cfg(config)
     m = model(cfg)
     params = jax.tree_util.tree_map(jnp.asarray, params)
-    k = int(k if k is not None else cfg["render"]["k"])
-    chunk = int(chunk if chunk is not None else cfg["render"]["chunk"])
+    k, chunk = int(cfg["render"]["k"]), int(cfg["render"]["chunk"])
     if not 1 <= k <= 6 * m.face_size**2:
-        raise ValueError(f"K must be in [1, {6 * m.face_size ** 2}], got {k}")
+        raise ValueError(f"render.k must be in [1, {6 * m.face_size ** 2}], got {k}")
 
     @jax.jit
-    def fn(g, cube):
-        shape = jnp.asarray(g["valid"]).shape
-        flat = {f: jnp.asarray(g[f]).reshape((-1,) + jnp.asarray(g[f]).shape[len(shape):]) for f in m.fields}
-        light = haar.forward(jnp.asarray(cube))
+    def evaluate(inputs, lighting):
+        shape = jnp.asarray(inputs["valid"]).shape
+        flat = {f: jnp.asarray(inputs[f]).reshape((-1,) + jnp.asarray(inputs[f]).shape[len(shape):])
+                for f in m.fields}
+        light = haar.forward(jnp.asarray(lighting.radiance))
         b = render_pixels(lambda gc, idx: m.transport(params, gc, idx), flat, light, k, chunk=chunk)
         return jnp.where(flat["valid"][:, None] > 0, b, 0.0).reshape(shape + (3,))
 
-    return fn
+    return evaluate
+
+
+def example(data: WaveletData, config: dict | None = None):
+    """A held-out (inputs, lighting) pair: the first far test view's G-buffer under its held-out
+    map (the near views, or a training view, when there is none)."""
+    cfg = _cfg(config)
+    fields = model(cfg).fields
+    for name in ("far", "near"):
+        views = data.tests.get(name) or {}
+        if views and len(views["valid"]):
+            return {f: views[f][0] for f in fields}, CubeMap(np.asarray(data.test_envs[int(views["env"][0])]))
+    return {f: data.train[f][0, 0] for f in fields}, CubeMap(np.asarray(data.envs[0]))

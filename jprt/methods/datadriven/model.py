@@ -35,16 +35,17 @@ Indirect light of an asset is predicted from a few measurements of *direct* ligh
 * **Gamma space** (§5.3): with ``gamma > 0`` the dataset, the runtime direct vector and the
   reconstruction are mapped by g(v) = sign(v) |v|^(1/gamma) and the lightmap is mapped back.
 
-Contract (DESIGN.md): ``make_dataset(scene, config)`` -> ``DDData`` (rendered once, cached),
-``fit(data, config)`` -> params, ``evaluator(params)`` -> ``evaluate(gbuffer, direct)``.
+Contract (``jprt.methods.base``): ``data.make_dataset(scene, config)`` -> ``DDData`` (rendered
+once, cached by ``jprt.cache``), ``fit(data, config)`` -> ``FitResult(params, info)``,
+``evaluator(params, config)`` -> ``evaluate(gbuffer, PointRadiance)``. This module is the paper's
+math in pure JAX/NumPy and imports no Mitsuba; rendering lives in ``data.py``.
 """
 
 from __future__ import annotations
 
+import functools
 import heapq
 import math
-import os
-import sys
 import time
 import warnings
 from typing import Any, NamedTuple
@@ -53,7 +54,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jprt.config import merge, stable_hash
+from jprt.config import merge
+from jprt.inputs import PointRadiance
+from jprt.methods.atlas import atlas_image, atlas_inputs, atlas_lookup
+from jprt.methods.base import FitResult, resolve
 
 __all__ = [
     "DEFAULT_CONFIG",
@@ -67,9 +71,9 @@ __all__ = [
     "gamma_decode",
     "gram_svd",
     "ridge_pinv",
-    "make_dataset",
-    "random_lights",
-    "render_examples",
+    "lightmap",
+    "transfer_coefficients",
+    "example",
     "fit",
     "fit_arrays",
     "cross_validate_lambda",
@@ -115,10 +119,8 @@ DEFAULT_CONFIG: dict[str, Any] = {
 
 
 def _cfg(config: dict | None) -> dict:
-    """DEFAULT_CONFIG merged with the data-driven sections of ``config`` (other sections, e.g. an
-    experiment's ``eval``, are ignored; unknown keys inside these sections are errors)."""
-    config = config or {}
-    return merge(DEFAULT_CONFIG, {k: v for k, v in config.items() if k in DEFAULT_CONFIG})
+    """``DEFAULT_CONFIG`` merged strictly with ``config`` (an unknown key raises ConfigError)."""
+    return resolve(DEFAULT_CONFIG, config)
 
 
 class IllConditionedWarning(RuntimeWarning):
@@ -312,8 +314,16 @@ def _examples(direct: np.ndarray, indirect: np.ndarray, channels: str) -> tuple[
     raise ValueError(f"basis.channels must be 'mono' or 'multi', got {channels!r}")
 
 
-def coarse_direct(direct, group, counts) -> np.ndarray:
-    """Average fine direct measurements (..., S, 3) into their coarse points (..., P, 3) (§5.1)."""
+def coarse_direct(direct, group, counts):
+    """Average fine direct measurements (..., S, 3) into their coarse points (..., P, 3) (§5.1).
+
+    NumPy input is averaged in float64 on the host (fitting, projection); JAX input (the
+    evaluator, traced or not) with ``jax.ops.segment_sum`` in its own dtype."""
+    if isinstance(direct, jax.Array):
+        p = counts.shape[0]
+        summed = jax.ops.segment_sum(jnp.moveaxis(direct, -2, 0), group, num_segments=p)
+        return jnp.moveaxis(summed, 0, -2) / jnp.expand_dims(counts[:, None].astype(direct.dtype),
+                                                             tuple(range(direct.ndim - 2)))
     direct = np.asarray(direct, np.float64)
     out = np.zeros(direct.shape[:-2] + (len(counts), 3))
     np.add.at(out, (Ellipsis, np.asarray(group), slice(None)), direct)
@@ -432,7 +442,7 @@ def _ridge_from_svd(svd, lam: float, rcond: float, warn: float | None, name: str
     return (vt.T * filt) @ u.T, info
 
 
-def fit_arrays(direct, indirect, group, config: dict | None = None) -> dict:
+def fit_arrays(direct, indirect, group, config: dict | None = None) -> FitResult:
     """Basis and transfer matrices from N examples.
 
     Args:
@@ -442,176 +452,139 @@ def fit_arrays(direct, indirect, group, config: dict | None = None) -> dict:
       config: ``basis`` and ``transfer`` sections (``DEFAULT_CONFIG`` layout); ``transfer.lam_cv``
         is not used here (see ``fit`` and ``cross_validate_lambda``).
 
-    Returns the params dict read by ``evaluator`` (arrays, plus ``meta``).
+    Returns ``FitResult(params, info)``: params {mean, basis, transfer, group, counts,
+    singular_values} (arrays, read by ``lightmap``), info {n, lam, points, texels, examples,
+    conditioning, energy_kept}.
     """
     cfg = _cfg(config)
     bcfg, tcfg = cfg["basis"], cfg["transfer"]
     stage = _stage(direct, indirect, group, cfg)
     lam = float(tcfg["lam"])
     transfer, info = _Solver(stage, bcfg["channels"]).transfer(lam, float(tcfg["rcond"]), float(tcfg["warn_condition"]))
-    return {
+    params = {
         "mean": stage.mean.astype(np.float32),
         "basis": stage.basis.astype(np.float32),
         "transfer": transfer.astype(np.float32),
         "group": np.asarray(group, np.int32),
         "counts": stage.counts.astype(np.int32),
         "singular_values": stage.singular_values.astype(np.float32),
-        "meta": {"channels": bcfg["channels"], "gamma": float(bcfg["gamma"]), "center": bool(bcfg["center"]),
-                 "mean": bcfg["mean"], "n": int(bcfg["n"]), "lam": lam, "points": stage.points,
-                 "texels": int(np.shape(indirect)[1]), "examples": stage.examples, "conditioning": info,
-                 "energy_kept": stage.energy},
     }
+    return FitResult(params, {"n": int(bcfg["n"]), "lam": lam, "points": stage.points,
+                              "texels": int(np.shape(indirect)[1]), "examples": stage.examples,
+                              "conditioning": info, "energy_kept": stage.energy})
 
 
 # --------------------------------------------------------------------------------------------
-# Evaluation (§4.3)
+# Evaluation (§4.3): the one lightmap function
 
 
-def _coarse_jax(direct, group, counts):
-    p = counts.shape[0]
-    return jax.ops.segment_sum(direct, group, num_segments=p) / counts[:, None].astype(direct.dtype)
-
-
-def _lightmap_jax(params: dict, direct):
-    """(S, 3) fine direct -> (T, 3) lightmap (jit-able)."""
-    meta = params["meta"]
-    gamma = meta["gamma"]
-    x = gamma_encode(_coarse_jax(direct, params["group"], params["counts"]), gamma)
+@functools.partial(jax.jit, static_argnames=("channels", "gamma"))
+def _lightmap(params: dict, direct, *, channels: str, gamma: float):
+    x = gamma_encode(coarse_direct(direct, params["group"], params["counts"]), gamma)  # (..., P, 3)
     mean, basis, transfer = params["mean"], params["basis"], params["transfer"]
-    if meta["channels"] == "mono":
-        norms = jnp.linalg.norm(x, axis=0)  # (3,)
-        u = jnp.einsum("cnp,pc->nc", transfer, x)  # (n, 3): u_c = M_c x_c
-        out = mean[:, None] * norms[None, :] + basis @ u
+    if channels == "mono":
+        norms = jnp.linalg.norm(x, axis=-2)  # (..., 3)
+        u = jnp.einsum("cnp,...pc->...nc", transfer, x)  # (..., n, 3): u_c = M_c x_c
+        out = jnp.expand_dims(mean[:, None], tuple(range(norms.ndim - 1))) * norms[..., None, :] + jnp.einsum(
+            "tn,...nc->...tc", basis, u)
     else:
-        xv = x.reshape(-1)
-        u = transfer @ xv
-        out = (mean * jnp.linalg.norm(xv) + basis @ u).reshape(-1, 3)
+        xv = x.reshape(x.shape[:-2] + (-1,))
+        u = jnp.einsum("np,...p->...n", transfer, xv)
+        out = (jnp.expand_dims(mean, tuple(range(xv.ndim - 1))) * jnp.linalg.norm(xv, axis=-1)[..., None]
+               + jnp.einsum("tn,...n->...t", basis, u))
+        out = out.reshape(x.shape[:-2] + (-1, 3))
     return gamma_decode(out, gamma)
 
 
-def _bilinear(image, uv):
-    """Bilinear lookup of an (R, R, C) atlas at (..., 2) UVs (u -> column, v -> row; texel
-    centres at (i + 0.5) / R), clamped to the atlas."""
-    r = image.shape[0]
-    col = jnp.clip(uv[..., 0] * r - 0.5, 0.0, r - 1.0)
-    row = jnp.clip(uv[..., 1] * r - 0.5, 0.0, r - 1.0)
-    c0, r0 = jnp.floor(col).astype(jnp.int32), jnp.floor(row).astype(jnp.int32)
-    c1, r1 = jnp.minimum(c0 + 1, r - 1), jnp.minimum(r0 + 1, r - 1)
-    fc, fr = (col - c0)[..., None], (row - r0)[..., None]
-    top = image[r0, c0] * (1 - fc) + image[r0, c1] * fc
-    bottom = image[r1, c0] * (1 - fc) + image[r1, c1] * fc
-    return top * (1 - fr) + bottom * fr
+def lightmap(params: dict, direct, config: dict | None = None):
+    """Fine direct (..., S, 3) -> lightmap texels (..., T, 3) (§4.3): average to the coarse points
+    (§5.1), gamma map (§5.3), u = M_n x, m |x| + U_n u (or B_n u with ``basis.mean="linear"``),
+    map back. Jitted, batched over leading axes; the evaluator, cross-validation and the
+    experiments all go through it. Only the arrays named in ``fit_arrays`` are read."""
+    cfg = _cfg(config)
+    arrays = {k: jnp.asarray(params[k]) for k in ("mean", "basis", "transfer", "group", "counts")}
+    # in the params' precision: float32 from ``fit``, float64 where a test enables x64
+    return _lightmap(arrays, jnp.asarray(direct, arrays["transfer"].dtype), channels=cfg["basis"]["channels"],
+                     gamma=float(cfg["basis"]["gamma"]))
+
+
+def transfer_coefficients(params: dict, x, config: dict | None = None):
+    """u = M_n g(x) for a coarse direct vector x (P, 3) (the transfer product alone, for timing)."""
+    cfg = _cfg(config)
+    xg = gamma_encode(jnp.asarray(x, jnp.float32), float(cfg["basis"]["gamma"]))
+    transfer = jnp.asarray(params["transfer"])
+    if cfg["basis"]["channels"] == "mono":
+        return jnp.einsum("cnp,pc->nc", transfer, xg)
+    return transfer @ xg.reshape(-1)
 
 
 def evaluator(params: dict, config: dict | None = None):
-    """``evaluate(gbuffer, direct) -> (H, W, 3)`` indirect radiance, jit-compiled.
+    """``evaluate(inputs, lighting) -> (H, W, 3)`` indirect radiance (§4.3).
 
-    ``gbuffer`` needs ``uv`` in atlas coordinates and ``valid`` (``jprt.render.lightmap.atlas_gbuffer``);
-    ``direct`` is (S, 3): the direct radiance at the fine measurement points (the method's
-    lighting input, §4.3 "fake G-buffer"). Attributes: ``evaluate.lightmap(direct)`` -> (T, 3)
-    texels, ``evaluate.transfer(x)`` -> the coefficients u = M_n x of a coarse (P, 3) direct
-    vector, ``evaluate.jitted(uv, valid, direct)`` the array-only function (for export).
+    ``inputs`` is a G-buffer with ``uv`` in atlas coordinates and ``valid``
+    (``jprt.render.lightmap.atlas_gbuffer``; ``jprt.methods.atlas.atlas_inputs`` for the atlas
+    itself, which makes the output the lightmap as an (R, R, 3) image);
+    ``lighting`` a ``PointRadiance``: the direct radiance (S, 3) at the fine measurement points
+    (the method's lighting input, §4.3 "fake G-buffer"). Pure and jitted: the lightmap
+    (``lightmap``) then a bilinear atlas lookup per pixel; invalid pixels are 0.
     """
-    del config
-    if "texel_index" not in params:
-        raise ValueError("params have no lightmap layout (fit_arrays output): use fit(data, ...) or add "
-                         "texel_index / fill_index / resolution")
-    p = {k: (jnp.asarray(v) if isinstance(v, np.ndarray) else v) for k, v in params.items()}
-    res = int(params["meta"]["resolution"])
+    cfg = _cfg(config)
+    for key in ("texel_index", "fill_index", "fine_index"):
+        if key not in params:
+            raise ValueError(f"params have no {key!r} (fit_arrays output): use fit(data, config), which adds the "
+                             "lightmap layout")
+    arrays = {k: jnp.asarray(params[k]) for k in ("mean", "basis", "transfer", "group", "counts")}
     fill = jnp.asarray(params["fill_index"])
     n_fine = int(params["group"].shape[0])
-    texels = int(params["meta"]["texels"])
-
-    def check(direct):
-        direct = jnp.asarray(direct, jnp.float32)
-        if direct.shape != (n_fine, 3):
-            raise ValueError(f"direct must be ({n_fine}, 3) radiance at the fine measurement points, "
-                             f"got {direct.shape}")
-        return direct
+    channels, gamma = cfg["basis"]["channels"], float(cfg["basis"]["gamma"])
 
     @jax.jit
-    def lightmap_fn(direct):
-        return _lightmap_jax(p, direct)
+    def image(uv, valid, direct):
+        atlas = atlas_image(_lightmap(arrays, direct, channels=channels, gamma=gamma), fill)
+        return jnp.where(valid[..., None], atlas_lookup(atlas, uv), 0.0)
 
-    @jax.jit
-    def image_fn(uv, valid, direct):
-        lm = _lightmap_jax(p, direct)
-        atlas = lm[fill].reshape(res, res, 3)
-        return jnp.where(valid[..., None], _bilinear(atlas, uv), 0.0)
-
-    @jax.jit
-    def transfer_fn(x):
-        xg = gamma_encode(x, p["meta"]["gamma"])
-        if p["meta"]["channels"] == "mono":
-            return jnp.einsum("cnp,pc->nc", p["transfer"], xg)
-        return p["transfer"] @ xg.reshape(-1)
-
-    def evaluate(gbuffer, direct):
-        uv = jnp.asarray(gbuffer.uv, jnp.float32)
-        valid = jnp.asarray(gbuffer.valid, bool)
+    def evaluate(inputs, lighting):
+        uv = jnp.asarray(inputs.uv, jnp.float32)
+        valid = jnp.asarray(inputs.valid, bool)
+        direct = jnp.asarray(lighting.direct, jnp.float32)
         if uv.shape[:-1] != valid.shape or uv.shape[-1] != 2:
-            raise ValueError(f"gbuffer.uv must be (H, W, 2) matching valid (H, W), got {uv.shape} and {valid.shape}")
-        return image_fn(uv, valid, check(direct))
+            raise ValueError(f"inputs.uv must be (H, W, 2) matching valid (H, W), got {uv.shape} and {valid.shape}")
+        if direct.shape != (n_fine, 3):
+            raise ValueError(f"lighting.direct must be ({n_fine}, 3) radiance at the fine measurement points, "
+                             f"got {direct.shape}")
+        return image(uv, valid, direct)
 
-    def lightmap(direct):
-        out = lightmap_fn(check(direct))
-        assert out.shape == (texels, 3)
-        return out
-
-    evaluate.lightmap = lightmap
-    evaluate.transfer = transfer_fn
-    evaluate.jitted = image_fn
     return evaluate
 
 
-def project(params: dict, direct, indirect) -> np.ndarray:
+def project(params: dict, direct, indirect, config: dict | None = None) -> np.ndarray:
     """The best reconstruction of reference lightmaps in the fitted basis (Fig. 14 dashed):
     s (m + U_n U_n^T (y / s - m)) in the transfer space (gamma-mapped, s = |x| of the example's
     own direct vector), mapped back. direct (N, S, 3), indirect (N, T, 3) -> (N, T, 3)."""
-    meta = params["meta"]
-    gamma = meta["gamma"]
+    cfg = _cfg(config)
+    gamma, channels = float(cfg["basis"]["gamma"]), cfg["basis"]["channels"]
     direct = np.asarray(direct, np.float64)
     indirect = np.asarray(indirect, np.float64)
     coarse = coarse_direct(direct, params["group"], params["counts"])
-    x, y, _ = _examples(gamma_encode(coarse, gamma), gamma_encode(indirect, gamma), meta["channels"])
+    x, y, _ = _examples(gamma_encode(coarse, gamma), gamma_encode(indirect, gamma), channels)
     s = np.maximum(np.linalg.norm(x, axis=0), 1e-30)
     mean = np.asarray(params["mean"], np.float64)[:, None]
     u = np.asarray(params["basis"], np.float64)
     yn = y / s
     rec = (mean + u @ (u.T @ (yn - mean))) * s
     n = indirect.shape[0]
-    if meta["channels"] == "mono":
+    if channels == "mono":
         out = np.transpose(rec.reshape(indirect.shape[1], 3, n), (2, 0, 1))
     else:
         out = rec.T.reshape(indirect.shape)
     return gamma_decode(out, gamma)
 
 
-def _predict_np(params: dict, direct) -> np.ndarray:
-    """NumPy twin of the evaluator's lightmap for a batch (N, S, 3) -> (N, T, 3) (no compile per
-    fit, for cross-validation)."""
-    meta = params["meta"]
-    gamma = meta["gamma"]
-    direct = np.asarray(direct, np.float64)
-    x = gamma_encode(coarse_direct(direct, params["group"], params["counts"]), gamma)
-    mean, basis = np.asarray(params["mean"], np.float64), np.asarray(params["basis"], np.float64)
-    transfer = np.asarray(params["transfer"], np.float64)
-    if meta["channels"] == "mono":
-        norms = np.linalg.norm(x, axis=1)  # (N, 3)
-        u = np.einsum("cnp,kpc->knc", transfer, x)
-        out = mean[None, :, None] * norms[:, None, :] + np.einsum("tn,knc->ktc", basis, u)
-    else:
-        xv = x.reshape(x.shape[0], -1)
-        out = (mean[None] * np.linalg.norm(xv, axis=1)[:, None] + xv @ transfer.T @ basis.T).reshape(
-            x.shape[0], -1, 3)
-    return gamma_decode(out, gamma)
-
-
 def cross_validate_lambda(direct, indirect, group, config: dict | None, lambdas, *, folds: int = 4,
                           seed: int = 0) -> dict:
     """Choose the ridge lambda (Eq. 14) by k-fold cross-validation over lighting configurations:
-    for every candidate, fit on k - 1 folds and measure the lightmap RMSE on the held-out fold
-    (the basis and the SVDs of each fold are shared by all candidates).
+    for every candidate, fit on k - 1 folds and measure the lightmap RMSE (``lightmap``) on the
+    held-out fold (the basis and the SVDs of each fold are shared by all candidates).
     Returns {"best": lambda, "lambdas": [...], "rmse": [...]} (never looks at test data)."""
     direct, indirect = np.asarray(direct), np.asarray(indirect)
     n = direct.shape[0]
@@ -630,11 +603,10 @@ def cross_validate_lambda(direct, indirect, group, config: dict | None, lambdas,
             warnings.simplefilter("ignore", IllConditionedWarning)
             stage = _stage(direct[train], indirect[train], group, cfg)
         solver = _Solver(stage, cfg["basis"]["channels"])
-        params = {"mean": stage.mean, "basis": stage.basis, "group": np.asarray(group), "counts": stage.counts,
-                  "meta": {"channels": cfg["basis"]["channels"], "gamma": float(cfg["basis"]["gamma"])}}
+        params = {"mean": stage.mean, "basis": stage.basis, "group": np.asarray(group), "counts": stage.counts}
         for j, lam in enumerate(lambdas):
             params["transfer"], _ = solver.transfer(float(lam), float(cfg["transfer"]["rcond"]), None)
-            err = _predict_np(params, direct[part]) - indirect[part]
+            err = np.asarray(lightmap(params, direct[part], cfg), np.float64) - indirect[part]
             sq[j] += float(np.sum(err ** 2))
         count += indirect[part].size
     scores = np.sqrt(sq / count)
@@ -653,10 +625,6 @@ def lightmap_rmse(predictions, references) -> float:
 def model_bytes(params: dict) -> int:
     """Bytes of the runtime data (float32 basis, mean and transfer matrices, point groups)."""
     return int(sum(np.asarray(params[k]).nbytes for k in ("mean", "basis", "transfer", "group", "counts")))
-
-
-# --------------------------------------------------------------------------------------------
-# Dataset (§4.1)
 
 
 class DDData(NamedTuple):
@@ -683,139 +651,10 @@ class DDData(NamedTuple):
     meta: dict
 
 
-def random_lights(rng: np.random.Generator, n: int, lights_cfg: dict, accept=None) -> list:
-    """``n`` random lighting configurations of the scenario in ``lights_cfg`` (one spot light
-    each: position and target uniform in their boxes, cone angle uniform in ``cutoff_deg``,
-    intensity uniform in ``intensity`` times a random colour of saturation ``saturation``).
-    ``accept(position) -> bool`` rejects positions (inside objects, touching walls)."""
-    from jprt.render.lights import SpotLights
-    from jprt.render.sampling import check_box
-
-    if lights_cfg["kind"] != "spot":
-        raise ValueError(f"lights.kind {lights_cfg['kind']!r}: only 'spot' scenarios are built in "
-                         "(other kinds are evaluation-only, see experiments/datadriven.py)")
-    plo, phi = check_box(lights_cfg["position_lo"], lights_cfg["position_hi"], "lights.position")
-    tlo, thi = check_box(lights_cfg["target_lo"], lights_cfg["target_hi"], "lights.target")
-    out = []
-    for _ in range(int(n)):
-        for _attempt in range(1000):
-            pos = plo + (phi - plo) * rng.random(3)
-            if accept is None or accept(pos):
-                break
-        else:
-            raise ValueError("no acceptable spot-light position in lights.position_lo/hi after 1000 tries "
-                             "(inside objects or closer than lights.clearance to a surface)")
-        tgt = tlo + (thi - tlo) * rng.random(3)
-        while np.linalg.norm(tgt - pos) < 1e-3:
-            tgt = tlo + (thi - tlo) * rng.random(3)
-        cutoff = rng.uniform(*lights_cfg["cutoff_deg"])
-        colour = (1.0 - lights_cfg["saturation"]) + lights_cfg["saturation"] * rng.random(3)
-        colour /= colour.max()
-        out.append(SpotLights.create(pos, tgt, rng.uniform(*lights_cfg["intensity"]) * colour, cutoff))
-    return out
-
-
-def render_examples(handle, atlas, candidates, lightings, *, spp: int, seed: int = 0,
-                    progress: bool = True, desc: str = "examples") -> tuple[np.ndarray, np.ndarray]:
-    """Direct at every candidate point (exact, one shadow ray per light) and indirect lightmap
-    texels (``spp`` paths, full minus direct with equal seeds) for each lighting: (N, S, 3) and
-    (N, T, 3)."""
-    from tqdm.auto import tqdm
-
-    from jprt.render import lightmap
-
-    direct, indirect = [], []
-    for k, lighting in enumerate(tqdm(lightings, desc=desc, disable=not progress)):
-        handle.set_lighting(lighting)
-        direct.append(lightmap.radiance_at_points(handle, candidates["position"], candidates["normal"], spp=1,
-                                                  max_depth=2))
-        indirect.append(lightmap.indirect_at_points(handle, atlas["position"], atlas["normal"], spp=spp,
-                                                    seed=seed * 100003 + k))
-    return np.stack(direct), np.stack(indirect)
-
-
-def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
-                 progress: bool = True) -> DDData:
-    """Render the training and held-out examples of ``scene`` (default: ``config['scene']``),
-    cached by content hash under ``$JPRT_CACHE/datadriven/<hash>.npz`` (checksummed, atomic)."""
-    from jprt.render import lightmap
-    from jprt.render.dataset import _entry_state, _save_npz, cache_root
-    from jprt.render.scenes import SceneHandle, describe
-
-    cfg = _cfg(config)
-    desc = describe(scene if scene is not None else cfg["scene"])
-    if desc.get("area_light") or desc.get("keep_emitters"):
-        raise ValueError("the data-driven scenario supplies the lights: use a scene without emitters of its own "
-                         "(area_light=False, or keep_emitters=False for XML)")
-    dcfg = cfg["data"]
-    for key in ("n_train", "n_test", "spp", "test_spp"):
-        if int(dcfg[key]) < (0 if key == "n_test" else 1):
-            raise ValueError(f"data.{key} must be positive, got {dcfg[key]}")
-    spec = {"format": 1, "scene": desc, "objects": list(cfg["objects"]), "lightmap": cfg["lightmap"],
-            "candidates": cfg["points"]["candidates"], "seed_points": cfg["points"]["seed"],
-            "point_objects": list(cfg["points"]["objects"]), "lights": cfg["lights"],
-            "data": dcfg}
-    folder = os.path.join(cache_dir or cache_root(), "datadriven")
-    path = os.path.join(folder, stable_hash(spec) + ".npz")
-    if _entry_state(path) == "ok":
-        with np.load(path, allow_pickle=False) as f:
-            arrays = {k: f[k] for k in f.files}
-        return _unpack(arrays, spec, path)
-    os.makedirs(folder, exist_ok=True)
-    t0 = time.perf_counter()
-    rng = np.random.default_rng(int(dcfg["seed"]))
-    handle = SceneHandle(desc)
-
-    def accept(position):
-        return bool(lightmap.free_positions(handle, position, clearance=float(cfg["lights"]["clearance"]))[0])
-
-    train = random_lights(rng, dcfg["n_train"], cfg["lights"], accept)
-    # held-out lights from their own stream: the same test set for any n_train
-    test = random_lights(np.random.default_rng([int(dcfg["seed"]), 1]), dcfg["n_test"], cfg["lights"], accept)
-    objects = list(cfg["objects"]) or None
-    atlas = lightmap.build_atlas(handle, objects, resolution=int(cfg["lightmap"]["resolution"]))._asdict()
-    cands = lightmap.surface_samples(handle, int(cfg["points"]["candidates"]),
-                                     objects=list(cfg["points"]["objects"]) or objects,
-                                     seed=int(cfg["points"]["seed"]))._asdict()
-    d, i = render_examples(handle, atlas, cands, train, spp=int(dcfg["spp"]), seed=int(dcfg["seed"]),
-                           progress=progress, desc="train configurations")
-    t_train = time.perf_counter() - t0
-    if test:
-        dt, it = render_examples(handle, atlas, cands, test, spp=int(dcfg["test_spp"]), seed=int(dcfg["seed"]) + 1,
-                                 progress=progress, desc="held-out configurations")
-    else:
-        dt, it = np.zeros((0,) + d.shape[1:], np.float32), np.zeros((0,) + i.shape[1:], np.float32)
-    arrays = {f"atlas_{k}": np.asarray(v) for k, v in atlas.items()}
-    arrays.update({f"cand_{k}": np.asarray(v) for k, v in cands.items()})
-    arrays.update(direct=d, indirect=i, direct_test=dt, indirect_test=it,
-                  object_names=np.array(handle.object_names()), render_train_s=np.array(t_train),
-                  render_s=np.array(time.perf_counter() - t0))
-    for name, ls in (("lights", train), ("lights_test", test)):
-        for field in ("position", "target", "intensity", "cutoff_deg", "beam_deg"):
-            arrays[f"{name}_{field}"] = np.stack([getattr(l, field)[0] for l in ls]) if ls else np.zeros((0,))
-    _save_npz(path, arrays)
-    if progress:
-        print(f"datadriven: rendered {len(train)} + {len(test)} configurations in "
-              f"{time.perf_counter() - t0:.1f} s -> {path}", file=sys.stderr)
-    return _unpack(arrays, spec, path)
-
-
-def _unpack(arrays: dict, spec: dict, path: str) -> DDData:
-    def prefixed(prefix, exclude=None):
-        return {k[len(prefix):]: (v.item() if v.ndim == 0 else v) for k, v in arrays.items()
-                if k.startswith(prefix) and not (exclude and k.startswith(exclude))}
-
-    meta = {"scene": spec["scene"], "object_names": [str(s) for s in arrays["object_names"]],
-            "render_s": float(arrays["render_s"]), "render_train_s": float(arrays["render_train_s"]),
-            "cache": path, "spec_hash": stable_hash(spec)}
-    return DDData(atlas=prefixed("atlas_"), candidates=prefixed("cand_"), direct=arrays["direct"],
-                  indirect=arrays["indirect"], direct_test=arrays["direct_test"], indirect_test=arrays["indirect_test"],
-                  lights=prefixed("lights_", "lights_test_"), lights_test=prefixed("lights_test_"), meta=meta)
-
-
-def fit(data: DDData, config: dict | None = None) -> dict:
+def fit(data: DDData, config: dict | None = None) -> FitResult:
     """Measurement points (§4.1, §5.1), basis and transfer (§4.2) from a ``DDData``; the params
-    also carry the lightmap layout the evaluator needs."""
+    also carry the lightmap layout the evaluator needs (fine_index, texel_index, fill_index).
+    ``info`` adds ``lambda_cv`` (the cross-validation, or None), ``resolution`` and ``fit_s``."""
     cfg = _cfg(config)
     t0 = time.perf_counter()
     pcfg = cfg["points"]
@@ -827,10 +666,26 @@ def fit(data: DDData, config: dict | None = None) -> dict:
         cv = cross_validate_lambda(direct, data.indirect, points.group, cfg, cfg["transfer"]["lam_cv"],
                                    folds=int(cfg["transfer"]["cv_folds"]))
         cfg = merge(cfg, {"transfer": {"lam": cv["best"]}})
-    params = fit_arrays(direct, data.indirect, points.group, cfg)
-    params["meta"]["lambda_cv"] = cv
+    params, info = fit_arrays(direct, data.indirect, points.group, cfg)
     params["fine_index"] = points.fine_index
     params["texel_index"] = np.asarray(data.atlas["texel_index"], np.int32)
     params["fill_index"] = np.asarray(data.atlas["fill_index"], np.int32)
-    params["meta"].update(resolution=int(data.atlas["resolution"]), fit_s=time.perf_counter() - t0)
-    return params
+    info.update(lambda_cv=cv, resolution=int(data.atlas["resolution"]), fit_s=time.perf_counter() - t0,
+                model_bytes=model_bytes(params))
+    return FitResult(params, info)
+
+
+def example(data: DDData, config: dict | None = None, *, params: dict | None = None):
+    """A held-out (inputs, lighting) pair: the atlas G-buffer (``atlas_inputs``) and the direct
+    radiance of the first held-out configuration at the fine measurement points (needs
+    ``params`` for the point selection; without them the points are selected again)."""
+    cfg = _cfg(config)
+    if params is None:
+        pcfg = cfg["points"]
+        fine = select_points(data.candidates["position"], pcfg["count"], supersample=pcfg["supersample"],
+                             area=float(data.candidates["area"])).fine_index
+    else:
+        fine = params["fine_index"]
+    direct = data.direct_test[0] if len(data.direct_test) else data.direct[0]
+    return (atlas_inputs(int(data.atlas["resolution"]), data.atlas["texel_index"]),
+            PointRadiance(np.asarray(direct[fine], np.float32)))

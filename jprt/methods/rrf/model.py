@@ -4,14 +4,15 @@ The indirect radiance s+(x_p, v, l) of a static scene lit by a unit point light 
 by small tanh networks Phi_N (Eq. 8: two hidden layers, 20 and 10 nodes) of the *augmented*
 attributes x = (x_p, v, l, n, a) (Eq. 4: position, unit view direction, light position, normal,
 BRDF parameters), trained by Levenberg–Marquardt on path-traced samples (Eq. 6, Eq. 10) and
-partitioned per object by an error-driven kd-tree (§4, ``jprt.methods.kdtree``). Rendering is
+partitioned per object by an error-driven kd-tree (§4, ``jprt.methods.rrf.kdtree``). Rendering is
 linear in the light colours (Eq. 9):
 
     indirect(pixel) = sum_k c_k Phi(x_p, v, l_k, n, a).
 
-Contract (DESIGN.md): ``make_dataset(scene, config)`` -> ``RRFData`` (rendered once, cached on
-disk by content hash), ``fit(data, config)`` -> params pytree, ``evaluator(params, config)`` ->
-``evaluate(gbuffer, lights)`` -> (H, W, 3) indirect image.
+Contract (``jprt.methods.base``): ``data.make_dataset(scene, config)`` -> ``RRFData`` (rendered
+once, cached by ``jprt.cache``), ``fit(data, config)`` -> ``FitResult(params, info)``,
+``evaluator(params, config)`` -> ``evaluate(gbuffer, lights)`` -> (H, W, 3) indirect image.
+This module is the paper's math in pure JAX/NumPy and imports no Mitsuba.
 
 Training data (Appendix A): N_l light positions and N_v viewpoints by Latin hypercube sampling in
 user boxes; N_r random primary rays per (light, view) pair; attributes at the first hit and the
@@ -37,9 +38,8 @@ candidate from scratch to convergence, which costs ~D times more here.
 
 from __future__ import annotations
 
-import copy
+import functools
 import math
-import os
 import sys
 import time
 from typing import Any, NamedTuple
@@ -48,12 +48,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jprt.config import merge, stable_hash
-from jprt.methods import kdtree
+from jprt.inputs import GBuffer, PointLights
+from jprt.methods.base import FitResult, resolve
+from jprt.methods.rrf import kdtree
 from jprt.solve.lm import solve_batched
 
-__all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "make_dataset", "features", "fit", "fit_arrays",
-           "evaluator", "evaluator_arguments", "refit_leaves", "model_bytes", "parameter_count", "light_box", "FitInfo"]
+__all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features", "split_samples", "input_size", "fit",
+           "fit_arrays", "evaluator", "check_inputs", "example", "refit_leaves", "model_bytes", "parameter_count",
+           "light_box"]
 
 #: Inputs of Phi for each attribute set (Ren et al. Fig. 3: basic vs augmented attributes).
 ATTRIBUTE_SETS = {
@@ -87,19 +89,19 @@ DEFAULT_CONFIG: dict = {
     "tree": {"threshold": 0.05, "axis": "all", "expand": 0.1, "max_depth": 6, "min_samples": 1500, "max_leaves": 64},
     "train": {"max_iters": 40, "trial_iters": 10, "trial_samples": 1024, "max_fail": 6, "rtol": 1e-6, "damping": 1e-3, "chunk_size": 1024, "seed": 0,
               "subset": 1.0, "progress": True},
+    # evaluator: lights outside the trained box ("error" | "clamp" | "allow", box grown by
+    # `tolerance` of its size); samples per leaf block of the batched networks
+    "render": {"extrapolation": "error", "tolerance": 0.02, "block": 512},
 }
 
 
 def _cfg(config: dict | None) -> dict:
-    """DEFAULT_CONFIG merged with the RRF sections of ``config`` (other sections, e.g. an
-    experiment's ``eval`` or ``output``, are ignored here; unknown keys inside RRF sections are
-    errors)."""
-    config = config or {}
-    return merge(DEFAULT_CONFIG, {k: v for k, v in config.items() if k in DEFAULT_CONFIG})
+    """``DEFAULT_CONFIG`` merged strictly with ``config`` (an unknown key raises ConfigError)."""
+    return resolve(DEFAULT_CONFIG, config)
 
 
 # --------------------------------------------------------------------------------------------
-# Training data (Appendix A)
+# Training data (Appendix A; rendered by ``jprt.methods.rrf.data``)
 
 
 class RRFData(NamedTuple):
@@ -132,138 +134,6 @@ class RRFData(NamedTuple):
         return RRFData(*(np.asarray(a)[index] for a in self[:-1]), self.meta)
 
 
-def _brdf_vector(gb) -> np.ndarray:
-    return np.concatenate([gb.diffuse_albedo, gb.specular_albedo, np.asarray(gb.roughness)[..., None]], axis=-1)
-
-
-def _edit_description(desc: dict, obj: str, roughness: float, albedo: float) -> dict:
-    desc = copy.deepcopy(desc)
-    material = dict(desc["materials"][obj])
-    if "roughness" in material or material["type"] in ("glossy", "metal"):
-        material["roughness"] = float(roughness)
-    key = "specular" if material["type"] == "metal" else "albedo"
-    material[key] = [float(albedo)] * 3
-    desc["materials"][obj] = material
-    return desc
-
-
-def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = None,
-                 progress: bool = True) -> RRFData:
-    """Render the RRF training samples of ``scene`` (Appendix A), cached by content hash.
-
-    ``config`` is a full RRF config (``DEFAULT_CONFIG`` layout); only ``data`` matters here. The
-    cache entry ``$JPRT_CACHE/rrf/<hash>.npz`` (checksummed, written atomically) is reused when the
-    scene description and the ``data`` section are unchanged.
-    """
-    from jprt.render import cameras as cams
-    from jprt.render.dataset import _entry_state, _save_npz, cache_root
-    from jprt.render.sampling import check_box, latin_hypercube
-    from jprt.render.scenes import describe
-
-    cfg = _cfg(config)
-    data_cfg = cfg["data"]
-    desc = describe(scene)
-    if desc.get("area_light") or desc.get("keep_emitters"):
-        raise ValueError("RRF training needs a scene without emitters of its own (area_light=False, or "
-                         "keep_emitters=False for XML): Eq. 9 is linear in the point lights only")
-    mode = data_cfg["mode"]
-    if mode not in ("view", "material"):
-        raise ValueError(f"data.mode must be 'view' or 'material', got {mode!r}")
-    check_box(data_cfg["light_lo"], data_cfg["light_hi"], "data.light_lo/light_hi")
-    for key in ("n_lights", "n_views", "n_rays", "spp"):
-        if int(data_cfg[key]) <= 0:
-            raise ValueError(f"data.{key} must be positive, got {data_cfg[key]}")
-    spec = {"format": 1, "scene": desc, "data": {k: v for k, v in data_cfg.items() if k != "val_fraction"}}
-    if mode == "view":
-        spec["data"].pop("material")
-    folder = os.path.join(cache_dir or cache_root(), "rrf")
-    path = os.path.join(folder, stable_hash(spec) + ".npz")
-    if _entry_state(path) == "ok":
-        with np.load(path, allow_pickle=False) as f:
-            arrays = {k: f[k] for k in f.files}
-        return RRFData(**arrays, meta=_meta(spec, arrays))
-    os.makedirs(folder, exist_ok=True)
-    t0 = time.perf_counter()
-    rng = np.random.default_rng(int(data_cfg["seed"]))
-    lights = latin_hypercube(rng, data_cfg["n_lights"], data_cfg["light_lo"], data_cfg["light_hi"])
-    if mode == "view":
-        check_box(data_cfg["view_lo"], data_cfg["view_hi"], "data.view_lo/view_hi")
-        origins = latin_hypercube(rng, data_cfg["n_views"], data_cfg["view_lo"], data_cfg["view_hi"])
-        targets = np.asarray(data_cfg["view_target"]) + data_cfg["target_jitter"] * (
-            2.0 * rng.random((len(origins), 3)) - 1.0)
-        setups = [(desc, cams.look_at(o, t, fov=data_cfg["fov"]), None) for o, t in zip(origins, targets)]
-    else:
-        mat = data_cfg["material"]
-        if mat["object"] not in desc.get("materials", {}):
-            raise ValueError(f"data.material.object {mat['object']!r} is not an object of this scene "
-                             f"({sorted(desc.get('materials', {}))})")
-        edits = latin_hypercube(rng, mat["n_materials"], [mat["roughness"][0], mat["albedo"][0]],
-                                [mat["roughness"][1], mat["albedo"][1]])
-        camera = cams.look_at(mat["view_origin"], data_cfg["view_target"], fov=data_cfg["fov"])
-        setups = [(_edit_description(desc, mat["object"], r, a), camera, (r, a)) for r, a in edits]
-    arrays = _render_samples(desc, setups, lights, data_cfg, rng, progress)
-    _save_npz(path, arrays)
-    arrays = {k: v for k, v in arrays.items()}
-    if progress:
-        print(f"rrf: rendered {len(arrays['position'])} samples in {time.perf_counter() - t0:.1f} s -> {path}",
-              file=sys.stderr)
-    return RRFData(**arrays, meta=_meta(spec, arrays))
-
-
-def _meta(spec: dict, arrays: dict) -> dict:
-    data = spec["data"]
-    return {"light_lo": list(map(float, data["light_lo"])), "light_hi": list(map(float, data["light_hi"])),
-            "spp": int(data["spp"]), "mode": data["mode"], "scene": spec["scene"], "hash": stable_hash(spec),
-            "material_object": data.get("material", {}).get("object")}
-
-
-def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
-    from tqdm import tqdm
-
-    from jprt.render import cameras as cams
-    from jprt.render.gbuffer import gbuffer_rays
-    from jprt.render.images import indirect_rays
-    from jprt.render.lights import PointLights
-    from jprt.render.scenes import SceneHandle
-
-    n_rays, spp, seed = int(data_cfg["n_rays"]), int(data_cfg["spp"]), int(data_cfg["seed"])
-    # The same rays for each setup's G-buffer pass; fresh random rays for every (light, setup) pair.
-    rays = [[cams.random_rays(cam, n_rays, rng) for _ in lights] for _, cam, _ in setups]
-    base = SceneHandle(base_desc, PointLights.create([lights[0]], [1.0, 1.0, 1.0]))
-    out: dict[str, list] = {k: [] for k in ("position", "view", "light", "normal", "brdf", "edit", "object_id",
-                                            "direct", "indirect", "pair")}
-    bar = tqdm(total=len(setups) * len(lights), desc="rrf samples", unit="pair", disable=not progress, leave=False)
-    for s, (desc, _, edit) in enumerate(setups):
-        handle = base if edit is None else SceneHandle(desc, PointLights.create([lights[0]], [1.0, 1.0, 1.0]))
-        o = np.concatenate([r[0] for r in rays[s]])
-        d = np.concatenate([r[1] for r in rays[s]])
-        gb = gbuffer_rays(handle, o, d)
-        gb_attr = gb if edit is None else gbuffer_rays(base, o, d)  # material mode: a from the base scene
-        for li, light in enumerate(lights):
-            sl = slice(li * n_rays, (li + 1) * n_rays)
-            keep = gb.valid[sl]
-            handle.set_lighting(PointLights.create([light], [1.0, 1.0, 1.0]))
-            rad = indirect_rays(handle, o[sl][keep], d[sl][keep], spp=spp, seed=seed * 100003 + s * 1009 + li)
-            out["position"].append(gb.position[sl][keep])
-            out["view"].append(gb.view[sl][keep])
-            out["normal"].append(gb.normal[sl][keep])
-            out["brdf"].append(_brdf_vector(gb_attr)[sl][keep])
-            out["object_id"].append(gb.object_id[sl][keep])
-            out["light"].append(np.broadcast_to(light, (int(keep.sum()), 3)))
-            out["edit"].append(np.broadcast_to(np.asarray(edit if edit is not None else [], np.float32),
-                                               (int(keep.sum()), 0 if edit is None else 2)))
-            out["direct"].append(rad.direct)
-            out["indirect"].append(rad.indirect)
-            out["pair"].append(np.full(int(keep.sum()), s * len(lights) + li, np.int32))
-            bar.update(1)
-    bar.close()
-    arrays = {k: np.concatenate(v).astype(np.int32 if k in ("object_id", "pair") else np.float32)
-              for k, v in out.items()}
-    if len(arrays["position"]) == 0:
-        raise ValueError("no training ray hit the scene: check data.view_lo/view_hi and view_target")
-    return arrays
-
-
 # --------------------------------------------------------------------------------------------
 # Attributes
 
@@ -281,7 +151,13 @@ def features(attributes: str, position, view, light, normal, brdf, edit=None):
     return jnp.concatenate([jnp.asarray(parts[name], jnp.float32) for name in ATTRIBUTE_SETS[attributes]], axis=-1)
 
 
-def _data_features(data: RRFData, attributes: str) -> np.ndarray:
+def brdf_vector(gb) -> np.ndarray:
+    """The BRDF attributes a of Eq. 4 per pixel or sample: diffuse rgb, specular rgb, GGX alpha (..., 7)."""
+    return np.concatenate([gb.diffuse_albedo, gb.specular_albedo, np.asarray(gb.roughness)[..., None]], axis=-1)
+
+
+def data_features(data: RRFData, attributes: str) -> np.ndarray:
+    """The inputs x of Phi for every sample of ``data`` (N, D)."""
     edit = data.edit if data.meta.get("mode") == "material" else None
     return np.asarray(features(attributes, data.position, data.view, data.light, data.normal, data.brdf, edit))
 
@@ -294,17 +170,6 @@ def input_size(attributes: str, mode: str = "view") -> int:
 
 # --------------------------------------------------------------------------------------------
 # Fitting (Eq. 6, Eq. 10, §4)
-
-
-class FitInfo(NamedTuple):
-    """Side results of ``fit``: timings, the kd-tree build report, per-leaf errors, split masks."""
-
-    train_s: float
-    report: Any
-    leaf_train_error: np.ndarray
-    leaf_val_error: np.ndarray
-    is_train: np.ndarray
-    n_samples: int
 
 
 def _ranges(a: np.ndarray, eps: float = 1e-8) -> tuple[np.ndarray, np.ndarray]:
@@ -466,7 +331,8 @@ def _relative_error(pred, ref) -> float:
     return float(np.sqrt(np.sum(np.square(pred - ref)) / max(float(np.sum(np.square(ref))), 1e-30)))
 
 
-def _split(n: int, val_fraction: float, seed: int) -> np.ndarray:
+def split_samples(n: int, val_fraction: float, seed: int) -> np.ndarray:
+    """The seeded training / validation split of Appendix A: True for the training samples."""
     if not (0.0 <= val_fraction < 1.0):
         raise ValueError(f"data.val_fraction must be in [0, 1), got {val_fraction}")
     rng = np.random.default_rng(seed + 7)
@@ -475,18 +341,20 @@ def _split(n: int, val_fraction: float, seed: int) -> np.ndarray:
     return is_train
 
 
-def fit(data: RRFData, config: dict | None = None, *, is_train=None):
-    """Fit the kd-tree of RRFs to ``data`` (§4, Appendix A). Returns ``(params, info)``.
+def fit(data: RRFData, config: dict | None = None, *, is_train=None) -> FitResult:
+    """Fit the kd-tree of RRFs to ``data`` (§4, Appendix A). Returns ``FitResult(params, info)``.
 
     ``params`` is a pytree of arrays (kd-tree, per-object input boxes, stacked leaf networks with
-    their scaling, the trained light box) for ``evaluator``; ``info`` a ``FitInfo``.
+    their scaling, the trained light box) for ``evaluator``; ``info`` a dict: ``train_s``,
+    ``report`` (the kd-tree build report), ``leaf_train_error`` / ``leaf_val_error`` (per leaf),
+    ``is_train`` (the split mask) and ``n_samples``.
     ``is_train`` overrides the seeded 70/30 split; ``train.subset`` < 1 keeps that random
     fraction of the training samples (the Table 3 / Fig. 6 experiments).
     """
     cfg = _cfg(config)
-    x = _data_features(data, cfg["model"]["attributes"])
+    x = data_features(data, cfg["model"]["attributes"])
     if is_train is None:
-        is_train = _split(len(data), float(cfg["data"]["val_fraction"]), int(cfg["train"]["seed"]))
+        is_train = split_samples(len(data), float(cfg["data"]["val_fraction"]), int(cfg["train"]["seed"]))
     is_train = np.asarray(is_train, bool).copy()
     subset = float(cfg["train"]["subset"])
     if not (0.0 < subset <= 1.0):
@@ -501,7 +369,7 @@ def fit(data: RRFData, config: dict | None = None, *, is_train=None):
     params, info = fit_arrays(x, data.indirect, data.object_id, cfg, is_train=is_train)
     params["light_lo"] = jnp.asarray(data.meta["light_lo"], jnp.float32)
     params["light_hi"] = jnp.asarray(data.meta["light_hi"], jnp.float32)
-    return params, info
+    return FitResult(params, info)
 
 
 def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None):
@@ -519,7 +387,7 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None):
     if not (np.isfinite(x).all() and np.isfinite(y).all()):
         raise ValueError("RRF training data contains NaN or infinite values")
     if is_train is None:
-        is_train = _split(len(x), float(cfg["data"]["val_fraction"]), int(cfg["train"]["seed"]))
+        is_train = split_samples(len(x), float(cfg["data"]["val_fraction"]), int(cfg["train"]["seed"]))
     t = cfg["train"]
     tree_cfg = cfg["tree"]
     sizes = (x.shape[1], *cfg["model"]["hidden"], y.shape[1])
@@ -563,10 +431,11 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None):
         progress=say)
     params = _pack(tree, obj_lo, obj_hi, payloads)
     train_err, val_err = _leaf_errors(params, xn, x, y, object_id, is_train)
-    info = FitInfo(time.perf_counter() - t0, report, train_err, val_err, is_train, len(x))
-    say(f"{tree.n_leaves} leaves, max depth {tree.max_depth}, {info.train_s:.1f} s; leaf relative error "
+    info = {"train_s": time.perf_counter() - t0, "report": report, "leaf_train_error": train_err,
+            "leaf_val_error": val_err, "is_train": is_train, "n_samples": len(x)}
+    say(f"{tree.n_leaves} leaves, max depth {tree.max_depth}, {info['train_s']:.1f} s; leaf relative error "
         f"train median {np.median(train_err):.3f} / val median {np.median(val_err):.3f}")
-    return params, info
+    return FitResult(params, info)
 
 
 def _leaf_problem(xn, object_id, is_train, obj, lo, hi, expand):
@@ -661,86 +530,102 @@ def light_box(params) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(params["light_lo"]), np.asarray(params["light_hi"])
 
 
-def evaluator(params, config: dict | None = None, *, extrapolation: str = "error", tolerance: float = 0.02,
-              block: int = 512):
-    """The RRF renderer: ``evaluate(gbuffer, lights, edit=None) -> (H, W, 3)`` indirect radiance.
+class EditInputs(NamedTuple):
+    """Evaluator inputs of a material-editing RRF (Appendix B).
 
-    Args:
-      params: from ``fit``.
-      config: the config used to fit (attribute set, data mode).
-      extrapolation: lights outside the trained light box (grown by ``tolerance`` of its size):
-        "error" raises ValueError (default), "clamp" moves them onto the box, "allow" evaluates
-        anyway (RRFs extrapolate poorly, Ren et al. §7).
-      block: samples per leaf block in ``_predict`` (one dense product per block).
+    Fields:
+      gbuffer: a ``jprt.inputs.GBuffer`` (H, W, ...).
+      edit: (2,) roughness and albedo of the edited object.
+    """
 
-    ``gbuffer`` is a ``jprt.render.gbuffer.GBuffer`` (H, W, ...) or any object with its fields;
-    ``lights`` a ``PointLights`` (K positions, K RGB intensities). Eq. 9: sum over lights of
-    colour times Phi. Invalid pixels are 0; an all-invalid G-buffer gives a zero image; an empty
-    (0-pixel) G-buffer, NaN attributes at valid pixels or NaN lights raise ValueError (checks run on
-    concrete inputs; under an outer ``jax.jit`` they are skipped and NaN inputs give NaN pixels).
-    One compiled program per (image size, number of lights); ``evaluate.traces`` counts traces.
-    ``evaluate.core(arrays..., positions, colours)`` is the pure array function (for
-    ``jax.export``).
+    gbuffer: GBuffer
+    edit: Any
+
+
+jax.export.register_namedtuple_serialization(EditInputs, serialized_name="jprt.methods.rrf.EditInputs")
+
+
+def _render(params, gb: dict, light_pos, light_rgb, edit, *, attributes: str, material: bool,
+            clamp: bool, block: int):
+    """Eq. 9 for every pixel of ``gb``: sum over lights k of c_k Phi(x_p, v, l_k, n, a)."""
+    h, w = gb["object_id"].shape
+    if clamp:
+        light_pos = jnp.clip(light_pos, params["light_lo"][None, :], params["light_hi"][None, :])
+    brdf = jnp.concatenate([gb["diffuse_albedo"], gb["specular_albedo"], gb["roughness"][..., None]],
+                           axis=-1).reshape(-1, 7)
+    k = light_pos.shape[0]
+    p = h * w
+
+    def per_light(lp):
+        e = None if not material else jnp.broadcast_to(edit, (p, 2))
+        return features(attributes, gb["position"].reshape(-1, 3), gb["view"].reshape(-1, 3),
+                        jnp.broadcast_to(lp, (p, 3)), gb["normal"].reshape(-1, 3), brdf, e)
+
+    x = jax.vmap(per_light)(light_pos).reshape(k * p, -1)
+    obj = jnp.where(gb["valid"].reshape(-1), gb["object_id"].reshape(-1), -1)
+    y = _predict(params, x, jnp.tile(obj, k), block).reshape(k, p, -1)
+    return jnp.einsum("kpc,kc->pc", y, light_rgb).reshape(h, w, -1)
+
+
+#: G-buffer fields Eq. 9 reads, with their dtypes.
+_GBUFFER_FIELDS = {"position": jnp.float32, "normal": jnp.float32, "view": jnp.float32,
+                   "diffuse_albedo": jnp.float32, "specular_albedo": jnp.float32, "roughness": jnp.float32,
+                   "object_id": jnp.int32, "valid": bool}
+
+
+def _gbuffer_arrays(gb) -> dict:
+    """The fields of ``gb`` that Eq. 9 reads, as JAX arrays of fixed dtypes (so a G-buffer from
+    any source traces to the same program)."""
+    return {name: jnp.asarray(getattr(gb, name), dtype) for name, dtype in _GBUFFER_FIELDS.items()}
+
+
+def evaluator(params, config: dict | None = None):
+    """The RRF renderer (Eq. 8, Eq. 9): ``evaluate(inputs, lights) -> (H, W, 3)`` indirect radiance.
+
+    ``inputs`` is a ``jprt.inputs.GBuffer`` (H, W, ...) (an ``EditInputs`` for a material-editing
+    model), ``lights`` a ``jprt.inputs.PointLights`` (K positions, K RGB intensities). Invalid
+    pixels are 0. ``config["render"]``:
+
+    * ``extrapolation``: lights outside the trained light box (grown by ``tolerance`` of its
+      size): "error" raises ValueError (default), "clamp" moves them onto the box, "allow"
+      evaluates anyway (RRFs extrapolate poorly, Ren et al. §7).
+    * ``block``: samples per leaf block in ``_predict`` (one dense product per block).
+
+    On concrete inputs the G-buffer and lights are checked first (``check_inputs``: empty
+    G-buffer, NaN attributes at valid pixels, NaN lights, lights outside the box); under
+    ``jax.jit`` / ``vmap`` the checks are skipped and NaN inputs give NaN pixels. The function is
+    pure: it jits (one program per image size and light count), vmaps and exports.
     """
     cfg = _cfg(config)
-    attributes = cfg["model"]["attributes"]
-    material = cfg["data"]["mode"] == "material"
+    rc = cfg["render"]
+    extrapolation = rc["extrapolation"]
     if extrapolation not in ("error", "clamp", "allow"):
-        raise ValueError(f"extrapolation must be 'error', 'clamp' or 'allow', got {extrapolation!r}")
-    lo, hi = light_box(params)
-    margin = tolerance * (hi - lo)
-    traces = [0]
+        raise ValueError(f"render.extrapolation must be 'error', 'clamp' or 'allow', got {extrapolation!r}")
+    material = cfg["data"]["mode"] == "material"
+    params = jax.tree_util.tree_map(jnp.asarray, params)
+    # params are constants of the program: kd-tree traversal unrolls over the tree's depth
+    render = jax.jit(functools.partial(_render, params, attributes=cfg["model"]["attributes"], material=material,
+                                       clamp=extrapolation == "clamp", block=int(rc["block"])))
 
-    def core(position, view, normal, diffuse, specular, roughness, object_id, valid, light_pos, light_rgb,
-             edit):
-        traces[0] += 1
-        h, w = object_id.shape
-        if extrapolation == "clamp":
-            light_pos = jnp.clip(light_pos, params["light_lo"][None, :], params["light_hi"][None, :])
-        brdf = jnp.concatenate([diffuse, specular, roughness[..., None]], axis=-1).reshape(-1, 7)
-        k = light_pos.shape[0]
-        p = h * w
+    def evaluate(inputs, lights):
+        if material != isinstance(inputs, EditInputs):
+            raise TypeError("this RRF was trained for material editing: pass EditInputs(gbuffer, edit)" if material
+                            else f"this RRF takes a GBuffer, got {type(inputs).__name__}")
+        gb, edit = (inputs.gbuffer, inputs.edit) if material else (inputs, jnp.zeros((2,), jnp.float32))
+        light_pos = jnp.asarray(lights.position, jnp.float32).reshape(-1, 3)
+        light_rgb = jnp.asarray(lights.intensity, jnp.float32).reshape(-1, 3)
+        if not isinstance(light_pos, jax.core.Tracer):
+            check_inputs(params, gb, lights, extrapolation=extrapolation, tolerance=float(rc["tolerance"]))
+        return render(_gbuffer_arrays(gb), light_pos, light_rgb, jnp.asarray(edit, jnp.float32).reshape(2))
 
-        def per_light(lp):
-            e = None if not material else jnp.broadcast_to(edit, (p, 2))
-            return features(attributes, position.reshape(-1, 3), view.reshape(-1, 3), jnp.broadcast_to(lp, (p, 3)),
-                            normal.reshape(-1, 3), brdf, e)
-
-        x = jax.vmap(per_light)(light_pos).reshape(k * p, -1)
-        obj = jnp.where(valid.reshape(-1), object_id.reshape(-1), -1)
-        y = _predict(params, x, jnp.tile(obj, k), block).reshape(k, p, -1)
-        out = jnp.einsum("kpc,kc->pc", y, light_rgb)
-        return out.reshape(h, w, -1)
-
-    jitted = jax.jit(core)
-
-    def evaluate(gbuffer, lights, edit=None):
-        if material and edit is None:
-            raise ValueError("this RRF was trained for material editing: pass edit=(roughness, albedo)")
-        args = evaluator_arguments(gbuffer, lights, edit)
-        if not isinstance(args[8], jax.core.Tracer):
-            _check_inputs(gbuffer, np.asarray(args[8]), np.asarray(args[9]), lo, hi, margin, extrapolation)
-        return jitted(*args)
-
-    evaluate.core = core
-    evaluate.jitted = jitted
-    evaluate.traces = traces
     return evaluate
 
 
-def evaluator_arguments(gbuffer, lights, edit=None) -> tuple:
-    """The array arguments of ``evaluate.jitted`` / ``evaluate.core`` for a G-buffer, point
-    lights and an optional material edit (for ``jax.export`` and timing without checks)."""
-    return (jnp.asarray(gbuffer.position, jnp.float32), jnp.asarray(gbuffer.view, jnp.float32),
-            jnp.asarray(gbuffer.normal, jnp.float32), jnp.asarray(gbuffer.diffuse_albedo, jnp.float32),
-            jnp.asarray(gbuffer.specular_albedo, jnp.float32), jnp.asarray(gbuffer.roughness, jnp.float32),
-            jnp.asarray(gbuffer.object_id, jnp.int32), jnp.asarray(gbuffer.valid, bool),
-            jnp.asarray(lights.position, jnp.float32).reshape(-1, 3),
-            jnp.asarray(lights.intensity, jnp.float32).reshape(-1, 3),
-            jnp.zeros((2,), jnp.float32) if edit is None else jnp.asarray(edit, jnp.float32).reshape(2))
-
-
-def _check_inputs(gbuffer, light_pos, light_rgb, lo, hi, margin, extrapolation):
+def check_inputs(params, gbuffer, lights, *, extrapolation: str = "error", tolerance: float = 0.02) -> None:
+    """Raise ValueError for an empty G-buffer, NaN attributes at valid pixels, no or NaN lights,
+    or (``extrapolation="error"``) a light outside the trained box grown by ``tolerance``."""
+    light_pos = np.asarray(lights.position, np.float32).reshape(-1, 3)
+    light_rgb = np.asarray(lights.intensity, np.float32).reshape(-1, 3)
     valid = np.asarray(gbuffer.valid, bool)
     if valid.ndim != 2 or valid.size == 0:
         raise ValueError(f"empty G-buffer (valid mask of shape {valid.shape}); need H x W > 0 pixels")
@@ -755,19 +640,42 @@ def _check_inputs(gbuffer, light_pos, light_rgb, lo, hi, margin, extrapolation):
             raise ValueError(f"G-buffer field {name!r} has {int(bad.reshape(bad.shape[0], -1).any(-1).sum())} "
                              f"valid pixel(s) with NaN or infinite values")
     if extrapolation == "error":
+        lo, hi = light_box(params)
+        margin = tolerance * (hi - lo)
         outside = np.any((light_pos < lo - margin) | (light_pos > hi + margin), axis=1)
         if outside.any():
             k = int(np.flatnonzero(outside)[0])
             raise ValueError(f"light {k} at {light_pos[k].tolist()} is outside the trained light box "
                              f"lo={lo.tolist()} hi={hi.tolist()}; RRFs do not extrapolate "
-                             f"(use extrapolation='clamp' or 'allow')")
+                             f"(set render.extrapolation to 'clamp' or 'allow')")
+
+
+def example(data: RRFData, config: dict | None = None):
+    """A held-out (inputs, lights) pair from ``data``: the validation samples' attributes laid
+    out as an 8 x 8 G-buffer, lit by two lights inside the trained box (the contract tests)."""
+    cfg = _cfg(config)
+    is_train = split_samples(len(data), float(cfg["data"]["val_fraction"]), int(cfg["train"]["seed"]))
+    idx = np.flatnonzero(~is_train)
+    idx = np.resize(idx if len(idx) else np.arange(len(data)), 64)
+    grid = lambda a: np.asarray(a)[idx].reshape((8, 8) + np.shape(a)[1:])  # noqa: E731
+    brdf = grid(data.brdf)
+    gb = GBuffer(position=grid(data.position), normal=grid(data.normal), view=grid(data.view),
+                 reflected=np.zeros((8, 8, 3), np.float32), uv=np.zeros((8, 8, 2), np.float32),
+                 diffuse_albedo=brdf[..., 0:3], specular_albedo=brdf[..., 3:6], roughness=brdf[..., 6],
+                 object_id=grid(data.object_id), valid=np.ones((8, 8), bool))
+    lo, hi = np.asarray(data.meta["light_lo"], np.float32), np.asarray(data.meta["light_hi"], np.float32)
+    lights = PointLights(position=np.stack([lo + 0.3 * (hi - lo), lo + 0.7 * (hi - lo)]).astype(np.float32),
+                         intensity=np.asarray([[1.0, 0.8, 0.6], [0.3, 0.5, 1.0]], np.float32))
+    if cfg["data"]["mode"] == "material":
+        return EditInputs(gb, np.asarray(grid(data.edit)[0, 0], np.float32)), lights
+    return gb, lights
 
 
 # --------------------------------------------------------------------------------------------
 # Robustness (Table 3): refit the leaves of a fixed tree
 
 
-def refit_leaves(params, data: RRFData, config: dict | None, info: FitInfo, variants: list[dict]):
+def refit_leaves(params, data: RRFData, config: dict | None, info: dict, variants: list[dict]):
     """Refit every leaf of ``params``'s kd-tree for several variants in one batched LM solve.
 
     Each variant is {"seed": int, "subset": float}: fresh random weights from ``seed`` and a
@@ -775,7 +683,7 @@ def refit_leaves(params, data: RRFData, config: dict | None, info: FitInfo, vari
     measures the spread due to the data subset and the initial weights). Returns a list of params.
     """
     cfg = _cfg(config)
-    x = _data_features(data, cfg["model"]["attributes"])
+    x = data_features(data, cfg["model"]["attributes"])
     y, object_id = data.indirect, data.object_id
     xn = _normalise(x, object_id, params["obj_lo"], params["obj_hi"])
     objs, lo, hi = kdtree.leaf_cells(_tree(params))
@@ -784,7 +692,7 @@ def refit_leaves(params, data: RRFData, config: dict | None, info: FitInfo, vari
     for v in variants:
         rng = np.random.default_rng(int(v["seed"]) + 101)
         for i in range(len(objs)):
-            p = _leaf_problem(xn, object_id, info.is_train, objs[i], lo[i], hi[i], float(cfg["tree"]["expand"]))
+            p = _leaf_problem(xn, object_id, info["is_train"], objs[i], lo[i], hi[i], float(cfg["tree"]["expand"]))
             train = p.train
             if float(v.get("subset", 1.0)) < 1.0:
                 train = np.sort(rng.permutation(train)[: max(1, int(round(v["subset"] * len(train))))])

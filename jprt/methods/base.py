@@ -1,0 +1,97 @@
+"""The method contract every system implements (DESIGN.md, "Contracts"), so that the runner,
+sweeps, the cross-method report and the contract tests treat them alike.
+
+A method is a ``Method`` NamedTuple of plain functions::
+
+    m = REGISTRY["datadriven"]
+    config = m.resolve(m.presets["test"])            # strict: unknown keys raise ConfigError
+    dataset = m.make_dataset(config["scene"], config)  # renders via jprt.render, cached by jprt.cache
+    result = m.fit(dataset, config)                    # FitResult(params: arrays only, info: dict)
+    evaluate = m.evaluator(result.params, config)      # pure: (inputs, lighting) -> (H, W, 3)
+    inputs, lighting = m.example(dataset, config)      # a held-out input / lighting pair
+    image = jax.jit(evaluate)(inputs, lighting)
+
+* ``inputs`` is a G-buffer-like pytree of arrays (``jprt.inputs.GBuffer`` or a dict of its
+  fields), ``lighting`` the method's lighting pytree (``Method.lighting``, a ``jprt.inputs``
+  type). Neither needs Mitsuba.
+* The evaluator is a plain function with no attributes and no hidden state: it jits, vmaps over
+  a batch of lightings and exports with ``jax.export``. What used to hang on it (lightmaps,
+  transfer coefficients) are module functions of the method's ``model.py``.
+* ``fit`` returns ``FitResult(params, info)`` for every method: ``params`` a pytree of arrays
+  (nothing else: it is checkpointed and exported), ``info`` a plain dict (timings, losses, choices
+  made during the fit).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Mapping, NamedTuple
+
+import jax
+import numpy as np
+
+from jprt.config import ConfigError, merge
+
+__all__ = ["Method", "FitResult", "resolve", "check_params", "model_bytes"]
+
+
+class FitResult(NamedTuple):
+    """What ``Method.fit`` returns.
+
+    Fields:
+      params: pytree of arrays (the evaluator's only state).
+      info: plain dict of side results (timings, losses, chosen hyperparameters, warnings).
+    """
+
+    params: Any
+    info: dict
+
+
+class Method(NamedTuple):
+    """One published system (or baseline) behind the common contract (module docstring).
+
+    Fields:
+      name: registry key.
+      paper: the citation the implementation follows.
+      lighting: the ``jprt.inputs`` lighting type the evaluator takes.
+      default_config: the method's config dict; ``resolve`` merges overrides into it strictly.
+      presets: named override dicts; every method has ``"test"`` (seconds, for the contract tests).
+      make_dataset: ``(scene, config) -> dataset`` (renders with Mitsuba, cached by ``jprt.cache``).
+      fit: ``(dataset, config) -> FitResult``.
+      evaluator: ``(params, config) -> fn(inputs, lighting) -> (H, W, 3)`` indirect radiance.
+      example: ``(dataset, config) -> (inputs, lighting)`` a held-out pair of concrete arrays, the
+        shapes the evaluator is timed and exported at.
+    """
+
+    name: str
+    paper: str
+    lighting: type
+    default_config: dict
+    presets: dict
+    make_dataset: Callable
+    fit: Callable
+    evaluator: Callable
+    example: Callable
+
+    def resolve(self, config: Mapping | None = None) -> dict:
+        """``default_config`` deep-merged with ``config``; an unknown key raises ConfigError."""
+        return resolve(self.default_config, config)
+
+
+def resolve(default_config: Mapping, config: Mapping | None = None) -> dict:
+    """Strict merge of a method config: every key of ``config`` must exist in ``default_config``
+    (``ConfigError`` names the nearest valid key). Resolving a resolved config is a no-op."""
+    if config is not None and not isinstance(config, Mapping):
+        raise ConfigError(f"a method config is a dict, got {type(config).__name__}")
+    return merge(default_config, dict(config or {}))
+
+
+def check_params(params) -> None:
+    """Raise TypeError unless every leaf of ``params`` is an array (the FitResult contract)."""
+    for path, leaf in jax.tree_util.tree_leaves_with_path(params):
+        if not isinstance(leaf, (np.ndarray, jax.Array)):
+            raise TypeError(f"params leaf {jax.tree_util.keystr(path)} is {type(leaf).__name__}, not an array")
+
+
+def model_bytes(params) -> int:
+    """Bytes of every array in ``params``."""
+    return int(sum(np.asarray(leaf).nbytes for leaf in jax.tree_util.tree_leaves(params)))

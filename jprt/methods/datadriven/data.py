@@ -1,0 +1,153 @@
+"""Training and held-out examples of data-driven PRT (Belcour et al. 2022, §4.1), rendered with
+Mitsuba through ``jprt.render`` and cached by ``jprt.cache``: N random configurations of one
+lighting scenario (spot lights), direct radiance at dense surface candidates (one shadow ray per
+light) and indirect lightmap texels (full minus direct, equal seeds)."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from jprt import cache
+from jprt.config import stable_hash
+from jprt.methods.base import resolve
+from jprt.methods.datadriven.model import DEFAULT_CONFIG, DDData
+
+__all__ = ["make_dataset", "random_lights", "render_examples"]
+
+
+def random_lights(rng: np.random.Generator, n: int, lights_cfg: dict, accept=None) -> list:
+    """``n`` random lighting configurations of the scenario in ``lights_cfg`` (one spot light
+    each: position and target uniform in their boxes, cone angle uniform in ``cutoff_deg``,
+    intensity uniform in ``intensity`` times a random colour of saturation ``saturation``).
+    ``accept(position) -> bool`` rejects positions (inside objects, touching walls)."""
+    from jprt.render.lights import SpotLights
+    from jprt.render.sampling import check_box
+
+    if lights_cfg["kind"] != "spot":
+        raise ValueError(f"lights.kind {lights_cfg['kind']!r}: only 'spot' scenarios are built in "
+                         "(other kinds are evaluation-only, see experiments/datadriven.py)")
+    plo, phi = check_box(lights_cfg["position_lo"], lights_cfg["position_hi"], "lights.position")
+    tlo, thi = check_box(lights_cfg["target_lo"], lights_cfg["target_hi"], "lights.target")
+    out = []
+    for _ in range(int(n)):
+        for _attempt in range(1000):
+            pos = plo + (phi - plo) * rng.random(3)
+            if accept is None or accept(pos):
+                break
+        else:
+            raise ValueError("no acceptable spot-light position in lights.position_lo/hi after 1000 tries "
+                             "(inside objects or closer than lights.clearance to a surface)")
+        tgt = tlo + (thi - tlo) * rng.random(3)
+        while np.linalg.norm(tgt - pos) < 1e-3:
+            tgt = tlo + (thi - tlo) * rng.random(3)
+        cutoff = rng.uniform(*lights_cfg["cutoff_deg"])
+        colour = (1.0 - lights_cfg["saturation"]) + lights_cfg["saturation"] * rng.random(3)
+        colour /= colour.max()
+        out.append(SpotLights.create(pos, tgt, rng.uniform(*lights_cfg["intensity"]) * colour, cutoff))
+    return out
+
+
+def render_examples(handle, atlas, candidates, lightings, *, spp: int, seed: int = 0,
+                    progress: bool = True, desc: str = "examples") -> tuple[np.ndarray, np.ndarray]:
+    """Direct at every candidate point (exact, one shadow ray per light) and indirect lightmap
+    texels (``spp`` paths, full minus direct with equal seeds) for each lighting: (N, S, 3) and
+    (N, T, 3)."""
+    from tqdm.auto import tqdm
+
+    from jprt.render import lightmap
+
+    direct, indirect = [], []
+    for k, lighting in enumerate(tqdm(lightings, desc=desc, disable=not progress)):
+        handle.set_lighting(lighting)
+        direct.append(lightmap.radiance_at_points(handle, candidates["position"], candidates["normal"], spp=1,
+                                                  max_depth=2))
+        indirect.append(lightmap.indirect_at_points(handle, atlas["position"], atlas["normal"], spp=spp,
+                                                    seed=seed * 100003 + k))
+    return np.stack(direct), np.stack(indirect)
+
+
+def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
+                 progress: bool = True) -> DDData:
+    """Render the training and held-out examples of ``scene`` (default: ``config['scene']``),
+    cached by content hash under ``$JPRT_CACHE/datadriven/<hash>.npz`` (checksummed, atomic)."""
+    from jprt.render.scenes import describe
+
+    cfg = resolve(DEFAULT_CONFIG, config)
+    desc = describe(scene if scene is not None else cfg["scene"])
+    if desc.get("area_light") or desc.get("keep_emitters"):
+        raise ValueError("the data-driven scenario supplies the lights: use a scene without emitters of its own "
+                         "(area_light=False, or keep_emitters=False for XML)")
+    dcfg = cfg["data"]
+    for key in ("n_train", "n_test", "spp", "test_spp"):
+        if int(dcfg[key]) < (0 if key == "n_test" else 1):
+            raise ValueError(f"data.{key} must be positive, got {dcfg[key]}")
+    spec = {"format": 1, "scene": desc, "objects": list(cfg["objects"]), "lightmap": cfg["lightmap"],
+            "candidates": cfg["points"]["candidates"], "seed_points": cfg["points"]["seed"],
+            "point_objects": list(cfg["points"]["objects"]), "lights": cfg["lights"],
+            "data": dcfg}
+
+    def build() -> dict:
+        return _render(desc, cfg, progress)
+
+    arrays, path = cache.cached("datadriven", spec, build, cache_dir=cache_dir)
+    return _unpack(arrays, spec, path)
+
+
+def _render(desc: dict, cfg: dict, progress: bool) -> dict:
+    from jprt.render import lightmap
+    from jprt.render.scenes import SceneHandle
+
+    dcfg = cfg["data"]
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(int(dcfg["seed"]))
+    handle = SceneHandle(desc)
+
+    def accept(position):
+        return bool(lightmap.free_positions(handle, position, clearance=float(cfg["lights"]["clearance"]))[0])
+
+    train = random_lights(rng, dcfg["n_train"], cfg["lights"], accept)
+    # held-out lights from their own stream: the same test set for any n_train
+    test = random_lights(np.random.default_rng([int(dcfg["seed"]), 1]), dcfg["n_test"], cfg["lights"], accept)
+    objects = list(cfg["objects"]) or None
+    atlas = lightmap.build_atlas(handle, objects, resolution=int(cfg["lightmap"]["resolution"]))._asdict()
+    cands = lightmap.surface_samples(handle, int(cfg["points"]["candidates"]),
+                                     objects=list(cfg["points"]["objects"]) or objects,
+                                     seed=int(cfg["points"]["seed"]))._asdict()
+    d, i = render_examples(handle, atlas, cands, train, spp=int(dcfg["spp"]), seed=int(dcfg["seed"]),
+                           progress=progress, desc="train configurations")
+    t_train = time.perf_counter() - t0
+    if test:
+        dt, it = render_examples(handle, atlas, cands, test, spp=int(dcfg["test_spp"]), seed=int(dcfg["seed"]) + 1,
+                                 progress=progress, desc="held-out configurations")
+    else:
+        dt, it = np.zeros((0,) + d.shape[1:], np.float32), np.zeros((0,) + i.shape[1:], np.float32)
+    arrays = {f"atlas_{k}": np.asarray(v) for k, v in atlas.items()}
+    arrays.update({f"cand_{k}": np.asarray(v) for k, v in cands.items()})
+    arrays.update(direct=d, indirect=i, direct_test=dt, indirect_test=it,
+                  object_names=np.array(handle.object_names()), render_train_s=np.array(t_train),
+                  render_s=np.array(time.perf_counter() - t0))
+    for name, ls in (("lights", train), ("lights_test", test)):
+        for field in ("position", "target", "intensity", "cutoff_deg", "beam_deg"):
+            arrays[f"{name}_{field}"] = np.stack([getattr(l, field)[0] for l in ls]) if ls else np.zeros((0,))
+    if progress:
+        print(f"datadriven: rendered {len(train)} + {len(test)} configurations in "
+              f"{time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    return arrays
+
+
+def _unpack(arrays: dict, spec: dict, path: str) -> DDData:
+    def prefixed(prefix, exclude=None):
+        return {k[len(prefix):]: (v.item() if v.ndim == 0 else v) for k, v in arrays.items()
+                if k.startswith(prefix) and not (exclude and k.startswith(exclude))}
+
+    meta = {"scene": spec["scene"], "object_names": [str(s) for s in arrays["object_names"]],
+            "render_s": float(arrays["render_s"]), "render_train_s": float(arrays["render_train_s"]),
+            "cache": path, "spec_hash": stable_hash(spec)}
+    return DDData(atlas=prefixed("atlas_"), candidates=prefixed("cand_"), direct=arrays["direct"],
+                  indirect=arrays["indirect"], direct_test=arrays["direct_test"], indirect_test=arrays["indirect_test"],
+                  lights=prefixed("lights_", "lights_test_"), lights_test=prefixed("lights_test_"), meta=meta)
+
+

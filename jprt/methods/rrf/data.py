@@ -1,0 +1,148 @@
+"""Training data of Radiance Regression Functions (Ren et al. 2013, Appendix A), rendered with
+Mitsuba through ``jprt.render`` and cached by ``jprt.cache``.
+
+N_l light positions and N_v viewpoints by Latin hypercube sampling in user boxes; N_r random
+primary rays per (light, view) pair; attributes at the first hit and the path-traced indirect
+radiance (full minus direct, same seed). Material mode (Appendix B): one viewpoint, the edited
+object's roughness and albedo drawn by Latin hypercube sampling instead of views.
+"""
+
+from __future__ import annotations
+
+import copy
+import sys
+import time
+
+import numpy as np
+
+from jprt import cache
+from jprt.config import stable_hash
+from jprt.methods.base import resolve
+from jprt.methods.rrf.model import DEFAULT_CONFIG, RRFData, brdf_vector
+
+__all__ = ["make_dataset", "edit_description"]
+
+
+def edit_description(desc: dict, obj: str, roughness: float, albedo: float) -> dict:
+    """A copy of scene description ``desc`` with object ``obj``'s roughness and albedo edited (Appendix B)."""
+    desc = copy.deepcopy(desc)
+    material = dict(desc["materials"][obj])
+    if "roughness" in material or material["type"] in ("glossy", "metal"):
+        material["roughness"] = float(roughness)
+    key = "specular" if material["type"] == "metal" else "albedo"
+    material[key] = [float(albedo)] * 3
+    desc["materials"][obj] = material
+    return desc
+
+
+def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = None,
+                 progress: bool = True) -> RRFData:
+    """Render the RRF training samples of ``scene`` (Appendix A), cached by content hash.
+
+    ``config`` is an RRF config (``DEFAULT_CONFIG`` layout, strict); only ``data`` matters here.
+    The cache entry ``$JPRT_CACHE/rrf/<hash>.npz`` is reused when the scene description and the
+    ``data`` section are unchanged.
+    """
+    from jprt.render import cameras as cams
+    from jprt.render.sampling import check_box, latin_hypercube
+    from jprt.render.scenes import describe
+
+    data_cfg = resolve(DEFAULT_CONFIG, config)["data"]
+    desc = describe(scene)
+    if desc.get("area_light") or desc.get("keep_emitters"):
+        raise ValueError("RRF training needs a scene without emitters of its own (area_light=False, or "
+                         "keep_emitters=False for XML): Eq. 9 is linear in the point lights only")
+    mode = data_cfg["mode"]
+    if mode not in ("view", "material"):
+        raise ValueError(f"data.mode must be 'view' or 'material', got {mode!r}")
+    check_box(data_cfg["light_lo"], data_cfg["light_hi"], "data.light_lo/light_hi")
+    for key in ("n_lights", "n_views", "n_rays", "spp"):
+        if int(data_cfg[key]) <= 0:
+            raise ValueError(f"data.{key} must be positive, got {data_cfg[key]}")
+    spec = {"format": 1, "scene": desc, "data": {k: v for k, v in data_cfg.items() if k != "val_fraction"}}
+    if mode == "view":
+        spec["data"].pop("material")
+
+    def build() -> dict:
+        t0 = time.perf_counter()
+        rng = np.random.default_rng(int(data_cfg["seed"]))
+        lights = latin_hypercube(rng, data_cfg["n_lights"], data_cfg["light_lo"], data_cfg["light_hi"])
+        if mode == "view":
+            check_box(data_cfg["view_lo"], data_cfg["view_hi"], "data.view_lo/view_hi")
+            origins = latin_hypercube(rng, data_cfg["n_views"], data_cfg["view_lo"], data_cfg["view_hi"])
+            targets = np.asarray(data_cfg["view_target"]) + data_cfg["target_jitter"] * (
+                2.0 * rng.random((len(origins), 3)) - 1.0)
+            setups = [(desc, cams.look_at(o, t, fov=data_cfg["fov"]), None) for o, t in zip(origins, targets)]
+        else:
+            mat = data_cfg["material"]
+            if mat["object"] not in desc.get("materials", {}):
+                raise ValueError(f"data.material.object {mat['object']!r} is not an object of this scene "
+                                 f"({sorted(desc.get('materials', {}))})")
+            edits = latin_hypercube(rng, mat["n_materials"], [mat["roughness"][0], mat["albedo"][0]],
+                                    [mat["roughness"][1], mat["albedo"][1]])
+            camera = cams.look_at(mat["view_origin"], data_cfg["view_target"], fov=data_cfg["fov"])
+            setups = [(edit_description(desc, mat["object"], r, a), camera, (r, a)) for r, a in edits]
+        arrays = _render_samples(desc, setups, lights, data_cfg, rng, progress)
+        if progress:
+            print(f"rrf: rendered {len(arrays['position'])} samples in {time.perf_counter() - t0:.1f} s",
+                  file=sys.stderr)
+        return arrays
+
+    arrays, _ = cache.cached("rrf", spec, build, cache_dir=cache_dir)
+    return RRFData(**arrays, meta=_meta(spec, arrays))
+
+
+def _meta(spec: dict, arrays: dict) -> dict:
+    data = spec["data"]
+    return {"light_lo": list(map(float, data["light_lo"])), "light_hi": list(map(float, data["light_hi"])),
+            "spp": int(data["spp"]), "mode": data["mode"], "scene": spec["scene"], "hash": stable_hash(spec),
+            "material_object": data.get("material", {}).get("object")}
+
+
+def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
+    from tqdm import tqdm
+
+    from jprt.render import cameras as cams
+    from jprt.render.gbuffer import gbuffer_rays
+    from jprt.render.images import indirect_rays
+    from jprt.render.lights import PointLights
+    from jprt.render.scenes import SceneHandle
+
+    n_rays, spp, seed = int(data_cfg["n_rays"]), int(data_cfg["spp"]), int(data_cfg["seed"])
+    # The same rays for each setup's G-buffer pass; fresh random rays for every (light, setup) pair.
+    rays = [[cams.random_rays(cam, n_rays, rng) for _ in lights] for _, cam, _ in setups]
+    base = SceneHandle(base_desc, PointLights.create([lights[0]], [1.0, 1.0, 1.0]))
+    out: dict[str, list] = {k: [] for k in ("position", "view", "light", "normal", "brdf", "edit", "object_id",
+                                            "direct", "indirect", "pair")}
+    bar = tqdm(total=len(setups) * len(lights), desc="rrf samples", unit="pair", disable=not progress, leave=False)
+    for s, (desc, _, edit) in enumerate(setups):
+        handle = base if edit is None else SceneHandle(desc, PointLights.create([lights[0]], [1.0, 1.0, 1.0]))
+        o = np.concatenate([r[0] for r in rays[s]])
+        d = np.concatenate([r[1] for r in rays[s]])
+        gb = gbuffer_rays(handle, o, d)
+        gb_attr = gb if edit is None else gbuffer_rays(base, o, d)  # material mode: a from the base scene
+        for li, light in enumerate(lights):
+            sl = slice(li * n_rays, (li + 1) * n_rays)
+            keep = gb.valid[sl]
+            handle.set_lighting(PointLights.create([light], [1.0, 1.0, 1.0]))
+            rad = indirect_rays(handle, o[sl][keep], d[sl][keep], spp=spp, seed=seed * 100003 + s * 1009 + li)
+            out["position"].append(gb.position[sl][keep])
+            out["view"].append(gb.view[sl][keep])
+            out["normal"].append(gb.normal[sl][keep])
+            out["brdf"].append(brdf_vector(gb_attr)[sl][keep])
+            out["object_id"].append(gb.object_id[sl][keep])
+            out["light"].append(np.broadcast_to(light, (int(keep.sum()), 3)))
+            out["edit"].append(np.broadcast_to(np.asarray(edit if edit is not None else [], np.float32),
+                                               (int(keep.sum()), 0 if edit is None else 2)))
+            out["direct"].append(rad.direct)
+            out["indirect"].append(rad.indirect)
+            out["pair"].append(np.full(int(keep.sum()), s * len(lights) + li, np.int32))
+            bar.update(1)
+    bar.close()
+    arrays = {k: np.concatenate(v).astype(np.int32 if k in ("object_id", "pair") else np.float32)
+              for k, v in out.items()}
+    if len(arrays["position"]) == 0:
+        raise ValueError("no training ray hit the scene: check data.view_lo/view_hi and view_target")
+    return arrays
+
+

@@ -1,0 +1,72 @@
+"""The SH PRT bake (Sloan et al. 2002 §4, as Belcour et al. 2022 §6.4's baseline): transfer
+vectors of lightmap texels rendered with Mitsuba, one SH function at a time (positive and negative
+parts separately), cached by ``jprt.cache``."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from jprt import cache
+from jprt.methods.base import resolve
+from jprt.methods.sh_prt.model import DEFAULT_CONFIG, SHData, order_to_degree
+from jprt.sphere import sh
+from jprt.sphere.cubemap import equirect_directions
+
+__all__ = ["bake", "make_dataset"]
+
+
+def bake(handle, atlas, degree: int, *, spp: int, env_height: int = 32, seed: int = 0,
+         progress: bool = True) -> np.ndarray:
+    """Transfer vectors (T, (degree + 1)^2, 3) of the atlas texels: the indirect radiance at
+    each texel under white distant lighting Y_i, for every SH function i."""
+    from tqdm.auto import tqdm
+
+    from jprt.render import lightmap
+    from jprt.render.lights import EnvMap
+
+    h, w = int(env_height), 2 * int(env_height)
+    basis = np.asarray(sh.evaluate(equirect_directions(h, w).astype(np.float32), int(degree)), np.float32)
+    n = basis.shape[-1]
+    out = np.zeros((len(atlas["position"]) if isinstance(atlas, dict) else atlas.count, n, 3), np.float32)
+    position = atlas["position"] if isinstance(atlas, dict) else atlas.position
+    normal = atlas["normal"] if isinstance(atlas, dict) else atlas.normal
+    for i in tqdm(range(n), desc=f"SH PRT bake (degree {degree})", disable=not progress):
+        for sign in (1.0, -1.0):
+            part = np.maximum(sign * basis[..., i], 0.0)
+            if part.max() <= 0:
+                continue
+            handle.set_lighting(EnvMap.create(np.repeat(part[..., None], 3, axis=-1)))
+            out[:, i] += sign * lightmap.indirect_at_points(handle, position, normal, spp=spp,
+                                                            seed=seed * 7919 + 2 * i + (sign < 0))
+    return out
+
+
+def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
+                 progress: bool = True) -> SHData:
+    """Build the lightmap atlas of ``scene`` (default ``config['scene']``) and bake its transfer
+    vectors up to ``sh.order``; cached under ``$JPRT_CACHE/sh_prt/<hash>.npz``."""
+    from jprt.render import lightmap
+    from jprt.render.scenes import SceneHandle, describe
+
+    cfg = resolve(DEFAULT_CONFIG, config)
+    desc = describe(scene if scene is not None else cfg["scene"])
+    degree = order_to_degree(cfg["sh"]["order"])
+    spec = {"format": 1, "scene": desc, "objects": list(cfg["objects"]), "lightmap": cfg["lightmap"], "sh": cfg["sh"]}
+
+    def build() -> dict:
+        t0 = time.perf_counter()
+        handle = SceneHandle(desc)
+        atlas = lightmap.build_atlas(handle, list(cfg["objects"]) or None,
+                                     resolution=int(cfg["lightmap"]["resolution"]))._asdict()
+        s = cfg["sh"]
+        transfer = bake(handle, atlas, degree, spp=int(s["spp"]), env_height=int(s["env_height"]), seed=int(s["seed"]),
+                        progress=progress)
+        arrays = {f"atlas_{k}": np.asarray(v) for k, v in atlas.items()}
+        arrays.update(transfer=transfer, bake_s=np.array(time.perf_counter() - t0))
+        return arrays
+
+    arrays, _ = cache.cached("sh_prt", spec, build, cache_dir=cache_dir)
+    atlas = {k[len("atlas_"):]: (v.item() if v.ndim == 0 else v) for k, v in arrays.items() if k.startswith("atlas_")}
+    return SHData(atlas, arrays["transfer"], {"bake_s": float(arrays["bake_s"]), "degree": degree})

@@ -1,0 +1,201 @@
+"""Training and test data of neural-wavelet PRT (Raghavan et al. 2023, §5), rendered with
+Mitsuba through ``jprt.render`` and cached by ``jprt.cache``: training maps (files or procedural)
+and their rotations as cube maps, cameras on a spherical spiral and a helix, every camera under
+``data.envs_per_view`` maps; G-buffer, direct and indirect per image; near / far test views under
+held-out maps only; the importance maps of the four pixel-sampling strategies."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from jprt import cache
+from jprt.methods.base import resolve
+from jprt.methods.wavelet_prt.model import (DEFAULT_CONFIG, GBUFFER_FIELDS, WaveletData, camera_sets, haar,
+                                            importance_maps, prepare_environment, render_equirect, rotate_equirect,
+                                            synthetic_environments)
+
+__all__ = ["make_dataset", "add_vertex_interpolation", "SHARED_ENVMAPS"]
+
+#: The CC0 maps in ../shared/assets/envmaps (see its README), next to this checkout.
+SHARED_ENVMAPS = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "shared", "assets",
+                                              "envmaps"))
+
+
+def _environment_sets(ecfg: dict, seed: int):
+    n = int(ecfg["face_size"])
+    haar.check_face_size(n)
+    rotations = [float(r) for r in ecfg["rotations_deg"]] or [0.0]
+    if int(ecfg["synthetic"]) > 0:
+        maps = synthetic_environments(int(ecfg["synthetic"]) + 1, n, seed)
+        train = [maps[i] for i in range(len(maps) - 1)]
+        names = [f"synthetic_{i}" for i in range(len(train))]
+        return np.stack(train), names, maps[-1:], ["synthetic_held_out"]
+    folder = ecfg["folder"] or SHARED_ENVMAPS
+    if not os.path.isdir(folder):
+        raise FileNotFoundError(f"environment maps not found at {folder} (set envmaps.folder, or "
+                                f"envmaps.synthetic > 0 for procedural maps)")
+    from jprt.render.lights import EnvMap
+
+    stems = sorted(os.path.splitext(f)[0] for f in os.listdir(folder) if f.lower().endswith((".hdr", ".exr")))
+    files = {os.path.splitext(f)[0]: os.path.join(folder, f) for f in os.listdir(folder)}
+    held = list(ecfg["held_out"])
+    missing = [s for s in held + list(ecfg["train"]) if s not in files]
+    if missing:
+        raise FileNotFoundError(f"environment maps {missing} not in {folder}; available: {stems}")
+    train_stems = list(ecfg["train"]) or [s for s in stems if s not in held]
+    overlap = set(train_stems) & set(held)
+    if overlap:
+        raise ValueError(f"maps {sorted(overlap)} are both training and held-out maps")
+    envs, names = [], []
+    for stem in train_stems:
+        radiance = EnvMap.from_file(files[stem]).radiance
+        for r in rotations:
+            envs.append(prepare_environment(rotate_equirect(radiance, r), n, normalise=bool(ecfg["normalise"])))
+            names.append(f"{stem}@{r:g}")
+    tests = [prepare_environment(EnvMap.from_file(files[s]).radiance, n, normalise=bool(ecfg["normalise"]))
+             for s in held]
+    return np.stack(envs), names, np.stack(tests) if tests else np.zeros((0, 6, n, n, 3), np.float32), held
+
+
+def _render_view(handle, camera, cube, spp: int, seed: int, max_depth: int):
+    from jprt.render import images
+    from jprt.render.lights import EnvMap
+
+    handle.set_lighting(EnvMap.create(render_equirect(cube)))
+    r = images.direct_indirect(handle, camera, spp=spp, seed=seed, max_depth=max_depth)
+    return r.direct, r.indirect
+
+
+def _gbuffer_arrays(handle, camera) -> dict:
+    from jprt.render.gbuffer import gbuffer
+
+    g = gbuffer(handle, camera)
+    return {k: np.asarray(getattr(g, k)) for k in GBUFFER_FIELDS}
+
+
+def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
+                 progress: bool = True) -> WaveletData:
+    """Render the training images (§5) and held-out near / far test views of ``scene``
+    (default ``config['scene']``) lit by environment maps; cached by content hash under
+    ``$JPRT_CACHE/wavelet_prt/<hash>.npz`` (checksummed, atomic).
+
+    Each training camera is rendered under ``data.envs_per_view`` training environments, assigned
+    so that every environment lights the same number V of images; each image has its G-buffer
+    (exact pixel-centre rays), direct (Mitsuba ``max_depth=2``) and indirect (full minus direct,
+    same seed) radiance. Test views are lit by held-out maps only and rendered at ``test_spp``.
+    """
+    from jprt.render.scenes import describe
+
+    cfg = resolve(DEFAULT_CONFIG, config)
+    desc = describe(scene if scene is not None else cfg["scene"])
+    if desc.get("area_light") or desc.get("keep_emitters"):
+        raise ValueError("wavelet PRT relights with environment maps only: use a scene without emitters of its own")
+    ecfg, ccfg, dcfg = cfg["envmaps"], cfg["cameras"], cfg["data"]
+    files_key = None
+    if int(ecfg["synthetic"]) <= 0:
+        folder = ecfg["folder"] or SHARED_ENVMAPS
+        files_key = sorted((f, os.path.getsize(os.path.join(folder, f))) for f in os.listdir(folder)) \
+            if os.path.isdir(folder) else None
+    spec = {"format": 1, "scene": desc, "envmaps": {k: v for k, v in ecfg.items() if k != "folder"},
+            "files": files_key, "cameras": ccfg, "data": dcfg}
+    arrays, _ = cache.cached("wavelet_prt", spec, lambda: _render(desc, cfg, progress), cache_dir=cache_dir)
+    return _unpack(arrays)
+
+
+def _render(desc: dict, cfg: dict, progress: bool) -> dict:
+    from tqdm import tqdm
+
+    from jprt.render.cameras import look_at
+    from jprt.render.scenes import SceneHandle
+
+    ecfg, ccfg, dcfg = cfg["envmaps"], cfg["cameras"], cfg["data"]
+    seed = int(dcfg["seed"])
+    t0 = time.perf_counter()
+    envs, names, test_envs, test_names = _environment_sets(ecfg, seed)
+    train_o, near_o, far_o = camera_sets(ccfg, seed)
+    n_env, per_view = len(envs), int(dcfg["envs_per_view"])
+    n_img = len(train_o) * per_view
+    if n_img % n_env:
+        raise ValueError(f"{len(train_o)} training cameras x {per_view} environments each = {n_img} images do not "
+                         f"split evenly over {n_env} environments: change cameras.sphere.n / cameras.helix.n")
+    rng = np.random.default_rng(seed)
+    # image j (of camera j // per_view) gets environment perm[j] % n_env: every environment equally often
+    assign = rng.permutation(n_img) % n_env
+    cam_kw = {"fov": float(ccfg["fov"]), "width": int(ccfg["width"]), "height": int(ccfg["height"])}
+    target = tuple(ccfg["target"])
+    handle = SceneHandle(desc)
+    spp, max_depth = int(dcfg["spp"]), int(dcfg["max_depth"])
+    groups: list[list[dict]] = [[] for _ in range(n_env)]
+    bar = tqdm(total=n_img + len(near_o) + len(far_o), desc="wavelet PRT images", disable=not progress)
+    for c, origin in enumerate(train_o):
+        cam = look_at(origin, target, **cam_kw)
+        g = _gbuffer_arrays(handle, cam)
+        for j in range(per_view):
+            e = int(assign[c * per_view + j])
+            direct, indirect = _render_view(handle, cam, envs[e], spp, seed * 100003 + c * per_view + j, max_depth)
+            groups[e].append(dict(g, direct=direct, indirect=indirect))
+            bar.update(1)
+    train = {k: np.stack([np.stack([img[k] for img in grp]) for grp in groups])
+             for k in list(GBUFFER_FIELDS) + ["direct", "indirect"]}
+    importance = np.stack([importance_maps(train["indirect"][e], train["position"][e], train["valid"][e],
+                                           train["specular_albedo"][e], train["roughness"][e],
+                                           mu=float(cfg["train"]["mu"])) for e in range(n_env)])
+    t_train = time.perf_counter() - t0
+    tests = {}
+    for name, origins in (("near", near_o), ("far", far_o)):
+        views = []
+        for i, origin in enumerate(origins):
+            cam = look_at(origin, target, **cam_kw)
+            e = i % max(len(test_envs), 1)
+            direct, indirect = _render_view(handle, cam, test_envs[e], int(dcfg["test_spp"]),
+                                            seed * 7 + 1000003 + i + (0 if name == "near" else 5003), max_depth)
+            views.append(dict(_gbuffer_arrays(handle, cam), direct=direct, indirect=indirect, env=np.int32(e)))
+            bar.update(1)
+        tests[name] = {k: np.stack([v[k] for v in views]) for k in views[0]} if views else {}
+    bar.close()
+    arrays = {f"train_{k}": v for k, v in train.items()}
+    for name, t in tests.items():
+        arrays.update({f"{name}_{k}": v for k, v in t.items()})
+    arrays.update(importance=importance, envs=envs, test_envs=test_envs, env_names=np.array(names),
+                  test_env_names=np.array(test_names), cam_train=train_o, cam_near=near_o, cam_far=far_o,
+                  render_train_s=np.array(t_train), render_s=np.array(time.perf_counter() - t0),
+                  spp=np.array(spp), test_spp=np.array(int(dcfg["test_spp"])))
+    return arrays
+
+
+def _unpack(a: dict) -> WaveletData:
+    fields = list(GBUFFER_FIELDS) + ["direct", "indirect"]
+    tests = {name: {k: a[f"{name}_{k}"] for k in fields + ["env"] if f"{name}_{k}" in a} for name in ("near", "far")}
+    return WaveletData(
+        train={k: a[f"train_{k}"] for k in fields}, importance=a["importance"], envs=a["envs"], tests=tests,
+        test_envs=a["test_envs"], env_names=[str(s) for s in a["env_names"]],
+        test_env_names=[str(s) for s in a["test_env_names"]],
+        cameras={"train": a["cam_train"], "near": a["cam_near"], "far": a["cam_far"]},
+        stats={"render_train_s": float(a["render_train_s"]), "render_s": float(a["render_s"]),
+               "spp": int(a["spp"]), "test_spp": int(a["test_spp"])})
+
+
+
+
+def add_vertex_interpolation(data: WaveletData, scene, edge: float = 0.1) -> WaveletData:
+    """``data`` with the VERTEX_FIELDS of every training and test pixel
+    (``jprt.render.lightmap.vertex_interpolation`` on ``scene``); ``stats["n_vertices"]``."""
+    from jprt.render.lightmap import vertex_interpolation
+    from jprt.render.scenes import SceneHandle
+
+    handle = SceneHandle(scene)
+    _, _, verts = vertex_interpolation(handle, np.zeros((1, 3)), edge=edge)
+
+    def add(arrays: dict) -> dict:
+        if not arrays:
+            return arrays
+        idx, w, _ = vertex_interpolation(handle, arrays["position"], edge=edge)
+        return dict(arrays, vertex_index=idx, vertex_weight=w)
+
+    return data._replace(train=add(data.train), tests={k: add(v) for k, v in data.tests.items()},
+                         stats=dict(data.stats, n_vertices=int(len(verts))))
+
+

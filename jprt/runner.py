@@ -1,0 +1,262 @@
+"""One pipeline for every experiment (DESIGN.md, "Data flow"):
+
+    resolve config -> hash -> save resolved config -> dataset -> fit -> held-out predictions
+    -> common summary -> timing and equal error -> the experiment's own stages -> report folder
+
+An experiment file is its ``CONFIG``, ``PRESETS`` and what is special to its paper::
+
+    METHOD = "rrf"                      # a key of jprt.methods.REGISTRY
+    CONFIG = {**REGISTRY["rrf"].default_config, "eval": {...}, "output": {"dir": "results/rrf"}}
+    PRESETS = {"test": {...}}
+
+    def held_out(run) -> HeldOut: ...   # predictions and references of the held-out views / lights
+    def frame(run) -> (inputs, lighting)          # optional: the frame the evaluator is timed on
+    def pathtracer(run) -> PathTracer             # optional: Mitsuba at n spp, for equal error
+    STAGES = [ablations, robustness, ...]         # optional: run -> dict, kept under summary["extra"]
+
+``jprt run experiments/x.py`` calls ``run(module, config)``; ``main(config)`` in a file does the
+same. Sections of the config that the method does not know (``eval``, ``output``, ...) are the
+experiment's; the method gets exactly its own sections (``Run.method_config``), so an unknown key
+anywhere is an error at the entry, never dropped.
+
+Summary schema (``SUMMARY_SCHEMA``; every method, every experiment; ``None`` where a number does
+not apply, e.g. no path tracer):
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from types import ModuleType
+from typing import Any, Callable, NamedTuple, Sequence
+
+import jax
+import numpy as np
+
+from jprt import eval as jeval
+from jprt import io, metrics
+from jprt.config import config_hash, merge, save_resolved
+from jprt.methods import REGISTRY
+from jprt.methods.base import FitResult, Method, model_bytes
+
+__all__ = ["SUMMARY_SCHEMA", "Run", "HeldOut", "PathTracer", "run", "run_file", "flat_summary", "method_config",
+           "common_summary"]
+
+#: Every key of the common summary, with its meaning.
+SUMMARY_SCHEMA: dict[str, str] = {
+    "method": "the method's REGISTRY name",
+    "scene": "the scene section of the config (name and options)",
+    "config_hash": "hash of the resolved config (also the report folder's name; config.json holds the config)",
+    "indirect_rmse": "RMSE of the indirect prediction over every valid pixel and channel of all held-out images "
+                     "together (jprt.eval.set_rmse; HDR, linear)",
+    "indirect_rel_rmse": "indirect_rmse / RMS of the reference indirect over the same pixels",
+    "psnr_indirect": "PSNR (dB, sRGB-tonemapped, clipped, peak 1) of the indirect images, mean over images",
+    "ssim_indirect": "SSIM of the tonemapped indirect images, mean over images; None for images under 11 x 11 "
+                     "pixels (the SSIM window)",
+    "psnr_full": "PSNR (dB, tonemapped) of direct + indirect, mean over images; None without held-out direct",
+    "frame_ms": "median wall time (ms) of one jitted evaluator call after warm-up, at frame_resolution",
+    "frame_resolution": "[H, W] of the timed frame",
+    "equal_error_spp": "smallest Mitsuba spp whose indirect RMSE on the held-out set reaches indirect_rmse; None "
+                       "when not reached within eval.equal_error_spp or no path tracer",
+    "pathtrace_ms_equal_error": "Mitsuba wall time (ms) of the timed frame at equal_error_spp (at the largest spp "
+                                "tried when not reached: a lower bound)",
+    "speedup_equal_error": "pathtrace_ms_equal_error / frame_ms",
+    "model_bytes": "bytes of the arrays the evaluator needs at run time (FitResult.info['model_bytes'] when the "
+                   "method states it, else every array of the params)",
+    "train_s": "seconds of the fit",
+    "dataset_s": "seconds to obtain the dataset (rendering, or reading the cache)",
+    "extra": "method- and experiment-specific numbers (ablations, sweeps, paper tables)",
+}
+__doc__ += "\n" + "\n".join(f"* ``{k}``: {v}." for k, v in SUMMARY_SCHEMA.items()) + "\n"
+
+
+class HeldOut(NamedTuple):
+    """Held-out predictions and references, all (H, W, 3) images (one per view / lighting pair).
+
+    Fields:
+      predictions: list of (H, W, 3) indirect predictions of the method.
+      references: list of (H, W, 3) path-traced indirect references.
+      valid: list of (H, W) masks of the pixels that count.
+      direct: list of (H, W, 3) direct radiance (for psnr_full), or None.
+      labels: one label per image (figure rows).
+    """
+
+    predictions: list
+    references: list
+    valid: list
+    direct: list | None = None
+    labels: list | None = None
+
+
+class PathTracer(NamedTuple):
+    """Mitsuba as the peer of the evaluator.
+
+    Fields:
+      render_at: ``spp -> list`` of indirect images of the held-out set (a seed unlike the references').
+      time_at: ``spp -> ms``: wall time of one frame of the timed view at ``spp``.
+      note: how it was timed (stored in ``extra``).
+    """
+
+    render_at: Callable[[int], Sequence]
+    time_at: Callable[[int], float]
+    note: str = ""
+
+
+class Run:
+    """Everything a stage can read (one per ``run`` call).
+
+    Attributes:
+      method: the ``Method``; config: the resolved experiment config; method_config: the method's
+      sections of it; out: the report folder; dataset; result (``FitResult``); evaluate (the
+      evaluator of ``result.params``); summary (the summary built so far); state (a dict stages
+      use to share work, e.g. a rendered test set); say (progress messages to stderr).
+    """
+
+    def __init__(self, method: Method, config: dict, out: str, label: str):
+        self.method = method
+        self.config = config
+        self.method_config = method_config(method, config)
+        self.out = out
+        self.label = label
+        self.dataset: Any = None
+        self.result: FitResult | None = None
+        self.evaluate: Callable | None = None
+        self.summary: dict = {}
+        self.state: dict = {}
+
+    def say(self, msg: str) -> None:
+        print(f"[{self.label}] {msg}", file=sys.stderr, flush=True)
+
+    def with_config(self, overrides: dict) -> dict:
+        """The method config with ``overrides`` merged in (strict): for ablation fits."""
+        return self.method.resolve(merge(self.method_config, overrides))
+
+
+def method_config(method: Method, config: dict) -> dict:
+    """The sections of an experiment config that belong to ``method`` (all of them must be there)."""
+    missing = [k for k in method.default_config if k not in config]
+    if missing:
+        raise ValueError(f"experiment config lacks the {method.name} sections {missing}")
+    return method.resolve({k: config[k] for k in method.default_config})
+
+
+def common_summary(held: HeldOut, exposure: float = 0.0) -> dict:
+    """indirect_rmse, indirect_rel_rmse, psnr_indirect, ssim_indirect, psnr_full of a held-out set."""
+    preds, refs, valid = held.predictions, held.references, held.valid
+    rmse = jeval.set_rmse(preds, refs, valid)
+    ref_rms = jeval.set_rmse([np.zeros_like(np.asarray(r)) for r in refs], refs, valid)
+    out = {"indirect_rmse": rmse, "indirect_rel_rmse": rmse / max(ref_rms, 1e-30)}
+    tm = lambda metric, p, r: float(metrics.tonemapped(metric, p, r, exposure))  # noqa: E731
+    out["psnr_indirect"] = float(np.mean([tm(metrics.psnr, p, r) for p, r in zip(preds, refs)]))
+    small = min(min(np.shape(r)[:2]) for r in refs) < 11  # SSIM's 11 x 11 window does not fit
+    out["ssim_indirect"] = None if small else float(np.mean([tm(metrics.ssim, p, r) for p, r in zip(preds, refs)]))
+    out["psnr_full"] = None if held.direct is None else float(np.mean(
+        [tm(metrics.psnr, d + p, d + r) for p, r, d in zip(preds, refs, held.direct)]))
+    return out
+
+
+def _figures(run: Run, held: HeldOut, n: int, exposure: float) -> None:
+    rows = []
+    for k in range(min(int(n), len(held.predictions))):
+        label = held.labels[k] if held.labels else f"held-out {k}"
+        rows.append((label, held.references[k], held.predictions[k]))
+        io.write_exr(os.path.join(run.out, f"heldout{k:02d}_reference.exr"), held.references[k])
+        io.write_exr(os.path.join(run.out, f"heldout{k:02d}_{run.method.name}.exr"), held.predictions[k])
+    if rows:
+        jeval.side_by_side(os.path.join(run.out, "side_by_side.png"), rows, exposure=exposure)
+
+
+def _timing(run: Run, experiment: ModuleType, repeats: int) -> None:
+    s = run.summary
+    frame = getattr(experiment, "frame", None)
+    inputs, lighting = frame(run) if frame else run.method.example(run.dataset, run.method_config)
+    inputs, lighting = jax.device_put((inputs, lighting))
+    fast = jax.jit(run.evaluate)  # the pure program: input checks run on concrete calls only
+    s["frame_ms"] = jeval.time_call(fast, inputs, lighting, repeats=repeats)["median_ms"]
+    s["frame_resolution"] = list(np.shape(fast(inputs, lighting))[:2])
+    run.say(f"frame {s['frame_resolution'][0]}x{s['frame_resolution'][1]}: {s['frame_ms']:.2f} ms")
+
+
+def _equal_error(run: Run, experiment: ModuleType, held: HeldOut) -> None:
+    s = run.summary
+    s.update(equal_error_spp=None, pathtrace_ms_equal_error=None, speedup_equal_error=None)
+    make = getattr(experiment, "pathtracer", None)
+    spp_list = run.config.get("eval", {}).get("equal_error_spp", [])
+    if make is None or not spp_list:
+        return
+    pt = make(run)
+    eq = jeval.equal_error_spp(pt.render_at, held.references, s["indirect_rmse"], spp_list, held.valid, run.say)
+    s["equal_error_spp"] = eq["spp"]
+    s["extra"]["pathtrace_rmse_by_spp"] = eq["tried"]
+    jeval.plot_series(os.path.join(run.out, "equal_error.png"),
+                      {"Mitsuba path tracing": ([t["spp"] for t in eq["tried"]], [t["rmse"] for t in eq["tried"]])},
+                      xlabel="spp", ylabel="indirect RMSE (held-out set)", title=f"path tracing vs {run.method.name}",
+                      logx=True, logy=True, hlines={run.method.name: s["indirect_rmse"]})
+    spp = eq["spp"] or max(int(v) for v in spp_list)
+    s["pathtrace_ms_equal_error"] = float(pt.time_at(spp))
+    s["speedup_equal_error"] = s["pathtrace_ms_equal_error"] / s["frame_ms"]
+    s["extra"]["pathtrace_spp_timed"] = spp
+    s["extra"]["pathtrace_note"] = pt.note + ("" if eq["spp"] else "; equal error NOT reached: timed at the "
+                                                                   "largest spp tried (a lower bound)")
+    run.say(f"equal-error spp {eq['spp']}: Mitsuba {s['pathtrace_ms_equal_error']:.0f} ms -> speedup "
+            f"{s['speedup_equal_error']:.2f}x")
+
+
+def run(experiment: ModuleType, config: dict) -> dict:
+    """Run an experiment module (module docstring) on ``config`` (its CONFIG with presets and
+    overrides merged in); writes ``<output.dir>/<config hash>/`` (config.json, summary.json,
+    model.npz, side_by_side.png, equal_error.png, the stages' files) and returns the summary."""
+    t_start = time.perf_counter()
+    method = REGISTRY[experiment.METHOD]
+    config = merge(experiment.CONFIG, config)
+    digest = config_hash(config)
+    out = os.path.abspath(os.path.join(config["output"]["dir"], digest))
+    os.makedirs(out, exist_ok=True)
+    save_resolved(config, out)
+    r = Run(method, config, out, getattr(experiment, "LABEL", method.name))
+    e = config.get("eval", {})
+    r.summary = s = {"method": method.name, "scene": config.get("scene"), "config_hash": digest}
+
+    t0 = time.perf_counter()
+    r.dataset = method.make_dataset(config.get("scene"), r.method_config)
+    s["dataset_s"] = time.perf_counter() - t0
+    fit = getattr(experiment, "fit", None)
+    t0 = time.perf_counter()
+    r.result = fit(r) if fit else method.fit(r.dataset, r.method_config)
+    s["train_s"] = float(r.result.info.get("train_s", time.perf_counter() - t0))
+    s["model_bytes"] = int(r.result.info.get("model_bytes", model_bytes(r.result.params)))
+    io.save_checkpoint(os.path.join(out, "model.npz"), r.result.params, meta={"config_hash": digest})
+    r.evaluate = method.evaluator(r.result.params, r.method_config)
+    s["extra"] = {}
+
+    held = experiment.held_out(r)
+    r.state["held_out"] = held
+    s.update(common_summary(held, float(e.get("exposure", 0.0))))
+    r.say(f"{len(held.predictions)} held-out images: indirect RMSE {s['indirect_rmse']:.5f} "
+          f"(relative {s['indirect_rel_rmse']:.3f}), PSNR {s['psnr_indirect']:.2f} dB")
+    _figures(r, held, int(e.get("images", 4)), float(e.get("exposure", 0.0)))
+    _timing(r, experiment, int(e.get("timing_repeats", 10)))
+    _equal_error(r, experiment, held)
+    for stage in getattr(experiment, "STAGES", []):
+        s["extra"].update(stage(r) or {})
+    s = {k: s[k] for k in SUMMARY_SCHEMA if k in s} | {k: v for k, v in s.items() if k not in SUMMARY_SCHEMA}
+    s["total_s"] = time.perf_counter() - t_start
+    s["output"] = out
+    io.write_json(os.path.join(out, "summary.json"), s)
+    print(f"{r.label} report (summary.json, side_by_side.png, plots, EXRs) written to {out}")
+    return s
+
+
+def run_file(path: str, preset: str | None = None, overrides: Sequence[str] = ()) -> dict:
+    """Run an experiment file as ``jprt run path --preset preset --set ...`` does; returns the summary."""
+    from jprt.cli import load_experiment, resolve_config
+
+    module = load_experiment(path)
+    config = resolve_config(module, list(overrides), preset)
+    return module.main(config) if callable(getattr(module, "main", None)) else run(module, config)
+
+
+def flat_summary(summary: dict) -> dict:
+    """The summary with its ``extra`` entries lifted to the top level (the common keys win)."""
+    return {**summary.get("extra", {}), **{k: v for k, v in summary.items() if k != "extra"}}

@@ -1,0 +1,105 @@
+"""The method contract (``jprt.methods.base``), for every method in ``REGISTRY`` on its ``test``
+preset: make_dataset -> fit -> evaluator; the evaluator jits without retracing, gives finite
+(H, W, 3) output, vmaps over a batch of lightings and round-trips through ``jax.export``; an
+unknown config key raises; ``model.py`` imports with Mitsuba and Dr.Jit unimportable."""
+
+import importlib
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from jprt.config import ConfigError
+from jprt.methods import REGISTRY, FitResult
+from jprt.methods.base import check_params
+
+NAMES = sorted(REGISTRY)
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    """{name: (method, config, dataset, FitResult)} on each test preset (the session's cache)."""
+    out = {}
+    for name in NAMES:
+        m = REGISTRY[name]
+        config = m.resolve(m.presets["test"])
+        dataset = m.make_dataset(config["scene"], config)
+        out[name] = (m, config, dataset, m.fit(dataset, config))
+    return out
+
+
+@pytest.mark.mitsuba
+@pytest.mark.parametrize("name", NAMES)
+def test_method_contract(mi, fitted, name):
+    m, config, dataset, result = fitted[name]
+    assert isinstance(result, FitResult) and isinstance(result.info, dict)
+    check_params(result.params)
+    evaluate = m.evaluator(result.params, config)
+    for attribute in ("core", "jitted", "traces", "lightmap", "transfer"):  # module functions now
+        assert not hasattr(evaluate, attribute), attribute
+    inputs, lighting = m.example(dataset, config)
+    assert isinstance(lighting, m.lighting)
+
+    image = np.asarray(evaluate(inputs, lighting))
+    assert image.ndim == 3 and image.shape[-1] == 3 and np.isfinite(image).all()
+    assert np.abs(image).max() > 0
+
+    jitted = jax.jit(evaluate)
+    np.testing.assert_allclose(np.asarray(jitted(inputs, lighting)), image, rtol=1e-5, atol=1e-6)
+    # another lighting of the same type and shapes: each array pulled a quarter of the way to its
+    # mean over the first axis (stays inside an RRF's light box, stays a valid radiance)
+    scaled = jax.tree_util.tree_map(
+        lambda a: (0.75 * np.asarray(a) + 0.25 * np.asarray(a).mean(axis=0, keepdims=True)).astype(np.asarray(a).dtype),
+        lighting)
+    jitted(inputs, scaled)  # equal shapes, other values: no second trace
+    assert jitted._cache_size() == 1
+
+    batch = jax.tree_util.tree_map(lambda a, b: np.stack([np.asarray(a), np.asarray(b)]), lighting, scaled)
+    batched = np.asarray(jax.vmap(evaluate, in_axes=(None, 0))(inputs, batch))
+    assert batched.shape == (2,) + image.shape
+    np.testing.assert_allclose(batched[0], image, rtol=1e-4, atol=1e-5)
+    single_scaled = np.asarray(evaluate(inputs, scaled))
+    np.testing.assert_allclose(batched[1], single_scaled, rtol=1e-4, atol=1e-5)
+
+    exported = jax.export.export(jax.jit(evaluate))(inputs, lighting)
+    restored = jax.export.deserialize(exported.serialize())
+    np.testing.assert_allclose(np.asarray(restored.call(inputs, lighting)), image, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_unknown_config_key_raises(name):
+    m = REGISTRY[name]
+    section = next(k for k, v in m.default_config.items() if isinstance(v, dict) and len(v) > 1)
+    key = sorted(m.default_config[section])[0]
+    with pytest.raises(ConfigError, match=f"did you mean '{section}.{key}'"):
+        m.resolve({section: {key + "x": 1}})
+    with pytest.raises(ConfigError):
+        m.resolve({"no_such_section": {}})
+    with pytest.raises(ConfigError):
+        m.evaluator({}, {"no_such_section": {}})
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_model_imports_without_mitsuba(name):
+    """model.py is the paper's math in pure JAX: importing it never needs Mitsuba or Dr.Jit."""
+    code = (
+        "import sys\n"
+        "class Block:\n"
+        "    def find_spec(self, fullname, path=None, target=None):\n"
+        "        if fullname.split('.')[0] in ('mitsuba', 'drjit'):\n"
+        "            raise ImportError('blocked ' + fullname)\n"
+        "sys.meta_path.insert(0, Block())\n"
+        f"import jprt.methods.{name}.model, jprt.inputs, jprt.methods.base\n"
+        "assert 'mitsuba' not in sys.modules and 'drjit' not in sys.modules\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_registry_names_match_packages():
+    for name, m in REGISTRY.items():
+        assert m.name == name
+        assert importlib.import_module(f"jprt.methods.{name}").METHOD is m
+        assert "test" in m.presets
+        m.resolve(m.presets["test"])  # every preset is valid for its method
