@@ -119,7 +119,8 @@ def worker(kind: str, n: int, iters: int) -> dict:
     out = {"kind": kind, "n": n, "iters_budget": iters, "start_rmse": rmse_of(params)}
     if kind in ("ours", "jaxopt"):
         backend = "jax" if kind == "ours" else "jaxopt"
-        run = lambda: lm.solve(residual, params, data, max_iters=iters, backend=backend)  # noqa: E731
+        run = lambda: lm.solve(residual, params, data, backend=backend,  # noqa: E731
+                               settings=lm.LMSettings(max_iters=iters))
         warm = run()  # compiles the identical program
         jax.block_until_ready(warm.loss)
         with RSSMonitor() as mon:
@@ -171,15 +172,16 @@ def vmap64(n_leaf: int, iters: int) -> dict:
     stacked_params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[p for _, p, _, _ in problems])
     stacked_data = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[d for _, _, d, _ in problems])
     res = problems[0][3]  # same network structure: one residual function serves all leaves
-    batched = lambda: lm.solve_batched(res, stacked_params, stacked_data, max_iters=iters)  # noqa: E731
+    settings = lm.LMSettings(max_iters=iters)
+    batched = lambda: lm.solve_batched(res, stacked_params, stacked_data, settings=settings)  # noqa: E731
     jax.block_until_ready(batched().loss)
     t0 = time.perf_counter()
     jax.block_until_ready(batched().loss)
     t_batched = time.perf_counter() - t0
-    jax.block_until_ready(lm.solve(res, problems[0][1], problems[0][2], max_iters=iters).loss)
+    jax.block_until_ready(lm.solve(res, problems[0][1], problems[0][2], settings=lm.LMSettings(max_iters=iters)).loss)
     t0 = time.perf_counter()
     for _, p, d, _ in problems:
-        jax.block_until_ready(lm.solve(res, p, d, max_iters=iters).loss)
+        jax.block_until_ready(lm.solve(res, p, d, settings=lm.LMSettings(max_iters=iters)).loss)
     t_seq = time.perf_counter() - t0
     return {"kind": "vmap64", "n_leaf": n_leaf, "iters_budget": iters, "batched_s": t_batched, "sequential_s": t_seq,
             "speedup": t_seq / t_batched}

@@ -30,8 +30,8 @@ from jprt.methods.atlas import atlas_inputs
 from jprt.methods.base import FitResult
 from jprt.methods.datadriven import data as dd_data
 from jprt.methods.datadriven import model as dd
-from jprt.methods.sh_prt import data as sh_data
 from jprt.methods.sh_prt import model as sh_prt
+from jprt.methods import REGISTRY
 from jprt.runner import HeldOut
 
 METHOD = "datadriven"
@@ -83,9 +83,7 @@ PRESETS = {
     "small": {},
     "spot": SPOT,
     "test": {
-        "lightmap": {"resolution": 32},
-        "points": {"candidates": 512, "count": 16, "supersample": 2},
-        "data": {"n_train": 12, "n_test": 3, "spp": 4, "test_spp": 8},
+        **REGISTRY["datadriven"].presets["test"],  # the method's own smoke-test sizes
         "eval": {"basis_sizes": [2, 4], "lambdas": [0.0, 1e-2], "point_counts": [8, 16], "oos_n": 2, "sh_orders": [2],
                  "sh_spp": 2, "sh_env_height": 8, "image_resolution": 16, "image_spp": 4, "images": 1,
                  "timing_resolution": 32, "timing_repeats": 2},
@@ -318,9 +316,16 @@ def sh_prt_baseline(run) -> dict:
     e, data = run.config["eval"], run.dataset
     handle, atlas = _handle(run), data.atlas
     t0 = time.perf_counter()
-    degree = max(sh_prt.order_to_degree(o) for o in e["sh_orders"])
-    transfer = sh_data.bake(handle, atlas, degree, spp=int(e["sh_spp"]), env_height=int(e["sh_env_height"]))
-    s = {"sh_bake_s": time.perf_counter() - t0, "rmse_sh_prt": {}, "rmse_sh_prt_out_of_scenario": {}}
+    sh_config = {"scene": run.config["scene"], "objects": run.method_config["objects"],
+                 "lightmap": run.method_config["lightmap"],  # the same atlas as the data-driven fit
+                 "sh": {"order": max(int(o) for o in e["sh_orders"]), "spp": int(e["sh_spp"]),
+                        "env_height": int(e["sh_env_height"])}}
+    baked = REGISTRY["sh_prt"].make_dataset(run.config["scene"], sh_config)  # cached by jprt.cache
+    if not np.array_equal(baked.atlas["texel_index"], atlas["texel_index"]):
+        raise RuntimeError("the SH PRT atlas differs from the data-driven one")
+    transfer = baked.transfer
+    s = {"sh_bake_s": baked.meta["bake_s"], "sh_stage_s": time.perf_counter() - t0, "rmse_sh_prt": {},
+         "rmse_sh_prt_out_of_scenario": {}}
     center = np.asarray(atlas["position"]).mean(axis=0)
 
     def sh_lightmaps(lightings, deg):

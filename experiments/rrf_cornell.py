@@ -11,6 +11,8 @@ results/rrf_cornell/<config hash>/.
 
 from rrf_common import LABEL, METHOD, PAPER_PRESET, STAGES, config, frame, held_out, pathtracer  # noqa: F401
 
+from jprt.methods import REGISTRY
+
 CONFIG = config("results/rrf_cornell", {"scene": {"name": "cornell_box", "area_light": False}})
 
 PRESETS = {
@@ -28,10 +30,7 @@ PRESETS = {
     "paper": PAPER_PRESET,
     # Smoke test (tests/test_experiments.py).
     "test": {
-        "data": {"n_lights": 3, "n_views": 3, "n_rays": 40, "spp": 8},
-        "model": {"hidden": [6, 4]},
-        "tree": {"max_depth": 1, "min_samples": 40, "max_leaves": 10},
-        "train": {"max_iters": 3, "trial_iters": 1, "trial_samples": 64, "progress": False},
+        **REGISTRY["rrf"].presets["test"],  # the method's own smoke-test sizes
         "eval": {"n_views": 1, "n_lights": 2, "resolution": 12, "reference_spp": 16, "robustness": 2,
                  "sizes": [0.5], "train_spp": [4], "equal_error_spp": [1, 4], "timing_resolution": 16,
                  "timing_repeats": 2, "pathtrace_repeats": 1, "single_mlp_steps": 20, "images": 1},

@@ -38,6 +38,7 @@ from jprt.inputs import CubeMap
 from jprt.methods.base import FitResult
 from jprt.methods.wavelet_prt import data as wp_data
 from jprt.methods.wavelet_prt import model as wp
+from jprt.methods import REGISTRY
 from jprt.runner import HeldOut, PathTracer
 
 METHOD = "wavelet_prt"
@@ -78,12 +79,7 @@ PRESETS = {
                  "ablations": {"log2_table_size": [17, 18, 19, 20]}},
     },
     "test": {
-        "envmaps": {"synthetic": 3, "face_size": 4, "rotations_deg": [0.0]},
-        "cameras": {"width": 12, "height": 12, "sphere": {"n": 3}, "helix": {"n": 3}, "near": 2, "far": 2},
-        "data": {"spp": 8, "test_spp": 32, "envs_per_view": 1},
-        "model": {"n_levels": 3, "log2_table_size": 8, "n_features": 8, "hidden": 16},
-        "train": {"steps": 30, "pixels": 32, "wavelets": 24, "checkpoint_every": 10, "log_every": 10},
-        "render": {"k": 16, "chunk": 64},
+        **REGISTRY["wavelet_prt"].presets["test"],  # the method's own smoke-test sizes
         "eval": {"ks": [8, 16], "gt_check": {"width": 6, "height": 6, "spp": 64, "max_depth": 4, "ks": [8, 32]},
                  "timing_resolutions": [[16, 16]], "timing_repeats": 1, "equal_error_spp": [1, 4],
                  "ablation_steps": 10, "ablations": {"log2_table_size": [6], "reflection": ["none"],

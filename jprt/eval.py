@@ -20,13 +20,18 @@ from typing import Callable, Sequence
 import numpy as np
 
 from jprt import io
-from jprt.metrics import error_map
+from jprt.metrics import error_map, tonemap
 
 __all__ = ["set_rmse", "time_call", "equal_error_spp", "side_by_side", "plot_series"]
 
 
 def set_rmse(predictions: Sequence, references: Sequence, valids: Sequence | None = None) -> float:
-    """RMSE over all valid pixels and channels of a set of (H, W, 3) images (module docstring)."""
+    """RMSE over all valid pixels and channels of a set of (H, W, C) images (module docstring).
+
+    Anything but (H, W, C) images (with (H, W) masks) is refused: a (T, 3) lightmap read as an
+    image would be a T x 3 image of one channel, and its RMSE over a mask would be wrong without a
+    word (lightmaps are compared with ``jprt.methods.datadriven.model.lightmap_rmse``, or as atlas
+    images through ``jprt.methods.atlas``)."""
     if len(predictions) != len(references) or not len(predictions):
         raise ValueError(f"need equally many (>0) predictions and references, got {len(predictions)} and "
                          f"{len(references)}")
@@ -35,7 +40,11 @@ def set_rmse(predictions: Sequence, references: Sequence, valids: Sequence | Non
         p, r = np.asarray(p, np.float64), np.asarray(r, np.float64)
         if p.shape != r.shape:
             raise ValueError(f"image {k}: prediction {p.shape} and reference {r.shape} differ")
+        if p.ndim != 3:
+            raise ValueError(f"image {k}: set_rmse takes (H, W, C) images, got shape {p.shape}")
         m = np.ones(p.shape[:2], bool) if valids is None else np.asarray(valids[k], bool)
+        if m.shape != p.shape[:2]:
+            raise ValueError(f"image {k}: valid mask {m.shape} does not match the image's (H, W) = {p.shape[:2]}")
         total += float(np.sum(np.square(p - r)[m]))
         count += int(m.sum()) * p.shape[-1]
     return float(np.sqrt(total / max(count, 1)))
@@ -112,8 +121,8 @@ def side_by_side(path: str, rows: Sequence[tuple], *, exposure: float = 0.0, dif
     fig, axes = plt.subplots(len(rows), 3, figsize=(8.4, 2.8 * len(rows)), squeeze=False)
     for i, row in enumerate(rows):
         label, ref, pred = row[:3]
-        for j, image in enumerate((io.tonemap(np.asarray(ref), exposure=exposure),
-                                   io.tonemap(np.asarray(pred), exposure=exposure),
+        for j, image in enumerate((np.asarray(tonemap(np.asarray(ref), exposure)),
+                                   np.asarray(tonemap(np.asarray(pred), exposure)),
                                    error_map(pred, ref, vmax=vmax))):
             ax = axes[i, j]
             ax.imshow(np.clip(image, 0, 1), interpolation="nearest")

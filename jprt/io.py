@@ -23,7 +23,6 @@ __all__ = [
     "write_exr",
     "read_exr",
     "exr_channels",
-    "tonemap",
     "write_png",
     "save_checkpoint",
     "load_checkpoint",
@@ -149,22 +148,6 @@ def read_exr(path: str, channels: str | Sequence[str] | None = "RGB", dtype=np.f
 # PNG previews
 
 
-def tonemap(image, *, exposure: float = 0.0, mode: str = "srgb") -> np.ndarray:
-    """HDR linear RGB -> display values in [0, 1].
-
-    ``image * 2**exposure`` is encoded with the sRGB transfer function (``mode="srgb"``, clipped),
-    or first compressed by Reinhard x / (1 + x) (``mode="reinhard"``). NaNs become 0.
-    """
-    x = np.nan_to_num(np.asarray(image, np.float32) * np.float32(2.0**exposure), nan=0.0, posinf=0.0, neginf=0.0)
-    x = np.maximum(x, 0.0)
-    if mode == "reinhard":
-        x = x / (1.0 + x)
-    elif mode != "srgb":
-        raise ValueError(f"unknown tonemap mode {mode!r} (use 'srgb' or 'reinhard')")
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
-
-
 def write_png(path: str, image, *, exposure: float = 0.0, mode: str = "srgb", tonemapped: bool = False) -> None:
     """Write an 8-bit PNG preview of a linear HDR image (or of [0, 1] values if ``tonemapped``)."""
     from PIL import Image
@@ -172,7 +155,13 @@ def write_png(path: str, image, *, exposure: float = 0.0, mode: str = "srgb", to
     image = np.asarray(image)
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[..., 0]
-    display = np.clip(image, 0.0, 1.0) if tonemapped else tonemap(image, exposure=exposure, mode=mode)
+    if tonemapped:
+        display = np.clip(image, 0.0, 1.0)
+    else:
+        from jprt.metrics import tonemap
+
+        finite = np.nan_to_num(np.asarray(image, np.float32), nan=0.0, posinf=0.0, neginf=0.0)  # NaN / inf -> black
+        display = np.asarray(tonemap(finite, exposure, mode))
     pixels = np.round(display * 255.0).astype(np.uint8)
     buf = _io.BytesIO()
     Image.fromarray(pixels).save(buf, format="PNG")

@@ -53,9 +53,19 @@ def psnr(x, ref, peak=None, valid=None):
     return 10.0 * jnp.log10(jnp.square(peak) / jnp.maximum(mse, 1e-30))
 
 
-def tonemap(x, exposure: float = 0.0):
-    """sRGB display encoding of linear HDR values, clipped to [0, 1] (as ``jprt.io.tonemap``)."""
-    x = jnp.clip(jnp.asarray(x) * (2.0**exposure), 0.0, 1.0)
+def tonemap(x, exposure: float = 0.0, mode: str = "srgb"):
+    """The one display encoding of linear HDR values (PNG previews, figures, tonemapped metrics).
+
+    ``x * 2**exposure`` is encoded with the sRGB transfer function (``mode="srgb"``, clipped to
+    [0, 1]), or first compressed by Reinhard x / (1 + x) (``mode="reinhard"``). Differentiable
+    (JAX); NaN stays NaN (a metric must not hide it: previews replace NaN before calling)."""
+    if mode not in ("srgb", "reinhard"):
+        raise ValueError(f"unknown tonemap mode {mode!r} (use 'srgb' or 'reinhard')")
+    x = jnp.asarray(x) * (2.0**exposure)
+    if mode == "reinhard":
+        x = jnp.maximum(x, 0.0)
+        x = x / (1.0 + x)
+    x = jnp.clip(x, 0.0, 1.0)
     # The power's gradient is infinite at 0; the linear branch covers x <= 0.0031308 anyway.
     safe = jnp.maximum(x, 0.0031308)
     return jnp.where(x <= 0.0031308, 12.92 * x, 1.055 * jnp.power(safe, 1.0 / 2.4) - 0.055)

@@ -18,6 +18,11 @@ def test_set_rmse_weights_pixels_not_images():
         jeval.set_rmse([np.zeros((2, 2, 3))], [np.zeros((2, 3, 3))])
     with pytest.raises(ValueError, match="equally many"):
         jeval.set_rmse([], [])
+    # a (T, 3) lightmap is not an image: its "RMSE" would silently be sqrt(3) too low with a mask
+    with pytest.raises(ValueError, match=r"\(H, W, C\) images"):
+        jeval.set_rmse([np.zeros((10, 3))], [np.ones((10, 3))], [np.ones(10, bool)])
+    with pytest.raises(ValueError, match="valid mask"):
+        jeval.set_rmse(a[:1], b[:1], [np.ones((2, 3), bool)])
 
 
 def test_equal_error_spp_stops_at_first_success():

@@ -79,7 +79,9 @@ def test_png_preview(tmp_path):
     assert pixels.shape == (5, 6, 3) and pixels.dtype == np.uint8
     assert (np.diff(pixels[..., 0].reshape(-1).astype(int)) >= 0).all()  # monotone tonemap
     assert pixels.max() == 255 and pixels.min() == 0
-    assert io.tonemap(np.array([np.nan, -1.0, 0.5]), mode="reinhard")[0] == 0.0
+    bad = str(tmp_path / "nan.png")
+    io.write_png(bad, np.array([[[np.nan, -1.0, 0.5]]], np.float32), mode="reinhard")
+    assert tuple(np.asarray(Image.open(bad))[0, 0, :2]) == (0, 0)  # NaN and negative values preview as black
 
 
 def test_checkpoint_round_trip_and_mismatch(tmp_path):

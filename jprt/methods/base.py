@@ -76,6 +76,14 @@ class Method(NamedTuple):
         """``default_config`` deep-merged with ``config``; an unknown key raises ConfigError."""
         return resolve(self.default_config, config)
 
+    @classmethod
+    def of_package(cls, name: str, paper: str, lighting: type, model, data, presets: dict, *,
+                   fit: Callable | None = None) -> "Method":
+        """The method of a package laid out as DESIGN.md says: ``model.DEFAULT_CONFIG``,
+        ``data.make_dataset``, ``model.fit`` (or ``fit``), ``model.evaluator``, ``model.example``."""
+        return cls(name, paper, lighting, model.DEFAULT_CONFIG, presets, data.make_dataset, fit or model.fit,
+                   model.evaluator, model.example)
+
 
 def resolve(default_config: Mapping, config: Mapping | None = None) -> dict:
     """Strict merge of a method config: every key of ``config`` must exist in ``default_config``

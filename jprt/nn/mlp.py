@@ -18,8 +18,9 @@ from typing import Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-__all__ = ["MLP", "mlp", "with_scaling", "ACTIVATIONS", "count_parameters"]
+__all__ = ["MLP", "mlp", "ranges", "with_scaling", "ACTIVATIONS", "count_parameters"]
 
 ACTIVATIONS: dict[str, Callable] = {
     "tanh": jnp.tanh,
@@ -52,6 +53,8 @@ def mlp(sizes: Sequence[int], *, activation: str = "tanh", output_activation: st
       activation: hidden-layer nonlinearity (tanh, relu, linear, sigmoid, softplus).
       output_activation: applied to the last layer (default linear).
       init: "rrf" (uniform [-1, 1], Ren et al. 2013 Appendix A), "glorot" (uniform) or "he" (normal).
+        ``init(key)`` takes a JAX key, or a ``numpy.random.Generator`` to draw the same
+        distributions on the host (NumPy arrays).
       use_bias: False gives a bias-free network (the matrix U of Raghavan et al. 2023 is a
         one-layer, bias-free, linear MLP).
     """
@@ -64,6 +67,8 @@ def mlp(sizes: Sequence[int], *, activation: str = "tanh", output_activation: st
         raise ValueError(f"unknown init {init!r}; use 'rrf', 'glorot' or 'he'")
 
     def init_fn(key):
+        if isinstance(key, np.random.Generator):
+            return _host_init(key)
         layers = []
         for k, (n_in, n_out) in zip(jax.random.split(key, len(sizes) - 1), zip(sizes[:-1], sizes[1:])):
             kw, kb = jax.random.split(k)
@@ -82,6 +87,26 @@ def mlp(sizes: Sequence[int], *, activation: str = "tanh", output_activation: st
             "in_center": jnp.zeros((sizes[0],), dtype), "in_halfrange": jnp.ones((sizes[0],), dtype),
             "out_center": jnp.zeros((sizes[-1],), dtype), "out_halfrange": jnp.ones((sizes[-1],), dtype),
         }
+        return {"layers": layers, "scaling": scaling}
+
+    def _host_init(rng: np.random.Generator):
+        # the same distributions drawn on the host, in order (w then b, layer by layer): cheap for
+        # thousands of tiny networks (RRF's kd-tree nodes) and reproducible from one NumPy seed
+        layers = []
+        for n_in, n_out in zip(sizes[:-1], sizes[1:]):
+            if init == "rrf":
+                w, b = rng.uniform(-1.0, 1.0, (n_in, n_out)), rng.uniform(-1.0, 1.0, (n_out,))
+            elif init == "glorot":
+                limit = (6.0 / (n_in + n_out)) ** 0.5
+                w, b = rng.uniform(-limit, limit, (n_in, n_out)), np.zeros((n_out,))
+            else:
+                w, b = rng.normal(size=(n_in, n_out)) * (2.0 / n_in) ** 0.5, np.zeros((n_out,))
+            layer = {"w": w.astype(dtype)}
+            if use_bias:
+                layer["b"] = b.astype(dtype)
+            layers.append(layer)
+        scaling = {"in_center": np.zeros((sizes[0],), dtype), "in_halfrange": np.ones((sizes[0],), dtype),
+                   "out_center": np.zeros((sizes[-1],), dtype), "out_halfrange": np.ones((sizes[-1],), dtype)}
         return {"layers": layers, "scaling": scaling}
 
     def apply_fn(params, x):
@@ -104,22 +129,25 @@ def mlp(sizes: Sequence[int], *, activation: str = "tanh", output_activation: st
     return MLP(init_fn, apply_fn, sizes)
 
 
+def ranges(a, *, eps: float = 1e-8):
+    """Centre and half-range per feature of samples ``a`` (samples on the first axes, features
+    last), the map of Ren et al. 2013 Appendix A (Beale et al.'s mapminmax) to [-1, 1]; constant
+    features get a half-range of 1 (they map to 0). NumPy in, NumPy out (same dtype); else JAX."""
+    xp = np if isinstance(a, np.ndarray) else jnp
+    a = xp.asarray(a).reshape(-1, a.shape[-1])
+    lo, hi = a.min(axis=0), a.max(axis=0)
+    half = 0.5 * (hi - lo)
+    return 0.5 * (hi + lo), xp.where(half > eps, half, 1.0)
+
+
 def with_scaling(params, x=None, y=None, *, eps: float = 1e-8):
     """Return params whose input/output scaling maps the ranges of ``x`` / ``y`` (samples on the
-    first axes, features last) to [-1, 1] (Ren et al. 2013, Appendix A; Beale et al.'s mapminmax).
-    Constant features get a half-range of 1 (they map to 0)."""
-
-    def ranges(a):
-        a = jnp.asarray(a).reshape(-1, jnp.asarray(a).shape[-1])
-        lo, hi = jnp.min(a, axis=0), jnp.max(a, axis=0)
-        half = 0.5 * (hi - lo)
-        return 0.5 * (hi + lo), jnp.where(half > eps, half, 1.0)
-
+    first axes, features last) to [-1, 1] (``ranges``)."""
     scaling = dict(params["scaling"])
     if x is not None:
-        scaling["in_center"], scaling["in_halfrange"] = ranges(x)
+        scaling["in_center"], scaling["in_halfrange"] = ranges(jnp.asarray(x), eps=eps)
     if y is not None:
-        scaling["out_center"], scaling["out_halfrange"] = ranges(y)
+        scaling["out_center"], scaling["out_halfrange"] = ranges(jnp.asarray(y), eps=eps)
     return {**params, "scaling": scaling}
 
 

@@ -9,6 +9,7 @@ import numpy as np
 
 from jprt import io
 from jprt.config import save_resolved
+from jprt.metrics import tonemap
 from jprt.render.dataset import from_config
 
 __all__ = ["write_ground_truth"]
@@ -102,7 +103,7 @@ def _contact_sheet(path: str, rows, exposure: float) -> None:
             ax.axis("off")
             if image is None:
                 continue
-            shown = image if c == 3 else io.tonemap(image, exposure=exposure)
+            shown = image if c == 3 else np.asarray(tonemap(image, exposure))
             ax.imshow(np.clip(shown, 0, 1), interpolation="nearest")
             ax.set_title(f"{stem} {cols[c]}" if c == 0 else cols[c], fontsize=8)
     fig.tight_layout()

@@ -322,28 +322,27 @@ def _asset_room_dict(desc: dict, mi) -> dict:
     return base
 
 
+_EMITTER_KIND = {PointLights: "point", SpotLights: "spot", DirectionalLights: "directional"}
+
+
+def _emitter(lighting, k: int, mi) -> dict:
+    """Mitsuba emitter dict of light ``k`` of point, spot or directional ``lighting``."""
+    if isinstance(lighting, PointLights):
+        return {"type": "point", "position": [float(c) for c in lighting.position[k]],
+                "intensity": _rgb(lighting.intensity[k])}
+    if isinstance(lighting, SpotLights):
+        return {"type": "spot", "to_world": _spot_to_world(lighting.position[k], lighting.target[k], mi),
+                "intensity": _rgb(lighting.intensity[k]), "cutoff_angle": float(lighting.cutoff_deg[k]),
+                "beam_width": float(lighting.beam_deg[k])}
+    return {"type": "directional", "direction": [float(c) for c in lighting.direction[k]],
+            "irradiance": _rgb(lighting.irradiance[k])}
+
+
 def _lighting_dict(lighting: Lighting, mi) -> dict:
     if lighting is None:
         return {}
-    if isinstance(lighting, PointLights):
-        return {
-            f"jprt_point_{k}": {"type": "point", "position": [float(c) for c in lighting.position[k]],
-                                "intensity": _rgb(lighting.intensity[k])}
-            for k in range(lighting.count)
-        }
-    if isinstance(lighting, SpotLights):
-        return {
-            f"jprt_spot_{k}": {"type": "spot", "to_world": _spot_to_world(lighting.position[k], lighting.target[k], mi),
-                               "intensity": _rgb(lighting.intensity[k]), "cutoff_angle": float(lighting.cutoff_deg[k]),
-                               "beam_width": float(lighting.beam_deg[k])}
-            for k in range(lighting.count)
-        }
-    if isinstance(lighting, DirectionalLights):
-        return {
-            f"jprt_directional_{k}": {"type": "directional", "direction": [float(c) for c in lighting.direction[k]],
-                                      "irradiance": _rgb(lighting.irradiance[k])}
-            for k in range(lighting.count)
-        }
+    if type(lighting) in _EMITTER_KIND:
+        return {f"jprt_{_EMITTER_KIND[type(lighting)]}_{k}": _emitter(lighting, k, mi) for k in range(lighting.count)}
     if isinstance(lighting, EnvMap):
         return {"jprt_envmap": {"type": "envmap", "bitmap": mi.Bitmap(to_mitsuba_envmap(lighting.radiance))}}
     raise TypeError(f"unknown lighting type {type(lighting).__name__}")

@@ -33,12 +33,40 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.flatten_util import ravel_pytree
 
-__all__ = ["LMResult", "solve", "solve_batched", "normal_equations", "STOP_REASONS"]
+__all__ = ["LMSettings", "LMResult", "solve", "solve_batched", "normal_equations", "STOP_REASONS"]
 
 STOP_REASONS = ("running", "loss_threshold", "relative_decrease", "max_iters", "damping_overflow", "validation")
+
+
+class LMSettings(NamedTuple):
+    """The solver's static settings, one frozen value (hashable: one compiled program per value).
+
+    Fields:
+      max_iters: iterations at most (>= 1).
+      loss_threshold: stop when E <= this.
+      rtol: stop when an accepted step decreases E by less than this fraction.
+      damping: initial mu (relative to diag(J^T J), Marquardt scaling).
+      chunk_size: samples per Jacobian chunk (memory O(P^2 + chunk_size R P)).
+      jitter: diagonal jitter of the float32 Cholesky solve, relative to max diag(J^T J).
+      max_fail: with validation data, accepted steps without improving it before stopping.
+    """
+
+    max_iters: int = 100
+    loss_threshold: float = 0.0
+    rtol: float = 1e-7
+    damping: float = 1e-3
+    chunk_size: int = 2048
+    jitter: float = 1e-7
+    max_fail: int = 6
+
+    def checked(self, n_samples: int) -> "LMSettings":
+        """Validated, with every field of its type and the chunk no larger than the data."""
+        if int(self.max_iters) < 1:
+            raise ValueError(f"max_iters must be >= 1, got {self.max_iters}")
+        return LMSettings(int(self.max_iters), float(self.loss_threshold), float(self.rtol), float(self.damping),
+                          min(int(self.chunk_size), int(n_samples)), float(self.jitter), max(int(self.max_fail), 1))
 
 
 class LMResult(NamedTuple):
@@ -159,10 +187,10 @@ def normal_equations(residual_fn: Callable, params, data, *, mask=None, chunk_si
 
 
 @functools.lru_cache(maxsize=64)
-def _build(residual_fn: Callable, unravel_key, max_iters: int, loss_threshold: float, rtol: float, damping: float,
-           jitter: float, chunk: int, max_fail: int = 6):
-    """The pure solver for one residual function and config (cached, so repeated calls reuse the
-    compiled program)."""
+def _build(residual_fn: Callable, unravel_key, settings: LMSettings):
+    """The pure solver for one residual function and settings (cached, so repeated calls reuse
+    the compiled program)."""
+    max_iters, loss_threshold, rtol, damping, chunk, jitter, max_fail = settings
     per_sample = _per_sample_fn(residual_fn, unravel_key.unravel)
 
     def residual_pass(flat, data, mask):
@@ -259,8 +287,7 @@ class _UnravelKey:
         return isinstance(other, _UnravelKey) and self.key == other.key
 
 
-def solve(residual_fn: Callable, params, data, *, mask=None, max_iters: int = 100, loss_threshold: float = 0.0,
-          rtol: float = 1e-7, damping: float = 1e-3, chunk_size: int = 2048, jitter: float = 1e-7,
+def solve(residual_fn: Callable, params, data, *, mask=None, settings: LMSettings = LMSettings(),
           backend: str = "jax", jaxopt_solver: str = "qr") -> LMResult:
     """Minimise sum_i mask_i ||residual_fn(params, sample_i)||^2 by Levenberg-Marquardt.
 
@@ -269,37 +296,31 @@ def solve(residual_fn: Callable, params, data, *, mask=None, max_iters: int = 10
       params: starting pytree (any family's parameters).
       data: pytree of arrays with the samples on the first axis (N, ...).
       mask: optional (N,) 0/1 weights (unequal sample counts in batched problems).
-      max_iters, loss_threshold, rtol: stopping rules (module docstring).
-      damping: initial mu (relative to diag(J^T J), Marquardt scaling).
-      chunk_size: samples per Jacobian chunk (memory O(P^2 + chunk_size R P)).
-      backend: "jax" (this solver) or "jaxopt" (``jaxopt.LevenbergMarquardt`` for comparison).
+      settings: ``LMSettings`` (stopping rules of the module docstring, damping, chunk size).
+      backend: "jax" (this solver) or "jaxopt" (``jaxopt.LevenbergMarquardt`` for comparison;
+        only ``settings.max_iters`` applies).
     """
     if backend == "jaxopt":
-        return _solve_jaxopt(residual_fn, params, data, mask, max_iters, jaxopt_solver)
+        return _solve_jaxopt(residual_fn, params, data, mask, int(settings.max_iters), jaxopt_solver)
     if backend != "jax":
         raise ValueError(f"unknown LM backend {backend!r}; use 'jax' or 'jaxopt'")
-    if max_iters < 1:
-        raise ValueError(f"max_iters must be >= 1, got {max_iters}")
     key = _UnravelKey(params)
     flat0, _ = ravel_pytree(params)
     n = _check_data(data, mask)
     data = jax.tree_util.tree_map(jnp.asarray, data)
     mask = None if mask is None else jnp.asarray(mask, jnp.float32)
-    solver = _jitted(residual_fn, key, max_iters, float(loss_threshold), float(rtol), float(damping), float(jitter),
-                     min(int(chunk_size), n))
-    flat, loss, rmse, iterations, history, reason = solver(flat0, data, mask)
+    flat, loss, rmse, iterations, history, reason = _jitted(residual_fn, key, settings.checked(n))(flat0, data, mask)
     return LMResult(key.unravel(flat), loss, rmse, iterations, history, reason)
 
 
 @functools.lru_cache(maxsize=64)
-def _jitted(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter, chunk):
-    return jax.jit(_build(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter, chunk))
+def _jitted(residual_fn, key, settings: LMSettings):
+    return jax.jit(_build(residual_fn, key, settings))
 
 
 @functools.lru_cache(maxsize=64)
-def _jitted_batched(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter, chunk, has_mask,
-                    has_val=False, max_fail=6):
-    solver = _build(residual_fn, key, max_iters, loss_threshold, rtol, damping, jitter, chunk, max_fail)
+def _jitted_batched(residual_fn, key, settings: LMSettings, has_mask: bool, has_val: bool):
+    solver = _build(residual_fn, key, settings)
     if has_val:
         return jax.jit(jax.vmap(solver))
     if has_mask:
@@ -307,9 +328,8 @@ def _jitted_batched(residual_fn, key, max_iters, loss_threshold, rtol, damping, 
     return jax.jit(jax.vmap(lambda f, d: solver(f, d, None)))
 
 
-def solve_batched(residual_fn: Callable, params, data, *, mask=None, max_iters: int = 100,
-                  loss_threshold: float = 0.0, rtol: float = 1e-7, damping: float = 1e-3, chunk_size: int = 2048,
-                  jitter: float = 1e-7, val_data=None, val_mask=None, max_fail: int = 6) -> LMResult:
+def solve_batched(residual_fn: Callable, params, data, *, mask=None, settings: LMSettings = LMSettings(),
+                  val_data=None, val_mask=None) -> LMResult:
     """Solve B independent problems of equal shape in one vmapped call.
 
     ``params`` and ``data`` carry a leading batch axis B (data: (B, N, ...)); ``mask`` (B, N)
@@ -318,8 +338,8 @@ def solve_batched(residual_fn: Callable, params, data, *, mask=None, max_iters: 
 
     ``val_data`` (B, Nv, ...) with ``val_mask`` (B, Nv) turns on early stopping (Beale et al.'s
     trainlm, used by Ren et al. 2013 Appendix A): each problem returns its parameters with the
-    lowest validation loss and stops (reason "validation") after ``max_fail`` accepted steps
-    without improving it.
+    lowest validation loss and stops (reason "validation") after ``settings.max_fail`` accepted
+    steps without improving it.
     """
     first = jax.tree_util.tree_map(lambda a: a[0], params)
     key = _UnravelKey(first)
@@ -334,8 +354,7 @@ def solve_batched(residual_fn: Callable, params, data, *, mask=None, max_iters: 
             else jnp.asarray(val_mask, jnp.float32)
         if mask is None:
             mask = jnp.ones(jax.tree_util.tree_leaves(data)[0].shape[:2], jnp.float32)
-    solver = _jitted_batched(residual_fn, key, max_iters, float(loss_threshold), float(rtol), float(damping),
-                             float(jitter), min(int(chunk_size), n), mask is not None, has_val, int(max_fail))
+    solver = _jitted_batched(residual_fn, key, settings.checked(n), mask is not None, has_val)
     args = (flat0, data) if mask is None else (flat0, data, jnp.asarray(mask, jnp.float32))
     if has_val:
         args = args + (val_data, val_mask)

@@ -88,3 +88,29 @@ def test_sg_encoder_matches_the_paper_layout():
     assert out.shape == (2, 16, 7)
     with pytest.raises(ValueError, match="divisible"):
         sg_encoder(image_size=100)
+
+
+def test_mlp_host_init_and_ranges():
+    """``init`` takes a NumPy Generator too (RRF draws thousands of tiny networks on the host):
+    same shapes and distribution as the JAX path, reproducible from the seed; ``ranges`` is the
+    one mapminmax (NumPy in, NumPy out) that ``with_scaling`` uses."""
+    import numpy as np
+
+    from jprt.nn.mlp import mlp, ranges, with_scaling
+
+    net = mlp((4, 6, 2), activation="tanh", init="rrf")
+    a, b = net.init(np.random.default_rng(3)), net.init(np.random.default_rng(3))
+    jax_params = net.init(jax.random.PRNGKey(0))
+    for la, lb, lj in zip(a["layers"], b["layers"], jax_params["layers"]):
+        for k in ("w", "b"):
+            assert isinstance(la[k], np.ndarray) and la[k].dtype == np.float32 and la[k].shape == lj[k].shape
+            np.testing.assert_array_equal(la[k], lb[k])
+            assert np.all(np.abs(la[k]) <= 1.0)
+    x = np.random.default_rng(1).normal(size=(50, 4)).astype(np.float32)
+    x[:, 2] = 7.0  # a constant feature maps to 0 with half-range 1
+    centre, half = ranges(x)
+    assert isinstance(centre, np.ndarray) and half[2] == 1.0 and centre[2] == 7.0
+    scaled = with_scaling(a, x)["scaling"]
+    np.testing.assert_array_equal(np.asarray(scaled["in_center"]), centre)
+    np.testing.assert_array_equal(np.asarray(scaled["in_halfrange"]), half)
+    np.testing.assert_allclose(np.asarray(net.apply(a, x)), np.asarray(net.apply(b, x)))

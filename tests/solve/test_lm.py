@@ -31,7 +31,7 @@ def problem(n, seed=0):
 def test_fits_a_smooth_function():
     params, data = problem(2000)
     start = float(jnp.sqrt(jnp.mean(jnp.square(jax.vmap(lambda s: residual(params, s))(data)))))
-    result = lm.solve(residual, params, data, max_iters=60, chunk_size=512)
+    result = lm.solve(residual, params, data, settings=lm.LMSettings(max_iters=60, chunk_size=512))
     assert float(result.rmse) < 0.02 < start
     assert np.all(np.diff(np.asarray(result.history)) <= 1e-6 * np.asarray(result.history)[:-1] + 1e-7)  # monotone
     assert int(result.iterations) <= 60
@@ -78,8 +78,9 @@ def test_mask_equals_dropping_samples():
     with jax.enable_x64(True):
         p64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), params)
         d64 = jax.tree_util.tree_map(lambda a: np.asarray(a, np.float64), data)
-        masked = lm.solve(residual, p64, d64, mask=mask, max_iters=10, chunk_size=64)
-        dropped = lm.solve(residual, p64, jax.tree_util.tree_map(lambda a: a[:200], d64), max_iters=10, chunk_size=64)
+        masked = lm.solve(residual, p64, d64, mask=mask, settings=lm.LMSettings(max_iters=10, chunk_size=64))
+        dropped = lm.solve(residual, p64, jax.tree_util.tree_map(lambda a: a[:200], d64),
+                           settings=lm.LMSettings(max_iters=10, chunk_size=64))
         np.testing.assert_allclose(masked.loss, dropped.loss, rtol=1e-8)
         jax.tree_util.tree_map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9),
                                masked.params, dropped.params)
@@ -91,16 +92,16 @@ def test_batched_equals_sequential():
     data = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[d for _, d in problems])
     mask = np.ones((4, 256), np.float32)
     mask[1, 100:] = 0  # problem 1 has only 100 real samples
-    batched = lm.solve_batched(residual, params, data, mask=mask, max_iters=15, chunk_size=64)
+    batched = lm.solve_batched(residual, params, data, mask=mask, settings=lm.LMSettings(max_iters=15, chunk_size=64))
     for i, (p, d) in enumerate(problems):
-        single = lm.solve(residual, p, d, mask=mask[i], max_iters=15, chunk_size=64)
+        single = lm.solve(residual, p, d, mask=mask[i], settings=lm.LMSettings(max_iters=15, chunk_size=64))
         assert int(batched.iterations[i]) == int(single.iterations)
         np.testing.assert_allclose(batched.loss[i], single.loss, rtol=1e-3)
 
 
 def test_stops_on_loss_threshold():
     params, data = problem(500)
-    result = lm.solve(residual, params, data, max_iters=200, loss_threshold=1.0)
+    result = lm.solve(residual, params, data, settings=lm.LMSettings(max_iters=200, loss_threshold=1.0))
     assert float(result.loss) <= 1.0 and lm.STOP_REASONS[int(result.reason)] == "loss_threshold"
     assert int(result.iterations) < 200
 
@@ -111,8 +112,8 @@ def test_ill_conditioned_problems_never_return_nan():
     x = np.repeat(data["x"][:4], 16, axis=0)
     x[:, 2] = 0.0  # a feature with no variation: zero Jacobian columns
     data = {"x": x, "y": 1e6 * smooth_target(x)}
-    start = lm.solve(residual, params, data, max_iters=1)
-    result = lm.solve(residual, params, data, max_iters=30)
+    start = lm.solve(residual, params, data, settings=lm.LMSettings(max_iters=1))
+    result = lm.solve(residual, params, data, settings=lm.LMSettings(max_iters=30))
     leaves = jax.tree_util.tree_leaves(result.params)
     assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in leaves)
     assert np.isfinite(float(result.loss)) and float(result.loss) <= float(start.history[0])
@@ -120,8 +121,8 @@ def test_ill_conditioned_problems_never_return_nan():
 
 def test_jaxopt_backend_runs_the_same_problem():
     params, data = problem(300)
-    ours = lm.solve(residual, params, data, max_iters=20)
-    theirs = lm.solve(residual, params, data, max_iters=20, backend="jaxopt")
+    ours = lm.solve(residual, params, data, settings=lm.LMSettings(max_iters=20))
+    theirs = lm.solve(residual, params, data, backend="jaxopt", settings=lm.LMSettings(max_iters=20))
     assert np.isfinite(float(theirs.loss))
     assert float(theirs.rmse) < 0.5 and float(ours.rmse) < 0.5
     with pytest.raises(ValueError, match="unknown LM backend"):
@@ -149,8 +150,9 @@ def test_early_stopping_keeps_the_best_validation_parameters():
     def val_loss(c):
         return float(np.sum((np.polyval(np.asarray(c[0]), xv) - f(xv)) ** 2))
 
-    plain = lm.solve_batched(residual, params, data, max_iters=60, rtol=0.0)
-    early = lm.solve_batched(residual, params, data, max_iters=60, rtol=0.0, val_data=val, max_fail=3)
+    plain = lm.solve_batched(residual, params, data, settings=lm.LMSettings(max_iters=60, rtol=0.0))
+    early = lm.solve_batched(residual, params, data, val_data=val,
+                             settings=lm.LMSettings(max_iters=60, rtol=0.0, max_fail=3))
     assert lm.STOP_REASONS[int(early.reason[0])] == "validation"
     assert val_loss(early.params["c"]) < val_loss(plain.params["c"])
     assert float(early.loss[0]) >= float(plain.loss[0])  # worse on training data, better on validation

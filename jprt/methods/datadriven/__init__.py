@@ -16,14 +16,7 @@ PRESETS = {
     },
 }
 
-METHOD = Method(
-    name="datadriven",
-    paper="Belcour, Deliot, Barbier, Soler 2022, A Data-Driven Approach to Precomputed Radiance Transfer",
-    lighting=PointRadiance,
-    default_config=model.DEFAULT_CONFIG,
-    presets=PRESETS,
-    make_dataset=data.make_dataset,
-    fit=model.fit,
-    evaluator=model.evaluator,
-    example=model.example,
-)
+METHOD = Method.of_package(
+    "datadriven",
+    "Belcour, Deliot, Barbier, Soler 2022, A Data-Driven Approach to Precomputed Radiance Transfer",
+    PointRadiance, model, data, PRESETS)

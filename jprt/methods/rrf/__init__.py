@@ -17,14 +17,7 @@ PRESETS = {
     },
 }
 
-METHOD = Method(
-    name="rrf",
-    paper="Ren, Wang, Gong, Lin, Tong, Guo 2013, Global Illumination with Radiance Regression Functions",
-    lighting=PointLights,
-    default_config=model.DEFAULT_CONFIG,
-    presets=PRESETS,
-    make_dataset=data.make_dataset,
-    fit=model.fit,
-    evaluator=model.evaluator,
-    example=model.example,
-)
+METHOD = Method.of_package(
+    "rrf",
+    "Ren, Wang, Gong, Lin, Tong, Guo 2013, Global Illumination with Radiance Regression Functions",
+    PointLights, model, data, PRESETS)

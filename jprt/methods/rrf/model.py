@@ -51,7 +51,8 @@ import numpy as np
 from jprt.inputs import GBuffer, PointLights
 from jprt.methods.base import FitResult, resolve
 from jprt.methods.rrf import kdtree
-from jprt.solve.lm import solve_batched
+from jprt.nn.mlp import MLP, mlp, ranges
+from jprt.solve.lm import LMSettings, solve_batched
 
 __all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features", "split_samples", "input_size", "fit",
            "fit_arrays", "evaluator", "check_inputs", "example", "refit_leaves", "model_bytes", "parameter_count",
@@ -172,10 +173,48 @@ def input_size(attributes: str, mode: str = "view") -> int:
 # Fitting (Eq. 6, Eq. 10, §4)
 
 
-def _ranges(a: np.ndarray, eps: float = 1e-8) -> tuple[np.ndarray, np.ndarray]:
-    lo, hi = a.min(axis=0), a.max(axis=0)
-    half = 0.5 * (hi - lo)
-    return 0.5 * (hi + lo), np.where(half > eps, half, 1.0)
+@functools.lru_cache(maxsize=None)
+def _network(sizes: tuple) -> MLP:
+    """Phi_N of Eq. 8: the tanh MLP family of layer ``sizes`` (``jprt.nn.mlp``), with Appendix A's
+    [-1, 1] scaling (the node payload is exactly its params) and uniform [-1, 1] initial weights."""
+    return mlp(sizes, activation="tanh", init="rrf")
+
+
+def _sizes(layers) -> tuple:
+    return (int(np.shape(layers[0]["w"])[0]),) + tuple(int(np.shape(layer["w"])[1]) for layer in layers)
+
+
+def _leaf_sizes(leaves) -> tuple:
+    """Layer sizes of stacked leaf networks (leading axis: the leaf)."""
+    return _sizes([{"w": np.zeros(np.shape(layer["w"])[1:])} for layer in leaves["layers"]])
+
+
+@functools.lru_cache(maxsize=None)
+def _jitted_apply(sizes: tuple):
+    return jax.jit(_network(sizes).apply)
+
+
+def _phi(payload, x) -> np.ndarray:
+    """Phi_N(x) of one node (payload = its MLP params) for samples x (N, D), on the host: the
+    jitted ``jprt.nn.mlp`` apply on rows padded to a few bucket sizes (few compiled shapes)."""
+    n = len(x)
+    xp = np.zeros((_bucket(n, 64), np.shape(x)[1]), np.float32)
+    xp[:n] = x
+    return np.asarray(_jitted_apply(_sizes(payload["layers"]))(payload, xp))[:n]
+
+
+@functools.lru_cache(maxsize=None)
+def _residual_fn(sizes: tuple):
+    """Eq. 6 residual of one sample in the node's scaled space, Phi_N(x) - y, for the LM solver
+    (the parameters are the layers; the scaling is the identity there)."""
+    net = _network(sizes)
+    identity = net.init(np.random.default_rng(0))["scaling"]
+
+    def residual(layers, sample):
+        x, y = sample
+        return net.apply({"layers": layers, "scaling": identity}, x[None, :])[0] - y
+
+    return residual
 
 
 def _rescale(layers, src: dict, dst: dict):
@@ -193,31 +232,6 @@ def _rescale(layers, src: dict, dst: dict):
     last["b"] = (last["b"] * src["out_halfrange"] + src["out_center"] - dst["out_center"]) / dst["out_halfrange"]
     last["w"] = last["w"] * ratio[None, :]
     return layers
-
-
-def _residual(layers, sample):
-    """Eq. 6 residual of one sample in the node's scaled output space: Phi_N(x) - y."""
-    x, y = sample
-    return _forward(layers, x[None, :])[0] - y
-
-
-def _forward(layers, x):
-    h = x
-    for i, layer in enumerate(layers):
-        h = h @ layer["w"] + layer["b"][None, :]
-        if i < len(layers) - 1:
-            h = jnp.tanh(h)
-    return h
-
-
-def _forward_np(layers, x: np.ndarray) -> np.ndarray:
-    """NumPy twin of ``_forward`` for host-side error estimates (no per-shape compilation)."""
-    h = np.asarray(x, np.float32)
-    for i, layer in enumerate(layers):
-        h = h @ np.asarray(layer["w"]) + np.asarray(layer["b"])
-        if i < len(layers) - 1:
-            h = np.tanh(h)
-    return h
 
 
 def _bucket(n: int, minimum: int = 256) -> int:
@@ -238,12 +252,6 @@ class _NodeFitter:
         self.rng = np.random.default_rng(seed)
         self.calls = 0
 
-    def init_layers(self) -> list:
-        """Weights uniform in [-1, 1] (Appendix A), drawn on the host."""
-        return [{"w": self.rng.uniform(-1.0, 1.0, (a, b)).astype(np.float32),
-                 "b": self.rng.uniform(-1.0, 1.0, (b,)).astype(np.float32)}
-                for a, b in zip(self.sizes[:-1], self.sizes[1:])]
-
     def __call__(self, problems, iters: int | None = None):
         t = self.cfg["train"]
         iters = int(iters or t["max_iters"])
@@ -260,12 +268,8 @@ class _NodeFitter:
 
     def errors(self, problem) -> tuple[float, float]:
         """(train, val) relative errors of ``problem.init`` (a payload) on the problem's samples."""
-        s, layers = problem.init["scaling"], problem.init["layers"]
-
         def err(idx):
-            xv = (self.x[idx] - s["in_center"]) / s["in_halfrange"]
-            yv = _forward_np(layers, xv) * s["out_halfrange"] + s["out_center"]
-            return _relative_error(yv, self.y[idx])
+            return _relative_error(_phi(problem.init, self.x[idx]), self.y[idx])
 
         train = err(problem.train)
         return train, (err(problem.val) if len(problem.val) else train)
@@ -284,8 +288,8 @@ class _NodeFitter:
         scalings, inits = [], []
         for j, p in enumerate(problems):
             xi, yi = self.x[p.train], self.y[p.train]
-            ic, ih = _ranges(xi)
-            oc, oh = _ranges(yi)
+            ic, ih = ranges(xi)
+            oc, oh = ranges(yi)
             scaling = {"in_center": ic, "in_halfrange": ih, "out_center": oc, "out_halfrange": oh}
             scalings.append(scaling)
             n = len(p.train)
@@ -300,29 +304,26 @@ class _NodeFitter:
                 layers = _rescale([{k: np.asarray(v) for k, v in layer.items()} for layer in p.init["layers"]],
                                   {k: np.asarray(v) for k, v in p.init["scaling"].items()}, scaling)
             else:
-                layers = self.init_layers()
+                layers = _network(self.sizes).init(self.rng)["layers"]  # uniform [-1, 1], on the host
             inits.append(layers)
         params = jax.tree_util.tree_map(lambda *a: np.stack(a).astype(np.float32), *inits)
-        res = solve_batched(_residual, params, (jnp.asarray(xs), jnp.asarray(ys)),
-                            mask=jnp.asarray(mask), max_iters=iters, rtol=float(t["rtol"]),
-                            damping=float(t["damping"]), chunk_size=int(t["chunk_size"]),
+        settings = LMSettings(max_iters=iters, rtol=float(t["rtol"]), damping=float(t["damping"]),
+                              chunk_size=int(t["chunk_size"]), max_fail=max(int(t["max_fail"]), 1))
+        res = solve_batched(_residual_fn(self.sizes), params, (jnp.asarray(xs), jnp.asarray(ys)),
+                            mask=jnp.asarray(mask), settings=settings,
                             val_data=(jnp.asarray(xv), jnp.asarray(yv)) if t["max_fail"] > 0 else None,
-                            val_mask=jnp.asarray(mask_v) if t["max_fail"] > 0 else None,
-                            max_fail=max(int(t["max_fail"]), 1))
+                            val_mask=jnp.asarray(mask_v) if t["max_fail"] > 0 else None)
         layers = jax.tree_util.tree_map(np.asarray, res.params)
         fits = []
         for j, p in enumerate(problems):
             s = scalings[j]
             n = len(p.train)
-            node_layers = [{k: v[j] for k, v in layer.items()} for layer in layers]
-            yhat = _forward_np(node_layers, xs[j, :n]) * s["out_halfrange"] + s["out_center"]
-            train_err = _relative_error(yhat, self.y[p.train])
+            payload = {"layers": [{k: v[j] for k, v in layer.items()} for layer in layers], "scaling": s}
+            train_err = _relative_error(_phi(payload, self.x[p.train]), self.y[p.train])
             val_err = train_err
             if len(p.val):
-                xv = (self.x[p.val] - s["in_center"]) / s["in_halfrange"]
-                yv = _forward_np(node_layers, xv) * s["out_halfrange"] + s["out_center"]
-                val_err = _relative_error(yv, self.y[p.val])
-            fits.append(kdtree.NodeFit({"layers": node_layers, "scaling": s}, train_err, val_err))
+                val_err = _relative_error(_phi(payload, self.x[p.val]), self.y[p.val])
+            fits.append(kdtree.NodeFit(payload, train_err, val_err))
         return fits
 
 
@@ -471,12 +472,10 @@ def _leaf_errors(params, xn, x, y, object_id, is_train):
     n_leaves = leaves["layers"][0]["w"].shape[0]
     tr, va = np.full(n_leaves, np.nan), np.full(n_leaves, np.nan)
     for i in range(n_leaves):
-        layers = [{k: v[i] for k, v in layer.items()} for layer in leaves["layers"]]
-        s = {k: v[i] for k, v in leaves["scaling"].items()}
+        payload = jax.tree_util.tree_map(lambda v: v[i], leaves)
         for out, sel in ((tr, (leaf == i) & is_train), (va, (leaf == i) & ~is_train)):
             if sel.any():
-                pred = _forward_np(layers, (x[sel] - s["in_center"]) / s["in_halfrange"])
-                out[i] = _relative_error(pred * s["out_halfrange"] + s["out_center"], y[sel])
+                out[i] = _relative_error(_phi(payload, x[sel]), y[sel])
     return tr, va
 
 
@@ -513,14 +512,8 @@ def _predict(params, x, object_id, block: int = 512):
     block_group = jnp.searchsorted(ends, jnp.arange(n_blocks) * block, side="right")
     has_net = block_group < n_leaves
     bl = jnp.minimum(block_group, n_leaves - 1)
-    s = jax.tree_util.tree_map(lambda a: a[bl], leaves["scaling"])
-    h = (xp.reshape(n_blocks, block, d) - s["in_center"][:, None, :]) / s["in_halfrange"][:, None, :]
-    layers = leaves["layers"]
-    for i, layer in enumerate(layers):
-        h = jnp.einsum("kbi,kio->kbo", h, layer["w"][bl]) + layer["b"][bl][:, None, :]
-        if i < len(layers) - 1:
-            h = jnp.tanh(h)
-    y = h * s["out_halfrange"][:, None, :] + s["out_center"][:, None, :]
+    per_block = jax.tree_util.tree_map(lambda a: a[bl], leaves)  # each block's leaf network (Eq. 8)
+    y = jax.vmap(_network(_leaf_sizes(leaves)).apply)(per_block, xp.reshape(n_blocks, block, d))
     y = jnp.where(has_net[:, None, None], y, 0.0).reshape(n_blocks * block, -1)
     return jnp.zeros((n, y.shape[-1]), y.dtype).at[order].set(y[dest])
 

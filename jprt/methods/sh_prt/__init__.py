@@ -10,15 +10,8 @@ __all__ = ["METHOD", "PRESETS", "data", "model"]
 #: Named config overrides; ``test`` bakes order 2 on a 32^2 atlas in seconds.
 PRESETS = {"test": {"lightmap": {"resolution": 32}, "sh": {"order": 2, "spp": 2, "env_height": 8}}}
 
-METHOD = Method(
-    name="sh_prt",
-    paper="Sloan, Kautz, Snyder 2002, Precomputed Radiance Transfer for Real-Time Rendering in Dynamic, "
+METHOD = Method.of_package(
+    "sh_prt",
+    "Sloan, Kautz, Snyder 2002, Precomputed Radiance Transfer for Real-Time Rendering in Dynamic, "
           "Low-Frequency Lighting Environments",
-    lighting=SHLighting,
-    default_config=model.DEFAULT_CONFIG,
-    presets=PRESETS,
-    make_dataset=data.make_dataset,
-    fit=model.fit,
-    evaluator=model.evaluator,
-    example=model.example,
-)
+    SHLighting, model, data, PRESETS)

@@ -26,15 +26,8 @@ def _fit(dataset, config=None):
     return model.fit(dataset, config, progress=False)
 
 
-METHOD = Method(
-    name="wavelet_prt",
-    paper="Raghavan, Luan, Ramamoorthi, Hasan 2023, Neural Free-Viewpoint Relighting for Glossy Indirect "
-          "Illumination",
-    lighting=CubeMap,
-    default_config=model.DEFAULT_CONFIG,
-    presets=PRESETS,
-    make_dataset=data.make_dataset,
-    fit=_fit,
-    evaluator=model.evaluator,
-    example=model.example,
-)
+METHOD = Method.of_package(
+    "wavelet_prt",
+    "Raghavan, Luan, Ramamoorthi, Hasan 2023, Neural Free-Viewpoint Relighting for Glossy Indirect "
+    "Illumination",
+    CubeMap, model, data, PRESETS, fit=_fit)
