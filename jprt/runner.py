@@ -10,9 +10,12 @@ An experiment file is its ``CONFIG``, ``PRESETS`` and what is special to its pap
     PRESETS = {"test": {...}}
 
     def held_out(run) -> HeldOut: ...   # predictions and references of the held-out views / lights
+    def fit(run) -> FitResult                     # optional: instead of METHOD's fit (checkpoints, ...)
     def frame(run) -> (inputs, lighting)          # optional: the frame the evaluator is timed on
+                                                  #   (default: the method's ``example``)
     def pathtracer(run) -> PathTracer             # optional: Mitsuba at n spp, for equal error
     STAGES = [ablations, robustness, ...]         # optional: run -> dict, kept under summary["extra"]
+    LABEL = "rrf"                                 # optional: the prefix of progress messages
 
 ``jprt run experiments/x.py`` calls ``run(module, config)``; ``main(config)`` in a file does the
 same. Sections of the config that the method does not know (``eval``, ``output``, ...) are the

@@ -7,7 +7,19 @@
 * ``sh_prt``: classic SH PRT (Sloan et al. 2002), data-driven PRT's baseline.
 
 Each package has ``model.py`` (the paper's math in pure JAX, in the paper's order, no Mitsuba),
-``data.py`` (its training data rendered through ``jprt.render``) and ``METHOD``.
+``data.py`` (its training data rendered through ``jprt.render``, cached by ``jprt.cache``) and
+``METHOD``. Every method runs the same four verbs (the contract of ``jprt.methods.base``; the
+README runs this loop, ``tests/methods/test_contract.py`` checks it)::
+
+    for name, m in REGISTRY.items():
+        config = m.resolve(m.presets["test"])              # strict: unknown keys raise ConfigError
+        dataset = m.make_dataset(config["scene"], config)   # Mitsuba renders, cached
+        params, info = m.fit(dataset, config)               # FitResult: arrays only, plain dict
+        evaluate = m.evaluator(params, config)              # pure (inputs, lighting) -> (H, W, 3)
+        image = jax.jit(evaluate)(*m.example(dataset, config))
+
+``jprt.runner`` runs an experiment over a method: dataset, fit, held-out predictions, the common
+summary (``jprt.runner.SUMMARY_SCHEMA``), timing and equal error against Mitsuba, stages.
 """
 
 from jprt.methods import datadriven, rrf, sh_prt, wavelet_prt

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from jax.test_util import check_grads
 
 from jprt.inputs import CubeMap
+from jprt.methods import REGISTRY
 from jprt.methods.wavelet_prt import model as wp
 from jprt.nn.mlp import mlp
 from jprt.solve import losses
@@ -154,7 +155,7 @@ def test_split_first_layer_matches_the_plain_mlp():
     g = {f: jnp.asarray(data.train[f][0, 0].reshape((-1,) + data.train[f].shape[4:])) for f in wp.GBUFFER_FIELDS}
     idx = jnp.array([0, 5, 17, 90], jnp.int32)
     t = m.transport(params, g, idx)
-    mc = wp._cfg(TINY)["model"]
+    mc = REGISTRY["wavelet_prt"].resolve(TINY)["model"]
     from jprt.nn.factor import factor_field
 
     field = factor_field(face_size=4, n_features=mc["n_features"], n_levels=mc["n_levels"],

@@ -72,6 +72,7 @@ __all__ = [
     "gram_svd",
     "ridge_pinv",
     "lightmap",
+    "reconstruct",
     "transfer_coefficients",
     "example",
     "fit",
@@ -478,22 +479,35 @@ def fit_arrays(direct, indirect, group, config: dict | None = None) -> FitResult
 # Evaluation (§4.3): the one lightmap function
 
 
+def reconstruct(mean, basis, coeffs, norms, channels: str):
+    """The lightmap from basis coefficients (§4.2-4.3): m |x| + U_n u, per channel for "mono".
+
+    Args:
+      mean, basis: (T,) and (T, n) ("mono"), (3T,) and (3T, n) ("multi"), in transfer space.
+      coeffs: u, (..., n, 3) ("mono") or (..., n) ("multi").
+      norms: |x| of the direct vectors, (..., 3) ("mono") or (...) ("multi").
+    Returns (..., T, 3) in transfer space (still gamma-mapped). NumPy in (float64 projection),
+    NumPy out; JAX in (the evaluator), JAX out.
+    """
+    xp = jnp if isinstance(coeffs, jax.Array) else np
+    if channels == "mono":
+        lead = tuple(range(norms.ndim - 1))
+        return xp.expand_dims(mean[:, None], lead) * norms[..., None, :] + xp.einsum("tn,...nc->...tc", basis, coeffs)
+    out = xp.expand_dims(mean, tuple(range(norms.ndim))) * norms[..., None] + xp.einsum("tn,...n->...t", basis, coeffs)
+    return out.reshape(out.shape[:-1] + (-1, 3))
+
+
 @functools.partial(jax.jit, static_argnames=("channels", "gamma"))
 def _lightmap(params: dict, direct, *, channels: str, gamma: float):
     x = gamma_encode(coarse_direct(direct, params["group"], params["counts"]), gamma)  # (..., P, 3)
-    mean, basis, transfer = params["mean"], params["basis"], params["transfer"]
     if channels == "mono":
+        u = jnp.einsum("cnp,...pc->...nc", params["transfer"], x)  # (..., n, 3): u_c = M_c x_c
         norms = jnp.linalg.norm(x, axis=-2)  # (..., 3)
-        u = jnp.einsum("cnp,...pc->...nc", transfer, x)  # (..., n, 3): u_c = M_c x_c
-        out = jnp.expand_dims(mean[:, None], tuple(range(norms.ndim - 1))) * norms[..., None, :] + jnp.einsum(
-            "tn,...nc->...tc", basis, u)
     else:
         xv = x.reshape(x.shape[:-2] + (-1,))
-        u = jnp.einsum("np,...p->...n", transfer, xv)
-        out = (jnp.expand_dims(mean, tuple(range(xv.ndim - 1))) * jnp.linalg.norm(xv, axis=-1)[..., None]
-               + jnp.einsum("tn,...n->...t", basis, u))
-        out = out.reshape(x.shape[:-2] + (-1, 3))
-    return gamma_decode(out, gamma)
+        u = jnp.einsum("np,...p->...n", params["transfer"], xv)
+        norms = jnp.linalg.norm(xv, axis=-1)
+    return gamma_decode(reconstruct(params["mean"], params["basis"], u, norms, channels), gamma)
 
 
 def lightmap(params: dict, direct, config: dict | None = None):
@@ -565,19 +579,18 @@ def project(params: dict, direct, indirect, config: dict | None = None) -> np.nd
     gamma, channels = float(cfg["basis"]["gamma"]), cfg["basis"]["channels"]
     direct = np.asarray(direct, np.float64)
     indirect = np.asarray(indirect, np.float64)
-    coarse = coarse_direct(direct, params["group"], params["counts"])
-    x, y, _ = _examples(gamma_encode(coarse, gamma), gamma_encode(indirect, gamma), channels)
-    s = np.maximum(np.linalg.norm(x, axis=0), 1e-30)
-    mean = np.asarray(params["mean"], np.float64)[:, None]
+    coarse = gamma_encode(coarse_direct(direct, params["group"], params["counts"]), gamma)  # (N, P, 3)
+    n, t = indirect.shape[0], indirect.shape[1]
+    mean = np.asarray(params["mean"], np.float64)
     u = np.asarray(params["basis"], np.float64)
-    yn = y / s
-    rec = (mean + u @ (u.T @ (yn - mean))) * s
-    n = indirect.shape[0]
+    y = gamma_encode(indirect, gamma)
     if channels == "mono":
-        out = np.transpose(rec.reshape(indirect.shape[1], 3, n), (2, 0, 1))
+        norms = np.maximum(np.linalg.norm(coarse, axis=1), 1e-30)  # (N, 3)
+        coeffs = np.einsum("tn,ktc->knc", u, y - mean[None, :, None] * norms[:, None, :])  # s U^T (y / s - m)
     else:
-        out = rec.T.reshape(indirect.shape)
-    return gamma_decode(out, gamma)
+        norms = np.maximum(np.linalg.norm(coarse.reshape(n, -1), axis=1), 1e-30)  # (N,)
+        coeffs = (y.reshape(n, -1) - mean[None, :] * norms[:, None]) @ u  # (N, n): s U^T (y / s - m)
+    return gamma_decode(reconstruct(mean, u, coeffs, norms, channels), gamma).reshape(n, t, 3)
 
 
 def cross_validate_lambda(direct, indirect, group, config: dict | None, lambdas, *, folds: int = 4,
