@@ -293,6 +293,8 @@ def _oos_lights(config, data, rng):
 def out_of_scenario(run) -> dict:
     """Fig. 8: point lights near the asset and directional lights, outside the training scenario."""
     data = run.dataset
+    if int(run.config["eval"]["oos_n"]) <= 0:
+        return {}
     rng = np.random.default_rng(int(run.config["eval"]["seed"]))
     spp_test = int(run.method_config["data"]["test_spp"])
     s = {}

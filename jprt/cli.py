@@ -1,10 +1,15 @@
-"""The ``jprt`` command: ``info``, ``render`` (a dataset from an experiment config), ``run`` (an experiment).
+"""The ``jprt`` command: ``info``, ``render`` (a dataset from an experiment config), ``run`` (an
+experiment), ``sweep`` (a grid of overrides over an experiment, ``jprt.sweep``).
 
     jprt info
     jprt render experiments/cornell_gt.py --set dataset.spp=16
     jprt run experiments/cornell_gt.py --set dataset.cameras.width=64
+    jprt run experiments/rrf_cornell.py --config results/rrf_cornell/sweep_<hash>/selected.json
+    jprt sweep experiments/datadriven.py --grid basis.n=[4,16,64] --select "indirect_rmse<=0.02" \
+        --minimize frame_ms
 
-An experiment file defines ``CONFIG`` (a nested dict) and ``main(config)``. ``--set a.b=value``
+An experiment file defines ``CONFIG`` (a nested dict) and ``METHOD`` (run by ``jprt.runner``) or
+``main(config)``. ``--set a.b=value``
 overrides are typed and deep-merged; an unknown key is an error naming the nearest valid key.
 Errors in the input are reported as one line on stderr (exit status 2).
 """
@@ -13,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import json
 import os
 import platform
 import sys
@@ -41,8 +47,11 @@ def load_experiment(path: str) -> ModuleType:
     return module
 
 
-def resolve_config(module: ModuleType, overrides: list[str], preset: str | None = None) -> dict:
-    """The experiment's CONFIG, with a named preset (``PRESETS[preset]``) and ``--set`` overrides."""
+def resolve_config(module: ModuleType, overrides: list[str], preset: str | None = None,
+                   config_file: str | None = None) -> dict:
+    """The experiment's CONFIG, with a named preset (``PRESETS[preset]``), a JSON config file
+    (e.g. a sweep's ``selected.json``: its ``config`` entry, merged strictly) and ``--set``
+    overrides, in that order."""
     from jprt.config import apply_overrides, merge
 
     config = module.CONFIG
@@ -51,7 +60,43 @@ def resolve_config(module: ModuleType, overrides: list[str], preset: str | None 
         if preset not in presets:
             raise ValueError(f"unknown preset {preset!r}; this experiment has {sorted(presets) or 'none'}")
         config = merge(config, presets[preset])
+    if config_file is not None:
+        with open(config_file) as f:
+            loaded = json.load(f)
+        config = merge(config, loaded.get("config", loaded))
     return apply_overrides(config, overrides)
+
+
+def _sweep(args) -> int:
+    from jprt import sweep
+
+    if args.experiment.endswith(".py") and os.path.basename(os.path.dirname(os.path.abspath(args.experiment))) \
+            == "sweeps":
+        spec = sweep.load_sweep_file(args.experiment)
+        experiment, preset = spec["experiment"], args.preset or spec.get("preset")
+        grid = {**spec["grid"], **sweep.parse_grid(args.grid)}
+        overrides = list(spec.get("set", [])) + args.overrides
+    else:
+        experiment, preset, grid, overrides = args.experiment, args.preset, sweep.parse_grid(args.grid), args.overrides
+    if not grid:
+        raise ValueError("a sweep needs at least one --grid key=[values] (or a sweep file's SWEEP['grid'])")
+    module = load_experiment(experiment)
+    config = resolve_config(module, overrides, preset)
+    record = sweep.run_sweep(module, config, grid, label=os.path.basename(experiment))
+    if args.select:
+        if not args.minimize:
+            raise ValueError("--select needs --minimize KEY (e.g. frame_ms)")
+        row = sweep.select(record["rows"], args.select, args.minimize)
+        chosen = sweep.selected_config(config, row, list(grid))
+        path = os.path.join(record["folder"], "selected.json")
+        from jprt.io import write_json
+
+        write_json(path, {"experiment": os.path.abspath(experiment), "select": args.select,
+                          "minimize": args.minimize, "point": {k: row[k] for k in grid},
+                          "summary": {k: row.get(k) for k in sweep.ROW_KEYS}, "config": chosen})
+        print(f"selected {({k: row[k] for k in grid})}: {args.minimize} = {row[args.minimize]}; "
+              f"run it with: jprt run {experiment} --config {path}")
+    return 0 if not record["counts"]["failed"] else 1
 
 
 def _info() -> int:
@@ -99,6 +144,16 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                        help="override a config value (repeatable), e.g. --set dataset.spp=16")
         p.add_argument("--preset", default=None, help="a named config preset of the experiment (e.g. small, paper)")
+        p.add_argument("--config", dest="config_file", default=None, metavar="FILE.json",
+                       help="a JSON config merged before --set (e.g. a sweep's selected.json)")
+    p = sub.add_parser("sweep", help="run a grid of config overrides (or a sweep file) through the runner")
+    p.add_argument("experiment", help="an experiment .py file, or a sweep file experiments/sweeps/*.py")
+    p.add_argument("--grid", action="append", default=[], metavar="KEY=[V1,V2]", help="a swept key (repeatable)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--preset", default=None)
+    p.add_argument("--select", default=None, metavar="KEY>=VALUE[,...]",
+                   help="pick the cheapest point meeting these constraints (writes selected.json)")
+    p.add_argument("--minimize", default=None, metavar="KEY", help="what --select minimises, e.g. frame_ms")
     args = parser.parse_args(argv)
 
     from jprt.config import ConfigError
@@ -107,8 +162,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "info":
             return _info()
+        if args.command == "sweep":
+            return _sweep(args)
         module = load_experiment(args.experiment)
-        config = resolve_config(module, args.overrides, args.preset)
+        config = resolve_config(module, args.overrides, args.preset, args.config_file)
         if args.command == "render":
             from jprt.render.dataset import from_config
 

@@ -5,97 +5,30 @@ import json
 import os
 import types
 
-import jax.numpy as jnp
+import fake_method
 import numpy as np
 import pytest
 
 from jprt import runner
 from jprt.config import ConfigError
-from jprt.inputs import GBuffer, PointLights
 from jprt.methods import REGISTRY
-from jprt.methods.base import FitResult, Method
-
-H, W = 12, 12
-
-
-def _gbuffer(seed: int) -> GBuffer:
-    rng = np.random.default_rng(seed)
-    z3 = np.zeros((H, W, 3), np.float32)
-    valid = rng.random((H, W)) > 0.1
-    return GBuffer(position=rng.random((H, W, 3)).astype(np.float32), normal=z3, view=z3, reflected=z3,
-                   uv=np.zeros((H, W, 2), np.float32), diffuse_albedo=rng.random((H, W, 3)).astype(np.float32),
-                   specular_albedo=z3, roughness=np.zeros((H, W), np.float32),
-                   object_id=valid.astype(np.int32) - 1, valid=valid)
-
-
-def _truth(gb, lights):
-    """The fake scene's 'path-traced' indirect: albedo times the sum of the light intensities."""
-    return np.where(gb.valid[..., None], gb.diffuse_albedo * np.asarray(lights.intensity).sum(0), 0.0)
-
-
-def _make_fake_method() -> Method:
-    """Indirect = gain * albedo * sum of intensities; fit learns the gain (truth: 1) by least squares."""
-    default = {"scene": {"name": "fake"}, "model": {"bias": 0.0}, "data": {"n": 3, "seed": 0}}
-
-    def make_dataset(scene, config):
-        cfg = REGISTRY["fake"].resolve(config)
-        rng = np.random.default_rng(cfg["data"]["seed"])
-        items = []
-        for k in range(cfg["data"]["n"]):
-            gb = _gbuffer(k)
-            lights = PointLights.create(rng.random((1, 3)), rng.random((1, 3)) + 0.5)
-            items.append((gb, lights, _truth(gb, lights)))
-        return items
-
-    def fit(dataset, config):
-        num = sum(float(np.sum(gb.diffuse_albedo * l.intensity.sum(0) * y)) for gb, l, y in dataset)
-        den = sum(float(np.sum((gb.diffuse_albedo * l.intensity.sum(0)) ** 2 * gb.valid[..., None]))
-                  for gb, l, y in dataset)
-        return FitResult({"gain": np.asarray(num / den, np.float32)}, {"train_s": 0.25})
-
-    def evaluator(params, config):
-        bias = REGISTRY["fake"].resolve(config)["model"]["bias"]
-
-        def evaluate(inputs, lighting):
-            out = jnp.asarray(params["gain"]) * inputs.diffuse_albedo * jnp.sum(lighting.intensity, axis=0)[None, None] + bias
-            return jnp.where(inputs.valid[..., None], out, 0.0)
-
-        return evaluate
-
-    def example(dataset, config):
-        return dataset[0][0], dataset[0][1]
-
-    return Method("fake", "nobody 2026", PointLights, default, {"test": {}}, make_dataset, fit, evaluator, example)
-
 
 @pytest.fixture
 def fake(monkeypatch, tmp_path):
-    monkeypatch.setitem(REGISTRY, "fake", _make_fake_method())
+    monkeypatch.setitem(REGISTRY, "fake", fake_method.make_fake_method())
     calls = []
 
     def held_out(run):
         calls.append("held_out")
-        gb = _gbuffer(100)
-        lights = PointLights.create([[0.5, 0.5, 0.5]], [[1.0, 2.0, 0.5]])
-        ref = _truth(gb, lights)
-        run.state["test"] = (gb, lights, ref)
-        return runner.HeldOut([np.asarray(run.evaluate(gb, lights))], [ref], [gb.valid], [0.5 * ref])
-
-    def pathtracer(run):
-        gb, lights, ref = run.state["test"]
-        noise = np.random.default_rng(0).normal(size=ref.shape)
-        return runner.PathTracer(lambda spp: [ref + 0.5 * noise / np.sqrt(spp)], lambda spp: 2.0 * spp, "fake")
+        return fake_method.held_out(run)
 
     def stage(run):
         calls.append("stage")
         assert run.summary["indirect_rmse"] is not None  # stages run after the common summary
         return {"gain": float(run.result.params["gain"])}
 
-    module = types.SimpleNamespace(
-        METHOD="fake", CONFIG={**REGISTRY["fake"].default_config, "eval": {"equal_error_spp": [1, 4, 16, 64, 256],
-                                                                          "images": 1, "timing_repeats": 2},
-                               "output": {"dir": str(tmp_path / "out")}},
-        held_out=held_out, pathtracer=pathtracer, STAGES=[stage])
+    module = types.SimpleNamespace(METHOD="fake", CONFIG=fake_method.config(str(tmp_path / "out")), held_out=held_out,
+                                   pathtracer=fake_method.pathtracer, STAGES=[stage])
     return module, calls
 
 
@@ -107,7 +40,7 @@ def test_run_writes_the_common_summary(fake):
     assert s["method"] == "fake" and s["scene"] == {"name": "fake"}
     assert s["indirect_rmse"] < 1e-5 and s["extra"]["gain"] == pytest.approx(1.0, rel=1e-5)
     assert s["psnr_full"] is not None and s["ssim_indirect"] is not None
-    assert s["train_s"] == 0.25 and s["model_bytes"] == 4 and s["frame_resolution"] == [H, W]
+    assert s["train_s"] == 0.25 and s["model_bytes"] == 4 and s["frame_resolution"] == [fake_method.H, fake_method.W]
     # a method this exact is never reached by the noisy path tracer: stated, timed at the largest spp
     assert s["equal_error_spp"] is None and s["pathtrace_ms_equal_error"] == 512.0
     assert "NOT reached" in s["extra"]["pathtrace_note"]
