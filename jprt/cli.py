@@ -82,7 +82,8 @@ def _sweep(args) -> int:
         raise ValueError("a sweep needs at least one --grid key=[values] (or a sweep file's SWEEP['grid'])")
     module = load_experiment(experiment)
     config = resolve_config(module, overrides, preset)
-    record = sweep.run_sweep(module, config, grid, label=os.path.basename(experiment))
+    record = sweep.run_sweep(module, config, grid, label=os.path.basename(experiment), ray=args.ray or None,
+                             num_cpus=args.cpus, num_gpus=args.gpus)
     if args.select:
         if not args.minimize:
             raise ValueError("--select needs --minimize KEY (e.g. frame_ms)")
@@ -154,6 +155,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--select", default=None, metavar="KEY>=VALUE[,...]",
                    help="pick the cheapest point meeting these constraints (writes selected.json)")
     p.add_argument("--minimize", default=None, metavar="KEY", help="what --select minimises, e.g. frame_ms")
+    p.add_argument("--ray", action="store_true",
+                   help="run the points as Ray tasks (a local instance, or $JPRT_RAY_ADDRESS=auto|host:port)")
+    p.add_argument("--cpus", type=float, default=1, help="CPUs one point needs on Ray (default 1)")
+    p.add_argument("--gpus", type=float, default=0, help="GPUs one point needs on Ray (default 0)")
     args = parser.parse_args(argv)
 
     from jprt.config import ConfigError

@@ -4,6 +4,7 @@
         --grid tree.threshold=[0.05,0.1]
     jprt sweep experiments/sweeps/wavelet_k.py            # a sweep file: SWEEP = {...}
     jprt sweep ... --select "psnr_indirect>=30" --minimize frame_ms
+    jprt sweep ... --ray                       # points as Ray tasks (or JPRT_RAY_ADDRESS=auto|host:port)
 
 Every point is the experiment's config with the point's overrides merged in (strictly: an unknown
 key is an error before anything runs), run in its own report folder keyed by its config hash under
@@ -99,15 +100,40 @@ def mitsuba_curve(summary: Mapping) -> list[dict]:
     return [{"spp": t["spp"], "ms": float(ms) * t["spp"] / spp_timed, "rmse": t["rmse"]} for t in tried]
 
 
+def _attempt(module: ModuleType, cfg: dict, folder: str, run: Callable) -> tuple[str, dict | None, str | None]:
+    """One point: ("done", summary, None), or ("failed", None, error) with the traceback in
+    ``folder/error.txt`` (an error of the point never stops the sweep)."""
+    try:
+        return "done", run(module, cfg), None
+    except Exception as e:
+        os.makedirs(folder, exist_ok=True)
+        with open(os.path.join(folder, "error.txt"), "w") as f:
+            f.write(traceback.format_exc())
+        return "failed", None, f"{type(e).__name__}: {e}"
+
+
+def _point_task(experiment_path: str, cfg: dict, folder: str) -> tuple[str, dict | None, str | None]:
+    """A sweep point in a Ray worker: load the experiment file there and run the point."""
+    from jprt.cli import load_experiment
+    from jprt.runner import run
+
+    return _attempt(load_experiment(experiment_path), cfg, folder, run)
+
+
 def run_sweep(module: ModuleType, config: Mapping, grid: Mapping[str, Sequence], *, run: Callable | None = None,
-              progress: bool = True, label: str = "") -> dict:
+              progress: bool = True, label: str = "", ray: bool | None = None, num_cpus: float = 1,
+              num_gpus: float = 0) -> dict:
     """Run every point of ``grid`` over experiment ``module`` at ``config`` (its resolved CONFIG);
     returns the sweep record (also written as sweep.json / sweep.csv / pareto_*.png).
 
-    ``run(module, config) -> summary`` runs one point (default ``jprt.runner.run``).
+    ``run(module, config) -> summary`` runs one point in-process (default ``jprt.runner.run``).
+    ``ray`` (default: whether ``JPRT_RAY_ADDRESS`` is set) runs the points as Ray tasks of
+    ``num_cpus`` / ``num_gpus`` each (``jprt.distributed``; the experiment is re-loaded from its
+    file in the worker); a worker that dies is retried and its point is still one row.
     """
     from tqdm.auto import tqdm
 
+    from jprt import distributed
     from jprt.runner import run as run_point
 
     run = run or run_point
@@ -116,29 +142,41 @@ def run_sweep(module: ModuleType, config: Mapping, grid: Mapping[str, Sequence],
     folder = os.path.abspath(os.path.join(config["output"]["dir"], "sweep_" + stable_hash(
         {"base": config_hash(config), "grid": {k: list(v) for k, v in grid.items()}})))
     os.makedirs(folder, exist_ok=True)
-    rows, counts = [], {"done": 0, "cached": 0, "failed": 0}
-    bar = tqdm(total=len(points), desc=f"sweep {label}".strip(), unit="point", disable=not progress)
-    for point, cfg in zip(points, configs):
+    rows: list = [None] * len(points)
+    counts = {"done": 0, "cached": 0, "failed": 0}
+    todo = []
+    for i, (point, cfg) in enumerate(zip(points, configs)):
         cfg = merge(cfg, {"output": {"dir": os.path.join(folder, "points")}})
         point_folder = os.path.join(folder, "points", config_hash(merge(module.CONFIG, cfg)))
         summary_path = os.path.join(point_folder, "summary.json")
         if os.path.isfile(summary_path):
             with open(summary_path) as f:
-                rows.append(_row(point, "cached", json.load(f), point_folder))
+                rows[i] = _row(point, "cached", json.load(f), point_folder)
             counts["cached"] += 1
         else:
-            try:
-                rows.append(_row(point, "done", run(module, cfg), point_folder))
-                counts["done"] += 1
-            except Exception as e:  # recorded, and the sweep goes on
-                os.makedirs(point_folder, exist_ok=True)
-                with open(os.path.join(point_folder, "error.txt"), "w") as f:
-                    f.write(traceback.format_exc())
-                rows.append(_row(point, "failed", None, point_folder, f"{type(e).__name__}: {e}"))
-                counts["failed"] += 1
-                print(f"jprt sweep: point {point} failed: {type(e).__name__}: {e}", file=sys.stderr)
+            todo.append((i, cfg, point_folder))
+    bar = tqdm(total=len(points), initial=counts["cached"], desc=f"sweep {label}".strip(), unit="point",
+               disable=not progress)
+
+    def finish(j: int, result: tuple) -> None:
+        i, _, point_folder = todo[j]
+        status, summary, error = result
+        rows[i] = _row(points[i], status, summary, point_folder, error)
+        counts[status] += 1
+        if error:
+            print(f"jprt sweep: point {points[i]} failed: {error}", file=sys.stderr)
         bar.update(1)
         bar.set_postfix(counts)
+
+    if todo and distributed.requested(ray):
+        path = getattr(module, "__file__", None)
+        if not path:
+            raise ValueError("a sweep on Ray needs an experiment file (the workers load it by path)")
+        distributed.map_tasks(_point_task, [(os.path.abspath(path), cfg, f) for _, cfg, f in todo],
+                              num_cpus=num_cpus, num_gpus=num_gpus, on_done=finish)
+    else:
+        for j, (i, cfg, point_folder) in enumerate(todo):
+            finish(j, _attempt(module, cfg, point_folder, run))
     bar.close()
     ok = [r for r in rows if r["status"] != "failed"]
     fronts = {x: [rows.index(r) for r, on in zip(ok, pareto_front([r[x] for r in ok], [r["indirect_rmse"] for r in ok]))

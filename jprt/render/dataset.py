@@ -113,7 +113,8 @@ def _lighting_arrays(lighting: Lighting) -> dict:
 
 def render_dataset(scene, cameras: Sequence[cams.Camera], lightings: Sequence[Lighting], *, spp: int,
                    seed: int = 0, pairs: str = "product", gbuffers: bool = True, cache_dir: str | None = None,
-                   progress: bool = True, on_entry: Callable[[str], None] | None = None) -> Dataset:
+                   progress: bool = True, on_entry: Callable[[str], None] | None = None,
+                   ray: bool | None = None, shards: int | None = None) -> Dataset:
     """Render (or reuse from the cache) direct + indirect images for camera x lighting pairs.
 
     Args:
@@ -124,6 +125,11 @@ def render_dataset(scene, cameras: Sequence[cams.Camera], lightings: Sequence[Li
         with the same seed). Item ``k`` uses seed ``seed + k``.
       gbuffers: also store each camera's G-buffer.
       on_entry: called with each entry's name after it is written (progress hooks, tests).
+      ray: render the missing entries as Ray tasks (``jprt.distributed``; default: whether
+        ``JPRT_RAY_ADDRESS`` is set), ``shards`` of them (default two per CPU of the cluster),
+        each writing its entries atomically into the same content-addressed folder. Every entry
+        depends only on its own seed, so the dataset is the single-process one (Mitsuba's renders
+        in two processes differ by about one float32 ulp).
 
     Returns the ``Dataset``; ``dataset.stats`` says how much was rendered vs reused.
     """
@@ -188,33 +194,61 @@ def render_dataset(scene, cameras: Sequence[cams.Camera], lightings: Sequence[Li
         plan(f"item_{li:05d}_{ci:05d}.npz", produce, li)
 
     if work:
-        from tqdm import tqdm
+        from jprt import distributed
 
-        from jprt.render.scenes import SceneHandle
+        if distributed.requested(ray) and len(work) > 1:
+            ray_module = distributed.connect()
+            n = max(1, min(len(work), int(shards or 2 * ray_module.cluster_resources().get("CPU", 1))))
+            parts = [work[i::n] for i in range(n)]  # round robin: every shard gets a mix of entry kinds
 
-        handle = None
-        bar = tqdm(work, desc=f"rendering dataset {os.path.basename(folder)}", unit="entry", disable=not progress,
-                   file=sys.stderr, dynamic_ncols=True)
-        try:
-            for name, produce, needs in bar:
-                if needs != "none":
-                    if handle is None:
-                        handle = SceneHandle(desc, lightings[needs] if isinstance(needs, int) else lightings[0])
-                    elif isinstance(needs, int):
-                        handle.set_lighting(lightings[needs])
-                arrays = produce(handle)
-                save_npz(os.path.join(folder, name), arrays)
+            def shard_done(_, names):
+                stats["rendered"] += len(names)
+                for name in names:
+                    if on_entry is not None:
+                        on_entry(name)
+
+            distributed.map_tasks(_render_entries, [(desc, lightings, folder, part, False) for part in parts],
+                                  on_done=shard_done)
+        else:
+            def counted(name: str) -> None:
                 stats["rendered"] += 1
                 if on_entry is not None:
                     on_entry(name)
-        except KeyboardInterrupt:
-            bar.close()
-            print(f"jprt: interrupted after {stats['rendered']} of {len(work)} entries; run again to resume "
-                  f"({folder})", file=sys.stderr)
-            raise
-        finally:
-            bar.close()
+
+            try:
+                _render_entries(desc, lightings, folder, work, progress, counted)
+            except KeyboardInterrupt:
+                print(f"jprt: interrupted after {stats['rendered']} of {len(work)} entries; run again to resume "
+                      f"({folder})", file=sys.stderr)
+                raise
     return Dataset(folder, spec, stats)
+
+
+def _render_entries(desc: dict, lightings: list, folder: str, work: list, progress: bool,
+                    on_entry: Callable[[str], None] | None = None) -> list[str]:
+    """Render and write ``work`` entries (name, produce(handle) -> arrays, lighting it needs) with
+    one scene handle; returns the names written. Runs in-process or as a Ray task."""
+    from tqdm import tqdm
+
+    from jprt.render.scenes import SceneHandle
+
+    handle, written = None, []
+    bar = tqdm(work, desc=f"rendering dataset {os.path.basename(folder)}", unit="entry", disable=not progress,
+               file=sys.stderr, dynamic_ncols=True)
+    try:
+        for name, produce, needs in bar:
+            if needs != "none":
+                if handle is None:
+                    handle = SceneHandle(desc, lightings[needs] if isinstance(needs, int) else lightings[0])
+                elif isinstance(needs, int):
+                    handle.set_lighting(lightings[needs])
+            save_npz(os.path.join(folder, name), produce(handle))
+            written.append(name)
+            if on_entry is not None:
+                on_entry(name)
+    finally:
+        bar.close()
+    return written
 
 
 def open_dataset(folder: str) -> Dataset:
