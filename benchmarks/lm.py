@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import threading
@@ -216,16 +215,16 @@ def main() -> None:
     if args.worker:
         print(json.dumps(worker(args.worker, args.n, args.iters)))
         return
+    from jprt.eval import write_benchmark
 
     if args.only_vmap64:
         with open(RESULTS) as f:
             result = json.load(f)
         vmap = run_worker("vmap64", 2000, args.iters, args.timeout)
-        result.update(vmap64=vmap, vmap64_speedup=vmap.get("speedup"),
-                      vmap64_command=f"python benchmarks/lm.py --only-vmap64 --iters {args.iters}")
-        with open(RESULTS, "w") as f:
-            json.dump(result, f, indent=2)
+        result.update(vmap64=vmap, vmap64_speedup=vmap.get("speedup"))
         print(json.dumps(vmap, indent=2))
+        write_benchmark(RESULTS, result, f"python benchmarks/lm.py --only-vmap64 --iters {args.iters}",
+                        updated="the vmap64 entry only; the other entries are from the run named before")
         return
 
     ours = run_worker("ours", args.n, args.iters, args.timeout)
@@ -238,10 +237,7 @@ def main() -> None:
     def ratio(a, b, key):
         return a[key] / b[key] if key in a and key in b and b[key] else None
 
-    import jax
-
     result = {
-        "device": f"{platform.machine()} CPU, {os.cpu_count()} cores; jax {jax.__version__}",
         "problem": (f"tanh MLP {SIZES}, {args.n} samples, smooth 3-output target, same start; budget {args.iters} "
                     f"iterations for ours and scipy, {args.jaxopt_iters} for jaxopt"),
         "ours": ours, "jaxopt": theirs, "scipy": scipy_run,
@@ -255,13 +251,10 @@ def main() -> None:
         "vmap64": vmap,
         "targets": {"speedup_vs_jaxopt": ">= 10", "rmse_ratio_vs_scipy": "<= 1.05", "mem_growth_100k_to_1m": "<= 1.2",
                     "vmap64_speedup": ">= 5"},
-        "command": f"python benchmarks/lm.py --n {args.n} --iters {args.iters} --jaxopt-iters {args.jaxopt_iters}",
     }
-    os.makedirs(os.path.dirname(RESULTS), exist_ok=True)
-    with open(RESULTS, "w") as f:
-        json.dump(result, f, indent=2)
     print(json.dumps({k: v for k, v in result.items() if not isinstance(v, dict)}, indent=2))
-    print(f"wrote {RESULTS}")
+    write_benchmark(RESULTS, result,
+                    f"python benchmarks/lm.py --n {args.n} --iters {args.iters} --jaxopt-iters {args.jaxopt_iters}")
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jprt.eval import write_benchmark
 from jprt.sphere import cubemap, haar, quadrature, sg, sh
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "sphere.json")
@@ -124,14 +125,9 @@ def main() -> None:
         "sg_asg_max_rel_error_in_region": max(in_region),
         "sg_asg_max_rel_error_outside_region": max(outside) if outside else None,
         "sg_asg_error_table": table,
-        "command": "python benchmarks/sphere.py --repeats %d" % args.repeats,
     })
-    os.makedirs(os.path.dirname(RESULTS), exist_ok=True)
-    with open(RESULTS, "w") as f:
-        json.dump(result, f, indent=2)
-    summary = {k: v for k, v in result.items() if k != "sg_asg_error_table"}
-    print(json.dumps(summary, indent=2))
-    print(f"wrote {RESULTS}")
+    print(json.dumps({k: v for k, v in result.items() if k != "sg_asg_error_table"}, indent=2))
+    write_benchmark(RESULTS, result, "python benchmarks/sphere.py --repeats %d" % args.repeats)
 
 
 if __name__ == "__main__":
