@@ -6,9 +6,13 @@ A number counts when its key (nested keys joined by dots; keys now under ``extra
 the common schema are matched to their old names) is in both summaries and is not a timing or a
 path; it agrees when the relative difference is at most ``--rtol`` (1e-6). Same seeds, same
 machine kind; Mitsuba renders of two processes can differ by about one float32 ulp.
-Writes benchmarks/results/contract_refactor.json.
+With ``--small`` it also runs data-driven PRT's ``small`` preset (the Cornell box, the quickest
+full-size run, ~6 min) and compares it with the accuracy figures of
+``benchmarks/results/datadriven.json`` (its "cornell" entry). Writes
+benchmarks/results/contract_refactor.json.
 
     python benchmarks/reproduce_presets.py          # ~3 min on 2 cores
+    python benchmarks/reproduce_presets.py --small  # + ~6 min
 """
 
 from __future__ import annotations
@@ -62,10 +66,11 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--rtol", type=float, default=1e-6)
     parser.add_argument("--out", default=os.path.join(HERE, "results", "contract_refactor.json"))
+    parser.add_argument("--small", action="store_true", help="also data-driven PRT's small preset vs datadriven.json")
     args = parser.parse_args()
     sys.path.insert(0, ROOT)
     from jprt.eval import write_benchmark
-    from jprt.runner import run_file
+    from jprt.runner import flat_summary, run_file
 
     work = tempfile.mkdtemp(prefix="jprt_reproduce_")
     os.environ["JPRT_CACHE"] = os.path.join(work, "cache")
@@ -80,6 +85,16 @@ def main() -> int:
                 result[f"{name}/material_edit"] = compare(json.load(f), summary["extra"]["material_edit"], args.rtol)
         print(f"{name}: {result[name]['equal']} equal, {len(result[name]['differ'])} differ, "
               f"absent {result[name]['absent']}")
+    if args.small:
+        summary = flat_summary(run_file(os.path.join(ROOT, "experiments", "datadriven.py"), "small",
+                                        [f"output.dir={work}/datadriven_small"]))
+        with open(os.path.join(HERE, "results", "datadriven.json")) as f:
+            recorded = json.load(f)["cornell"]
+        keys = [k for k in recorded if k not in ("targets", "report", "config_hash")]
+        result["datadriven_small_vs_datadriven.json"] = compare({k: recorded[k] for k in keys},
+                                                                {k: summary.get(k) for k in keys}, args.rtol)
+        r = result["datadriven_small_vs_datadriven.json"]
+        print(f"datadriven small vs datadriven.json: {r['equal']} equal, {len(r['differ'])} differ, absent {r['absent']}")
     result["all_equal"] = all(not r["differ"] for r in result.values() if isinstance(r, dict))
     write_benchmark(args.out, result, "python benchmarks/reproduce_presets.py", rtol=args.rtol,
                     recorded="benchmarks/results/pre_contract/*.json (commit a2cefc4, test presets)",

@@ -59,6 +59,7 @@ def test_rrf_glossy_test_preset_with_material_edit(mi, tmp_path):
     assert len(edits) == 1 and edits[0]["rmse"] >= 0
 
 
+@pytest.mark.slow  # ~11 s (suite budget): the runner is unit-tested on a fake method, the method by its contract
 def test_datadriven_test_preset(mi, tmp_path):
     """Every stage of the data-driven PRT experiment at tiny size: summary keys are finite, and
     the common indirect_rmse over the atlas images is the lightmap RMSE of the fit report."""

@@ -72,7 +72,7 @@ def test_error_map(images):
         metrics.ssim(ref[:5, :5], ref[:5, :5])
 
 
-def _pair(h=64, w=48, noise=0.2, seed=0):
+def _pair(h=32, w=40, noise=0.2, seed=0):
     rng = np.random.default_rng(seed)
     ref = rng.random((h, w, 3)).astype(np.float32)
     return ref, np.clip(ref + noise * rng.normal(size=ref.shape), 0, None).astype(np.float32)
