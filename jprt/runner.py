@@ -66,7 +66,8 @@ SUMMARY_SCHEMA: dict[str, str] = {
     "equal_error_spp": "smallest Mitsuba spp whose indirect RMSE on the held-out set reaches indirect_rmse; None "
                        "when not reached within eval.equal_error_spp or no path tracer",
     "pathtrace_ms_equal_error": "Mitsuba wall time (ms) of the timed frame at equal_error_spp (at the largest spp "
-                                "tried when not reached: a lower bound)",
+                                "tried when not reached: a lower bound); extra.pathtrace_curve has (spp, ms, rmse) "
+                                "of every spp the search tried",
     "speedup_equal_error": "pathtrace_ms_equal_error / frame_ms",
     "model_bytes": "bytes of the arrays the evaluator needs at run time (FitResult.info['model_bytes'] when the "
                    "method states it, else every array of the params)",
@@ -214,8 +215,12 @@ def _equal_error(run: Run, experiment: ModuleType, held: HeldOut) -> None:
                       {"Mitsuba path tracing": ([t["spp"] for t in eq["tried"]], [t["rmse"] for t in eq["tried"]])},
                       xlabel="spp", ylabel="indirect RMSE (held-out set)", title=f"path tracing vs {run.method.name}",
                       logx=True, logy=True, hlines={run.method.name: s["indirect_rmse"]})
+    # Mitsuba's own speed-accuracy curve, every spp tried timed at the frame resolution (a search
+    # that never reaches the error tries the largest spp last: it is the lower bound timed)
+    curve = [{"spp": t["spp"], "ms": float(pt.time_at(t["spp"])), "rmse": t["rmse"]} for t in eq["tried"]]
+    s["extra"]["pathtrace_curve"] = curve
     spp = eq["spp"] or max(int(v) for v in spp_list)
-    s["pathtrace_ms_equal_error"] = float(pt.time_at(spp))
+    s["pathtrace_ms_equal_error"] = next((c["ms"] for c in curve if c["spp"] == spp), None) or float(pt.time_at(spp))
     s["speedup_equal_error"] = s["pathtrace_ms_equal_error"] / s["frame_ms"]
     s["extra"]["pathtrace_spp_timed"] = spp
     s["extra"]["pathtrace_note"] = pt.note + ("" if eq["spp"] else "; equal error NOT reached: timed at the "

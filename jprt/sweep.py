@@ -17,8 +17,9 @@ the sweep goes on. Output in the sweep folder (``output.dir/sweep_<hash of the g
   of ``jprt.runner.SUMMARY_SCHEMA``), the Pareto fronts;
 * ``sweep.csv``: the same rows as a table;
 * ``pareto_<x>.png``: indirect RMSE against ``frame_ms``, ``model_bytes`` and ``train_s``, the
-  front marked; the frame-time plot also draws Mitsuba's own curve (RMSE over spp against render
-  time, from each point's equal-error search), so the reader sees where a model beats path tracing.
+  front marked; the frame-time plot also draws Mitsuba's own curve (RMSE against measured render
+  time over the spp of each point's equal-error search), so the reader sees where a model beats
+  path tracing.
 
 ``select(rows, "psnr_indirect>=30", minimize="frame_ms")`` is "model only what the scene needs":
 the cheapest point meeting every constraint, written by ``--select`` as ``selected.json`` (a
@@ -89,15 +90,9 @@ def _row(point: dict, status: str, summary: dict | None, folder: str, error: str
 
 
 def mitsuba_curve(summary: Mapping) -> list[dict]:
-    """Mitsuba's (spp, ms, rmse) points of a run's equal-error search. The render time is measured
-    at one spp (``extra.pathtrace_spp_timed``) and scaled linearly in spp to the others (path
-    tracing cost is linear in spp; stated in the plot)."""
-    extra = summary.get("extra", {})
-    tried, spp_timed, ms = extra.get("pathtrace_rmse_by_spp"), extra.get("pathtrace_spp_timed"), \
-        summary.get("pathtrace_ms_equal_error")
-    if not tried or not spp_timed or ms is None:
-        return []
-    return [{"spp": t["spp"], "ms": float(ms) * t["spp"] / spp_timed, "rmse": t["rmse"]} for t in tried]
+    """Mitsuba's (spp, ms, rmse) points of a run's equal-error search, each spp timed
+    (``extra.pathtrace_curve``); [] for a run without a path tracer."""
+    return list(summary.get("extra", {}).get("pathtrace_curve") or [])
 
 
 def _attempt(module: ModuleType, cfg: dict, folder: str, run: Callable) -> tuple[str, dict | None, str | None]:
@@ -239,7 +234,7 @@ def _plot(path: str, rows: list[dict], x: str, front: list[int], keys: list[str]
         if curves:  # every point path traces the same held-out set: one Mitsuba curve
             c = max(curves, key=len)
             ax.plot([p["ms"] for p in c], [p["rmse"] for p in c], "k--o", markersize=3,
-                    label="Mitsuba path tracing (ms scaled from one timed spp)")
+                    label="Mitsuba path tracing (spp 1, 2, 4, ...)")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel(x)

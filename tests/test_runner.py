@@ -60,6 +60,9 @@ def test_equal_error_is_found_for_a_biased_method(fake):
     tried = s["extra"]["pathtrace_rmse_by_spp"]
     assert tried[-1]["rmse"] <= s["indirect_rmse"] < min(t["rmse"] for t in tried[:-1])
     assert s["pathtrace_ms_equal_error"] == 2.0 * s["equal_error_spp"]
+    curve = s["extra"]["pathtrace_curve"]  # Mitsuba's curve: every spp tried, each timed
+    assert [c["spp"] for c in curve] == [t["spp"] for t in tried]
+    assert all(c["ms"] == 2.0 * c["spp"] for c in curve) and [c["rmse"] for c in curve] == [t["rmse"] for t in tried]
 
 
 def test_configs_are_strict(fake):

@@ -47,6 +47,7 @@ def test_sweep_runs_every_point_and_reruns_nothing(experiment):
     assert [(r["model.bias"], r["data.n"]) for r in rows] == [(0.0, 2), (0.0, 3), (0.02, 2), (0.02, 3)]
     assert len({r["config_hash"] for r in rows}) == 4 and all(r["indirect_rmse"] is not None for r in rows)
     assert rows[0]["indirect_rmse"] < 1e-5 < rows[2]["indirect_rmse"]  # the bias shows in the error
+    assert [c["spp"] for c in rows[0]["pathtrace_curve"]] == [1, 4, 16, 64, 256]  # Mitsuba's measured curve
     folder = record["folder"]
     for name in ("sweep.json", "sweep.csv", "pareto_frame_ms.png", "pareto_model_bytes.png", "pareto_train_s.png"):
         assert os.path.isfile(os.path.join(folder, name)), name
