@@ -96,7 +96,8 @@ def main() -> int:
         r = result["datadriven_small_vs_datadriven.json"]
         print(f"datadriven small vs datadriven.json: {r['equal']} equal, {len(r['differ'])} differ, absent {r['absent']}")
     result["all_equal"] = all(not r["differ"] for r in result.values() if isinstance(r, dict))
-    write_benchmark(args.out, result, "python benchmarks/reproduce_presets.py", rtol=args.rtol,
+    write_benchmark(args.out, result, "python benchmarks/reproduce_presets.py" + (" --small" if args.small else ""),
+                    rtol=args.rtol,
                     recorded="benchmarks/results/pre_contract/*.json (commit a2cefc4, test presets)",
                     notes="absent keys: test_resolution / timing_resolution are config inputs (in config.json); "
                           "rrf_glossy's rmse_augmented was a copy of indirect_rmse written with ablations off")
