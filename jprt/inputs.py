@@ -75,6 +75,7 @@ class Camera(NamedTuple):
     height: int = 256
 
     def describe(self) -> dict:
+        """A JSON-able dict of the camera (tuples as lists), for content hashing."""
         return {k: (list(map(float, v)) if isinstance(v, tuple) else v) for k, v in self._asdict().items()}
 
 
@@ -106,6 +107,7 @@ class PointLights(NamedTuple):
 
     @property
     def count(self) -> int:
+        """The number K of lights."""
         return int(self.position.shape[0])
 
 
@@ -159,6 +161,7 @@ class SpotLights(NamedTuple):
 
     @property
     def count(self) -> int:
+        """The number K of lights."""
         return int(self.position.shape[0])
 
 
@@ -185,6 +188,7 @@ class DirectionalLights(NamedTuple):
 
     @property
     def count(self) -> int:
+        """The number K of lights."""
         return int(self.direction.shape[0])
 
 

@@ -133,6 +133,7 @@ class Run:
         self.state: dict = {}
 
     def say(self, msg: str) -> None:
+        """A progress message on stderr, prefixed with the experiment's label."""
         print(f"[{self.label}] {msg}", file=sys.stderr, flush=True)
 
     def with_config(self, overrides: dict) -> dict:

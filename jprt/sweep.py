@@ -217,6 +217,7 @@ def _plot(path: str, rows: list[dict], x: str, front: list[int], keys: list[str]
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, ax = plt.subplots(figsize=(6, 4))
     pts = [(i, r[x], r["indirect_rmse"]) for i, r in enumerate(rows) if r["status"] != "failed"
@@ -237,6 +238,10 @@ def _plot(path: str, rows: list[dict], x: str, front: list[int], keys: list[str]
                     label="Mitsuba path tracing (spp 1, 2, 4, ...)")
     ax.set_xscale("log")
     ax.set_yscale("log")
+    for axis in (ax.xaxis, ax.yaxis):  # labelled ticks at 1, 2, 5 x 10^k (all minor labels collide)
+        axis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+        axis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+        axis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel(x)
     ax.set_ylabel("indirect RMSE (held-out)")
     ax.grid(True, alpha=0.3)

@@ -53,10 +53,12 @@ class KDTree(NamedTuple):
 
     @property
     def n_leaves(self) -> int:
+        """Leaves of all objects' trees together."""
         return int(np.sum(np.asarray(self.leaf) >= 0))
 
     @property
     def max_depth(self) -> int:
+        """The deepest leaf's depth (0: a root that is a leaf)."""
         return int(np.max(np.asarray(self.depth))) if np.asarray(self.depth).size else 0
 
 
