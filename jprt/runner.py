@@ -150,7 +150,9 @@ def method_config(method: Method, config: dict) -> dict:
 
 
 def common_summary(held: HeldOut, exposure: float = 0.0) -> dict:
-    """indirect_rmse, indirect_rel_rmse, psnr_indirect, ssim_indirect, psnr_full of a held-out set."""
+    """The accuracy keys of ``SUMMARY_SCHEMA`` for a held-out set: indirect_rmse, indirect_rel_rmse,
+    psnr_indirect, ssim_indirect, psnr_full, flip_indirect, lpips_indirect (None where a metric does
+    not apply: images too small for its window, no direct images, its package not installed)."""
     preds, refs, valid = held.predictions, held.references, held.valid
     rmse = jeval.set_rmse(preds, refs, valid)
     ref_rms = jeval.set_rmse([np.zeros_like(np.asarray(r)) for r in refs], refs, valid)
