@@ -228,8 +228,10 @@ def _plot(path: str, rows: list[dict], x: str, front: list[int], keys: list[str]
             ax.annotate(", ".join(f"{k.split('.')[-1]}={rows[i][k]}" for k in keys), (px, py), fontsize=6,
                         xytext=(3, 3), textcoords="offset points")
         on = sorted((rows[i][x], rows[i]["indirect_rmse"]) for i in front)
-        if on:
-            ax.step([p[0] for p in on], [p[1] for p in on], where="post", color="tab:red", label="Pareto front")
+        if on:  # the front's points ringed (a front of one point has no line), joined by its staircase
+            ax.scatter([p[0] for p in on], [p[1] for p in on], s=120, facecolors="none", edgecolors="tab:red",
+                       label="Pareto front", zorder=3)
+            ax.step([p[0] for p in on], [p[1] for p in on], where="post", color="tab:red")
     if x == "frame_ms":
         curves = [r["pathtrace_curve"] for r in rows if r.get("pathtrace_curve")]
         if curves:  # every point path traces the same held-out set: one Mitsuba curve
