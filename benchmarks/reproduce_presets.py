@@ -94,7 +94,8 @@ def main() -> int:
         result["datadriven_small_vs_datadriven.json"] = compare({k: recorded[k] for k in keys},
                                                                 {k: summary.get(k) for k in keys}, args.rtol)
         r = result["datadriven_small_vs_datadriven.json"]
-        print(f"datadriven small vs datadriven.json: {r['equal']} equal, {len(r['differ'])} differ, absent {r['absent']}")
+        print(f"datadriven small vs datadriven.json: {r['equal']} equal, {len(r['differ'])} differ, "
+              f"absent {r['absent']}")
     result["all_equal"] = all(not r["differ"] for r in result.values() if isinstance(r, dict))
     write_benchmark(args.out, result, "python benchmarks/reproduce_presets.py" + (" --small" if args.small else ""),
                     rtol=args.rtol,

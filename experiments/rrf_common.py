@@ -240,9 +240,10 @@ def single_mlp(run) -> dict:
     testset = run.state["testset"]
     for item in testset.items:
         gb, lights = testset.gbuffer(item.camera), testset.lighting(item.lighting)
+        brdf = rrf.brdf_vector(gb.diffuse_albedo, gb.specular_albedo, gb.roughness)
         outs = [np.asarray(net.apply(trained, rrf.features(cfg["model"]["attributes"], gb.position, gb.view,
                                                            np.broadcast_to(p, gb.position.shape), gb.normal,
-                                                           rrf.brdf_vector(gb)))) * c
+                                                           brdf))) * c
                 for p, c in zip(np.asarray(lights.position), np.asarray(lights.intensity))]
         preds.append(np.where(gb.valid[..., None], np.sum(outs, axis=0), 0.0))
     held = run.state["held_out"]

@@ -192,12 +192,10 @@ def _timing_key(run) -> str:
 
 def frame(run):
     """The first far view at the timing resolution (256 x 256 when listed) under the first held-out map."""
-    from jprt.render.gbuffer import gbuffer
-
     w, h = (int(v) for v in _timing_key(run).split("x"))
     cube = run.dataset.test_envs[0]
-    g = gbuffer(_handle(run, cube), _camera(run.config, run.dataset.cameras["far"][0], w, h))
-    return {k: np.asarray(getattr(g, k)) for k in wp.GBUFFER_FIELDS}, CubeMap(cube)
+    return wp_data.gbuffer_fields(_handle(run, cube), _camera(run.config, run.dataset.cameras["far"][0], w, h)), \
+        CubeMap(cube)
 
 
 def pathtracer(run) -> PathTracer:
@@ -289,13 +287,11 @@ def k_sweep(run) -> dict:
 
 def frame_times(run) -> dict:
     """Table 2: frame time by resolution and K."""
-    from jprt.render.gbuffer import gbuffer
-
     e, data = run.config["eval"], run.dataset
     frame_ms = {}
     for w, h in e["timing_resolutions"]:
-        g = gbuffer(_handle(run, data.test_envs[0]), _camera(run.config, data.cameras["far"][0], w, h))
-        g = {k: jax.device_put(np.asarray(getattr(g, k))) for k in wp.GBUFFER_FIELDS}
+        g = jax.device_put(wp_data.gbuffer_fields(_handle(run, data.test_envs[0]),
+                                                  _camera(run.config, data.cameras["far"][0], w, h)))
         for k in e["ks"]:
             evaluate = wp.evaluator(run.result.params, run.with_config({"render": {"k": int(k)}}))
             ms = jeval.time_call(evaluate, g, CubeMap(data.test_envs[0]), repeats=int(e["timing_repeats"]),

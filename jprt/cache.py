@@ -28,7 +28,7 @@ import numpy as np
 from jprt.config import stable_hash
 from jprt.io import atomic_path, atomic_write_bytes
 
-__all__ = ["cache_root", "sha256", "save_npz", "load_npz", "entry_state", "entry_path", "cached"]
+__all__ = ["cache_root", "sha256", "save_npz", "load_npz", "entry_state", "entry_path", "cached", "unprefixed"]
 
 
 def cache_root() -> str:
@@ -63,13 +63,22 @@ def entry_state(path: str) -> str:
         return "ok" if f.read().strip() == sha256(path) else "corrupt"
 
 
-def load_npz(path: str) -> dict[str, np.ndarray]:
-    """The arrays of a verified entry; a missing or corrupt one raises ValueError."""
+def load_npz(path: str, *, repair: str = "") -> dict[str, np.ndarray]:
+    """The arrays of a verified entry; a missing or corrupt one raises ValueError (with the
+    caller's ``repair`` advice appended)."""
     state = entry_state(path)
     if state != "ok":
-        raise ValueError(f"cache entry {path} is {state}")
+        raise ValueError(f"cache entry {path} is {state}" + (f"; {repair}" if repair else ""))
     with np.load(path, allow_pickle=False) as f:
         return {k: f[k] for k in f.files}
+
+
+def unprefixed(arrays: Mapping[str, np.ndarray], prefix: str, *, exclude: str | None = None) -> dict:
+    """The entries of ``arrays`` whose names start with ``prefix`` (and not ``exclude``), prefix
+    removed, 0-d arrays as Python scalars: a dict stored flat in one entry (``atlas_texel_index``
+    ...) read back as a dict."""
+    return {k[len(prefix):]: (v.item() if v.ndim == 0 else v) for k, v in arrays.items()
+            if k.startswith(prefix) and not (exclude and k.startswith(exclude))}
 
 
 def entry_path(namespace: str, spec, *, cache_dir: str | None = None) -> str:

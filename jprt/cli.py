@@ -70,8 +70,9 @@ def resolve_config(module: ModuleType, overrides: list[str], preset: str | None 
 def _sweep(args) -> int:
     from jprt import sweep
 
-    if args.experiment.endswith(".py") and os.path.basename(os.path.dirname(os.path.abspath(args.experiment))) \
-            == "sweeps":
+    if not os.path.isfile(args.experiment):
+        raise FileNotFoundError(f"experiment or sweep file not found: {args.experiment}")
+    if sweep.is_sweep_file(args.experiment):
         spec = sweep.load_sweep_file(args.experiment)
         experiment, preset = spec["experiment"], args.preset or spec.get("preset")
         grid = {**spec["grid"], **sweep.parse_grid(args.grid)}

@@ -28,9 +28,10 @@ def requested(flag: bool | None = None) -> bool:
     return bool(os.environ.get("JPRT_RAY_ADDRESS")) if flag is None else bool(flag)
 
 
-def connect(address: str | None = None):
+def connect(address: str | None = None, *, num_cpus: int | None = None):
     """The ``ray`` module, connected: to ``address`` / ``$JPRT_RAY_ADDRESS`` when given, else a
-    local instance with one CPU per core (reused when this process is already connected)."""
+    local instance with ``num_cpus`` CPUs (default one per core) that inherits the ``JPRT_*`` and
+    ``DRJIT_*`` environment; reused when this process is already connected."""
     try:
         import ray
     except ImportError as e:  # an optional extra: say how to get it
@@ -39,7 +40,7 @@ def connect(address: str | None = None):
         return ray
     address = address or os.environ.get("JPRT_RAY_ADDRESS") or None
     if address in (None, "", "local"):
-        ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False,
+        ray.init(num_cpus=num_cpus or os.cpu_count(), include_dashboard=False, log_to_driver=False,
                  runtime_env={"env_vars": {k: v for k, v in os.environ.items() if k.startswith(("JPRT_", "DRJIT_"))}})
     else:
         ray.init(address=address, log_to_driver=False)

@@ -47,7 +47,7 @@ from jprt.config import ConfigError, apply_overrides, config_hash, merge, parse_
 from jprt.runner import SUMMARY_SCHEMA
 
 __all__ = ["parse_grid", "grid_points", "point_config", "run_sweep", "pareto_front", "parse_constraint", "select",
-           "selected_config", "load_sweep_file", "mitsuba_curve", "ROW_KEYS"]
+           "selected_config", "is_sweep_file", "load_sweep_file", "mitsuba_curve", "ROW_KEYS"]
 
 #: The summary keys every row of a sweep carries (the common schema; ``extra`` stays in the points' folders).
 ROW_KEYS = tuple(k for k in SUMMARY_SCHEMA if k not in ("extra", "scene"))
@@ -173,8 +173,8 @@ def run_sweep(module: ModuleType, config: Mapping, grid: Mapping[str, Sequence],
         for j, (i, cfg, point_folder) in enumerate(todo):
             finish(j, _attempt(module, cfg, point_folder, run))
     bar.close()
-    ok = [r for r in rows if r["status"] != "failed"]
-    fronts = {x: [rows.index(r) for r, on in zip(ok, pareto_front([r[x] for r in ok], [r["indirect_rmse"] for r in ok]))
+    ok = [i for i, r in enumerate(rows) if r["status"] != "failed"]
+    fronts = {x: [i for i, on in zip(ok, pareto_front([rows[i][x] for i in ok], [rows[i]["indirect_rmse"] for i in ok]))
                   if on] for x in PARETO_AXES}
     record = {"experiment": getattr(module, "__file__", None), "base_config_hash": config_hash(config),
               "grid": {k: list(v) for k, v in grid.items()}, "counts": counts, "rows": rows, "pareto": fronts,
@@ -294,6 +294,16 @@ def select(rows: Sequence[Mapping], constraints: Sequence[str] | str, minimize: 
 def selected_config(base: Mapping, row: Mapping, grid_keys: Sequence[str]) -> dict:
     """The full config of a selected row (base config + the row's grid values), for ``jprt run --config``."""
     return point_config(base, {k: row[k] for k in grid_keys})
+
+
+def is_sweep_file(path: str) -> bool:
+    """Whether the Python file at ``path`` assigns ``SWEEP`` at module level (read, not imported)."""
+    import ast
+
+    with open(path) as f:
+        tree = ast.parse(f.read(), path)
+    return any(isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "SWEEP" for t in node.targets)
+               for node in tree.body)
 
 
 def load_sweep_file(path: str) -> dict:

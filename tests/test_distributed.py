@@ -18,8 +18,7 @@ ray = pytest.importorskip("ray", reason="Ray is the optional [ray] extra (make t
 
 @pytest.fixture(scope="module")
 def local_ray():
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
-             runtime_env={"env_vars": {k: v for k, v in os.environ.items() if k.startswith(("JPRT_", "DRJIT_"))}})
+    distributed.connect(num_cpus=2)
     yield ray
     ray.shutdown()
 

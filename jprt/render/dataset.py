@@ -25,7 +25,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 import numpy as np
 
 from jprt.config import stable_hash
-from jprt.cache import cache_root, entry_state, save_npz
+from jprt.cache import cache_root, entry_state, load_npz, save_npz
 from jprt.io import write_json
 from jprt.render import cameras as cams
 from jprt.render.lights import EnvMap, Lighting, PointLights, lighting_description, validate_lighting
@@ -68,12 +68,7 @@ class Dataset:
                 for c in self.spec["cameras"]]
 
     def _load(self, name: str) -> dict:
-        path = os.path.join(self.folder, name)
-        state = entry_state(path)
-        if state != "ok":
-            raise ValueError(f"dataset entry {path} is {state}; re-run render_dataset to repair it")
-        with np.load(path) as data:
-            return {k: data[k] for k in data.files}
+        return load_npz(os.path.join(self.folder, name), repair="re-run render_dataset to repair it")
 
     def lighting(self, index: int) -> Lighting:
         data = self._load(f"lighting_{index:05d}.npz")

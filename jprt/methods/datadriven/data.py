@@ -139,15 +139,13 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
 
 
 def _unpack(arrays: dict, spec: dict, path: str) -> DDData:
-    def prefixed(prefix, exclude=None):
-        return {k[len(prefix):]: (v.item() if v.ndim == 0 else v) for k, v in arrays.items()
-                if k.startswith(prefix) and not (exclude and k.startswith(exclude))}
-
     meta = {"scene": spec["scene"], "object_names": [str(s) for s in arrays["object_names"]],
             "render_s": float(arrays["render_s"]), "render_train_s": float(arrays["render_train_s"]),
             "cache": path, "spec_hash": stable_hash(spec)}
-    return DDData(atlas=prefixed("atlas_"), candidates=prefixed("cand_"), direct=arrays["direct"],
-                  indirect=arrays["indirect"], direct_test=arrays["direct_test"], indirect_test=arrays["indirect_test"],
-                  lights=prefixed("lights_", "lights_test_"), lights_test=prefixed("lights_test_"), meta=meta)
+    return DDData(atlas=cache.unprefixed(arrays, "atlas_"), candidates=cache.unprefixed(arrays, "cand_"),
+                  direct=arrays["direct"], indirect=arrays["indirect"], direct_test=arrays["direct_test"],
+                  indirect_test=arrays["indirect_test"],
+                  lights=cache.unprefixed(arrays, "lights_", exclude="lights_test_"),
+                  lights_test=cache.unprefixed(arrays, "lights_test_"), meta=meta)
 
 

@@ -74,6 +74,7 @@ __all__ = [
     "lightmap",
     "reconstruct",
     "transfer_coefficients",
+    "measurement_points",
     "example",
     "fit",
     "fit_arrays",
@@ -670,9 +671,7 @@ def fit(data: DDData, config: dict | None = None) -> FitResult:
     ``info`` adds ``lambda_cv`` (the cross-validation, or None), ``resolution`` and ``fit_s``."""
     cfg = _cfg(config)
     t0 = time.perf_counter()
-    pcfg = cfg["points"]
-    points = select_points(data.candidates["position"], pcfg["count"], supersample=pcfg["supersample"],
-                           area=float(data.candidates["area"]))
+    points = measurement_points(data, cfg)
     direct = data.direct[:, points.fine_index]
     cv = None
     if cfg["transfer"]["lam_cv"]:
@@ -688,17 +687,18 @@ def fit(data: DDData, config: dict | None = None) -> FitResult:
     return FitResult(params, info)
 
 
-def example(data: DDData, config: dict | None = None, *, params: dict | None = None):
+def measurement_points(data: DDData, config: dict | None = None) -> MeasurementPoints:
+    """The measurement points of ``config["points"]`` among ``data``'s candidates (§4.1, §5.1):
+    what ``fit`` uses (deterministic, so ``example`` finds the same points)."""
+    pcfg = _cfg(config)["points"]
+    return select_points(data.candidates["position"], pcfg["count"], supersample=pcfg["supersample"],
+                         area=float(data.candidates["area"]))
+
+
+def example(data: DDData, config: dict | None = None):
     """A held-out (inputs, lighting) pair: the atlas G-buffer (``atlas_inputs``) and the direct
-    radiance of the first held-out configuration at the fine measurement points (needs
-    ``params`` for the point selection; without them the points are selected again)."""
-    cfg = _cfg(config)
-    if params is None:
-        pcfg = cfg["points"]
-        fine = select_points(data.candidates["position"], pcfg["count"], supersample=pcfg["supersample"],
-                             area=float(data.candidates["area"])).fine_index
-    else:
-        fine = params["fine_index"]
+    radiance of the first held-out configuration at the fine measurement points."""
+    fine = measurement_points(data, config).fine_index
     direct = data.direct_test[0] if len(data.direct_test) else data.direct[0]
     return (atlas_inputs(int(data.atlas["resolution"]), data.atlas["texel_index"]),
             PointRadiance(np.asarray(direct[fine], np.float32)))

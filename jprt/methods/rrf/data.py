@@ -121,6 +121,7 @@ def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
         d = np.concatenate([r[1] for r in rays[s]])
         gb = gbuffer_rays(handle, o, d)
         gb_attr = gb if edit is None else gbuffer_rays(base, o, d)  # material mode: a from the base scene
+        brdf = brdf_vector(gb_attr.diffuse_albedo, gb_attr.specular_albedo, gb_attr.roughness)
         for li, light in enumerate(lights):
             sl = slice(li * n_rays, (li + 1) * n_rays)
             keep = gb.valid[sl]
@@ -129,7 +130,7 @@ def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
             out["position"].append(gb.position[sl][keep])
             out["view"].append(gb.view[sl][keep])
             out["normal"].append(gb.normal[sl][keep])
-            out["brdf"].append(brdf_vector(gb_attr)[sl][keep])
+            out["brdf"].append(brdf[sl][keep])
             out["object_id"].append(gb.object_id[sl][keep])
             out["light"].append(np.broadcast_to(light, (int(keep.sum()), 3)))
             out["edit"].append(np.broadcast_to(np.asarray(edit if edit is not None else [], np.float32),

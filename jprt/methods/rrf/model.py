@@ -22,7 +22,7 @@ the scale factors with its weights (Appendix A, Beale et al.'s mapminmax).
 
 Material editing (Appendix B, ``data.mode = "material"``): the viewpoint is fixed and the view
 direction inputs are replaced by the roughness and albedo of one object; training samples vary
-them by Latin hypercube sampling, and ``evaluate(gbuffer, lights, edit=(roughness, albedo))``
+them by Latin hypercube sampling, and ``evaluate(EditInputs(gbuffer, (roughness, albedo)), lights)``
 renders any edit.
 
 Training stops early on each node's validation samples (Beale et al.'s trainlm, which Appendix A
@@ -54,9 +54,9 @@ from jprt.methods.rrf import kdtree
 from jprt.nn.mlp import MLP, mlp, ranges
 from jprt.solve.lm import LMSettings, solve_batched
 
-__all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features", "split_samples", "input_size", "fit",
-           "fit_arrays", "evaluator", "check_inputs", "example", "refit_leaves", "model_bytes", "parameter_count",
-           "light_box"]
+__all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features",
+           "split_samples", "input_size", "fit", "fit_arrays", "evaluator", "check_inputs", "example", "refit_leaves",
+           "parameter_count", "light_box"]
 
 #: Inputs of Phi for each attribute set (Ren et al. Fig. 3: basic vs augmented attributes).
 ATTRIBUTE_SETS = {
@@ -152,9 +152,11 @@ def features(attributes: str, position, view, light, normal, brdf, edit=None):
     return jnp.concatenate([jnp.asarray(parts[name], jnp.float32) for name in ATTRIBUTE_SETS[attributes]], axis=-1)
 
 
-def brdf_vector(gb) -> np.ndarray:
-    """The BRDF attributes a of Eq. 4 per pixel or sample: diffuse rgb, specular rgb, GGX alpha (..., 7)."""
-    return np.concatenate([gb.diffuse_albedo, gb.specular_albedo, np.asarray(gb.roughness)[..., None]], axis=-1)
+def brdf_vector(diffuse_albedo, specular_albedo, roughness):
+    """The BRDF attributes a of Eq. 4 per pixel or sample: diffuse rgb, specular rgb, GGX alpha
+    (..., 7). NumPy in, NumPy out (training data); JAX in, JAX out (the evaluator)."""
+    xp = jnp if isinstance(roughness, jax.Array) else np
+    return xp.concatenate([diffuse_albedo, specular_albedo, xp.asarray(roughness)[..., None]], axis=-1)
 
 
 def data_features(data: RRFData, attributes: str) -> np.ndarray:
@@ -181,12 +183,8 @@ def _network(sizes: tuple) -> MLP:
 
 
 def _sizes(layers) -> tuple:
-    return (int(np.shape(layers[0]["w"])[0]),) + tuple(int(np.shape(layer["w"])[1]) for layer in layers)
-
-
-def _leaf_sizes(leaves) -> tuple:
-    """Layer sizes of stacked leaf networks (leading axis: the leaf)."""
-    return _sizes([{"w": np.zeros(np.shape(layer["w"])[1:])} for layer in leaves["layers"]])
+    """Layer sizes of a network's layers (stacked leaf networks too: the last two axes of w)."""
+    return (int(np.shape(layers[0]["w"])[-2]),) + tuple(int(np.shape(layer["w"])[-1]) for layer in layers)
 
 
 @functools.lru_cache(maxsize=None)
@@ -513,7 +511,7 @@ def _predict(params, x, object_id, block: int = 512):
     has_net = block_group < n_leaves
     bl = jnp.minimum(block_group, n_leaves - 1)
     per_block = jax.tree_util.tree_map(lambda a: a[bl], leaves)  # each block's leaf network (Eq. 8)
-    y = jax.vmap(_network(_leaf_sizes(leaves)).apply)(per_block, xp.reshape(n_blocks, block, d))
+    y = jax.vmap(_network(_sizes(leaves["layers"])).apply)(per_block, xp.reshape(n_blocks, block, d))
     y = jnp.where(has_net[:, None, None], y, 0.0).reshape(n_blocks * block, -1)
     return jnp.zeros((n, y.shape[-1]), y.dtype).at[order].set(y[dest])
 
@@ -544,8 +542,7 @@ def _render(params, gb: dict, light_pos, light_rgb, edit, *, attributes: str, ma
     h, w = gb["object_id"].shape
     if clamp:
         light_pos = jnp.clip(light_pos, params["light_lo"][None, :], params["light_hi"][None, :])
-    brdf = jnp.concatenate([gb["diffuse_albedo"], gb["specular_albedo"], gb["roughness"][..., None]],
-                           axis=-1).reshape(-1, 7)
+    brdf = brdf_vector(gb["diffuse_albedo"], gb["specular_albedo"], gb["roughness"]).reshape(-1, 7)
     k = light_pos.shape[0]
     p = h * w
 
@@ -706,8 +703,3 @@ def refit_leaves(params, data: RRFData, config: dict | None, info: dict, variant
 def parameter_count(params) -> int:
     """Trainable weights over all leaves."""
     return int(sum(np.asarray(leaf).size for leaf in jax.tree_util.tree_leaves(params["leaves"]["layers"])))
-
-
-def model_bytes(params) -> int:
-    """Bytes of every array the evaluator needs (weights, scalings, tree, boxes)."""
-    return int(sum(np.asarray(leaf).nbytes for leaf in jax.tree_util.tree_leaves(params)))

@@ -68,5 +68,4 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
         return arrays
 
     arrays, _ = cache.cached("sh_prt", spec, build, cache_dir=cache_dir)
-    atlas = {k[len("atlas_"):]: (v.item() if v.ndim == 0 else v) for k, v in arrays.items() if k.startswith("atlas_")}
-    return SHData(atlas, arrays["transfer"], {"bake_s": float(arrays["bake_s"]), "degree": degree})
+    return SHData(cache.unprefixed(arrays, "atlas_"), arrays["transfer"], {"bake_s": float(arrays["bake_s"]), "degree": degree})

@@ -17,7 +17,7 @@ from jprt.methods.wavelet_prt.model import (DEFAULT_CONFIG, GBUFFER_FIELDS, Wave
                                             importance_maps, prepare_environment, render_equirect, rotate_equirect,
                                             synthetic_environments)
 
-__all__ = ["make_dataset", "add_vertex_interpolation", "SHARED_ENVMAPS"]
+__all__ = ["make_dataset", "add_vertex_interpolation", "gbuffer_fields", "SHARED_ENVMAPS"]
 
 #: The CC0 maps in ../shared/assets/envmaps (see its README), next to this checkout.
 SHARED_ENVMAPS = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "shared", "assets",
@@ -69,7 +69,8 @@ def _render_view(handle, camera, cube, spp: int, seed: int, max_depth: int):
     return r.direct, r.indirect
 
 
-def _gbuffer_arrays(handle, camera) -> dict:
+def gbuffer_fields(handle, camera) -> dict:
+    """The ``GBUFFER_FIELDS`` of a camera's exact pixel-centre G-buffer, as the model reads them."""
     from jprt.render.gbuffer import gbuffer
 
     g = gbuffer(handle, camera)
@@ -132,7 +133,7 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
     bar = tqdm(total=n_img + len(near_o) + len(far_o), desc="wavelet PRT images", disable=not progress)
     for c, origin in enumerate(train_o):
         cam = look_at(origin, target, **cam_kw)
-        g = _gbuffer_arrays(handle, cam)
+        g = gbuffer_fields(handle, cam)
         for j in range(per_view):
             e = int(assign[c * per_view + j])
             direct, indirect = _render_view(handle, cam, envs[e], spp, seed * 100003 + c * per_view + j, max_depth)
@@ -152,7 +153,7 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
             e = i % max(len(test_envs), 1)
             direct, indirect = _render_view(handle, cam, test_envs[e], int(dcfg["test_spp"]),
                                             seed * 7 + 1000003 + i + (0 if name == "near" else 5003), max_depth)
-            views.append(dict(_gbuffer_arrays(handle, cam), direct=direct, indirect=indirect, env=np.int32(e)))
+            views.append(dict(gbuffer_fields(handle, cam), direct=direct, indirect=indirect, env=np.int32(e)))
             bar.update(1)
         tests[name] = {k: np.stack([v[k] for v in views]) for k in views[0]} if views else {}
     bar.close()
