@@ -247,7 +247,8 @@ def _plot(path: str, rows: list[dict], x: str, front: list[int], keys: list[str]
     ax.set_xlabel(x)
     ax.set_ylabel("indirect RMSE (held-out)")
     ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=7)
+    if ax.get_legend_handles_labels()[0]:  # a sweep whose every point failed has nothing to label
+        ax.legend(fontsize=7)
     fig.tight_layout()
     with io.atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=100, format="png")

@@ -110,3 +110,34 @@ def test_registry_names_match_packages():
         assert importlib.import_module(f"jprt.methods.{name}").METHOD is m
         assert "test" in m.presets
         m.resolve(m.presets["test"])  # every preset is valid for its method
+
+
+@pytest.mark.mitsuba
+@pytest.mark.parametrize("name", NAMES)
+def test_task_adapter(mi, fitted, name):
+    """The atlas adapter (``data.TASK_LIGHTINGS``, ``task_inputs``, ``task_lighting``) turns an 8 x 8
+    view and every task lighting the method takes into evaluator arguments: finite (8, 8, 3) light."""
+    from jprt.inputs import CubeMap, PointLights
+    from jprt.methods.wavelet_prt.model import render_equirect, synthetic_environments
+    from jprt.render.cameras import look_at
+    from jprt.render.lights import EnvMap
+    from jprt.render.scenes import SceneHandle
+
+    m, config, dataset, result = fitted[name]
+    data = sys.modules[m.make_dataset.__module__]
+    assert set(data.TASK_LIGHTINGS) <= {"point", "environment"} and data.TASK_LIGHTINGS
+    camera = look_at((0.0, 0.0, 3.9), (0.0, 0.0, 0.0), width=8, height=8)
+    face = int(config.get("envmaps", {}).get("face_size", 4))
+    lightings = {"point": PointLights.create([[0.0, 0.6, 0.0]], [1.0, 1.0, 1.0]),
+                 "environment": CubeMap(synthetic_environments(1, face, seed=3)[0])}
+    evaluate = m.evaluator(result.params, config)
+    for kind in data.TASK_LIGHTINGS:
+        task_lighting = lightings[kind]
+        rendered = EnvMap.create(render_equirect(task_lighting.radiance)) if kind == "environment" else task_lighting
+        handle = SceneHandle(config["scene"], rendered)
+        inputs = data.task_inputs(handle, dataset, camera)
+        lighting = data.task_lighting(handle, dataset, result.params, config, task_lighting)
+        assert isinstance(lighting, m.lighting), kind
+        image = np.asarray(evaluate(inputs, lighting))
+        assert image.shape == (8, 8, 3) and np.isfinite(image).all(), kind
+        assert np.abs(image).max() > 0, kind

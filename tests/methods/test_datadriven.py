@@ -322,3 +322,20 @@ def test_linear_mean_recovers_known_transport_with_centring():
         paper_got = np.asarray(dd.lightmap(f64(paper), fresh))
     np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6 * np.abs(expected).max())
     assert np.abs(paper_got - expected).max() > 1e-3 * np.abs(expected).max()
+
+
+def test_random_lights_point_scenario():
+    """``lights.kind="point"``: isotropic lights inside the position box, white at saturation 0,
+    the intensity inside its range; an unknown kind is refused by name."""
+    from jprt.inputs import PointLights
+    from jprt.methods.datadriven.data import random_lights
+
+    cfg = dd.DEFAULT_CONFIG["lights"] | {"kind": "point", "intensity": [0.5, 2.0], "saturation": 0.0}
+    lights = random_lights(np.random.default_rng(0), 16, cfg)
+    assert len(lights) == 16 and all(isinstance(li, PointLights) for li in lights)
+    pos = np.concatenate([li.position for li in lights])
+    assert (pos >= np.asarray(cfg["position_lo"])).all() and (pos <= np.asarray(cfg["position_hi"])).all()
+    power = np.concatenate([li.intensity for li in lights])
+    assert np.allclose(power, power[:, :1]) and (power >= 0.5).all() and (power <= 2.0).all()
+    with pytest.raises(ValueError, match="'area'"):
+        random_lights(np.random.default_rng(0), 1, cfg | {"kind": "area"})

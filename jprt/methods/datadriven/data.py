@@ -15,20 +15,23 @@ from jprt.config import stable_hash
 from jprt.methods.base import resolve
 from jprt.methods.datadriven.model import DEFAULT_CONFIG, DDData
 
-__all__ = ["make_dataset", "random_lights", "render_examples"]
+__all__ = ["make_dataset", "random_lights", "render_examples", "TASK_LIGHTINGS", "task_inputs", "task_lighting"]
 
 
 def random_lights(rng: np.random.Generator, n: int, lights_cfg: dict, accept=None) -> list:
-    """``n`` random lighting configurations of the scenario in ``lights_cfg`` (one spot light
-    each: position and target uniform in their boxes, cone angle uniform in ``cutoff_deg``,
-    intensity uniform in ``intensity`` times a random colour of saturation ``saturation``).
+    """``n`` random lighting configurations of the scenario in ``lights_cfg``, one light each:
+    ``kind="spot"`` (the paper's §4.1 scenario: position and target uniform in their boxes, cone
+    angle uniform in ``cutoff_deg``) or ``kind="point"`` (an isotropic point light, position
+    uniform in its box; the RRF task of experiments/atlas.py); intensity uniform in
+    ``intensity`` times a random colour of saturation ``saturation``.
     ``accept(position) -> bool`` rejects positions (inside objects, touching walls)."""
-    from jprt.render.lights import SpotLights
+    from jprt.render.lights import PointLights, SpotLights
     from jprt.render.sampling import check_box
 
-    if lights_cfg["kind"] != "spot":
-        raise ValueError(f"lights.kind {lights_cfg['kind']!r}: only 'spot' scenarios are built in "
-                         "(other kinds are evaluation-only, see experiments/datadriven.py)")
+    kind = lights_cfg["kind"]
+    if kind not in ("spot", "point"):
+        raise ValueError(f"lights.kind {kind!r}: the built-in scenarios are 'spot' and 'point' (other kinds are "
+                         "evaluation-only, see experiments/datadriven.py)")
     plo, phi = check_box(lights_cfg["position_lo"], lights_cfg["position_hi"], "lights.position")
     tlo, thi = check_box(lights_cfg["target_lo"], lights_cfg["target_hi"], "lights.target")
     out = []
@@ -38,15 +41,17 @@ def random_lights(rng: np.random.Generator, n: int, lights_cfg: dict, accept=Non
             if accept is None or accept(pos):
                 break
         else:
-            raise ValueError("no acceptable spot-light position in lights.position_lo/hi after 1000 tries "
+            raise ValueError(f"no acceptable {kind}-light position in lights.position_lo/hi after 1000 tries "
                              "(inside objects or closer than lights.clearance to a surface)")
-        tgt = tlo + (thi - tlo) * rng.random(3)
-        while np.linalg.norm(tgt - pos) < 1e-3:
+        if kind == "spot":
             tgt = tlo + (thi - tlo) * rng.random(3)
-        cutoff = rng.uniform(*lights_cfg["cutoff_deg"])
+            while np.linalg.norm(tgt - pos) < 1e-3:
+                tgt = tlo + (thi - tlo) * rng.random(3)
+            cutoff = rng.uniform(*lights_cfg["cutoff_deg"])
         colour = (1.0 - lights_cfg["saturation"]) + lights_cfg["saturation"] * rng.random(3)
         colour /= colour.max()
-        out.append(SpotLights.create(pos, tgt, rng.uniform(*lights_cfg["intensity"]) * colour, cutoff))
+        power = rng.uniform(*lights_cfg["intensity"]) * colour
+        out.append(SpotLights.create(pos, tgt, power, cutoff) if kind == "spot" else PointLights.create(pos, power))
     return out
 
 
@@ -131,7 +136,8 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
                   render_s=np.array(time.perf_counter() - t0))
     for name, ls in (("lights", train), ("lights_test", test)):
         for field in ("position", "target", "intensity", "cutoff_deg", "beam_deg"):
-            arrays[f"{name}_{field}"] = np.stack([getattr(l, field)[0] for l in ls]) if ls else np.zeros((0,))
+            if not ls or hasattr(ls[0], field):  # point lights have no target or cone
+                arrays[f"{name}_{field}"] = np.stack([getattr(l, field)[0] for l in ls]) if ls else np.zeros((0,))
     if progress:
         print(f"datadriven: rendered {len(train)} + {len(test)} configurations in "
               f"{time.perf_counter() - t0:.1f} s", file=sys.stderr)
@@ -149,3 +155,29 @@ def _unpack(arrays: dict, spec: dict, path: str) -> DDData:
                   lights_test=cache.unprefixed(arrays, "lights_test_"), meta=meta)
 
 
+# --------------------------------------------------------------------------------------------
+# The shared tasks of experiments/atlas.py: how this method sees a task's camera view and lighting
+# (a task lighting is ``PointLights`` for "point" tasks, a ``CubeMap`` for "environment" tasks)
+
+#: The task lightings this method takes.
+TASK_LIGHTINGS = ("point",)
+
+
+def task_inputs(handle, dataset: DDData, camera):
+    """The atlas G-buffer (lightmap ``uv`` per pixel) of ``camera`` over the dataset's atlas."""
+    from jprt.render import lightmap
+
+    return lightmap.atlas_gbuffer(handle, lightmap.Atlas(**dataset.atlas), camera)
+
+
+def task_lighting(handle, dataset: DDData, params, config, lighting):
+    """§4.3 at run time: the direct radiance of ``lighting`` at the fine measurement points
+    (Mitsuba, one shadow ray per light, as in training), a ``PointRadiance``."""
+    from jprt.inputs import PointRadiance
+    from jprt.render import lightmap
+
+    fine = np.asarray(params["fine_index"])
+    handle.set_lighting(lighting)
+    direct = lightmap.radiance_at_points(handle, np.asarray(dataset.candidates["position"])[fine],
+                                         np.asarray(dataset.candidates["normal"])[fine], spp=1, max_depth=2)
+    return PointRadiance(np.asarray(direct, np.float32))

@@ -98,8 +98,8 @@ DEFAULT_CONFIG: dict[str, Any] = {
         # mostly by bounce light from its surroundings needs points there too (Spot in a room)
         "seed": 0,
     },
-    "lights": {  # the lighting scenario (§4.1): one spot light per configuration
-        "kind": "spot",
+    "lights": {  # the lighting scenario (§4.1): one light per configuration
+        "kind": "spot",  # "spot" (the paper's) or "point" (target and cutoff unused)
         "position_lo": [-0.8, -0.7, -0.7],
         "position_hi": [0.8, 0.9, 0.9],
         "target_lo": [-0.9, -1.0, -0.9],
@@ -650,7 +650,7 @@ class DDData(NamedTuple):
       direct / indirect: (N, S, 3) direct at every candidate and (N, T, 3) indirect lightmaps
         (training configurations, ``data.spp`` samples per texel).
       direct_test / indirect_test: held-out configurations (``data.test_spp``).
-      lights / lights_test: dicts of stacked ``SpotLights`` fields.
+      lights / lights_test: dicts of the stacked fields of the lights (``SpotLights`` or ``PointLights``).
       meta: scene description, object names, render seconds, cache path.
     """
 

@@ -20,7 +20,7 @@ from jprt.config import stable_hash
 from jprt.methods.base import resolve
 from jprt.methods.rrf.model import DEFAULT_CONFIG, RRFData, brdf_vector
 
-__all__ = ["make_dataset", "edit_description"]
+__all__ = ["make_dataset", "edit_description", "TASK_LIGHTINGS", "task_inputs", "task_lighting"]
 
 
 def edit_description(desc: dict, obj: str, roughness: float, albedo: float) -> dict:
@@ -147,3 +147,21 @@ def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
     return arrays
 
 
+# --------------------------------------------------------------------------------------------
+# The shared tasks of experiments/atlas.py: how this method sees a task's camera view and lighting
+# (a task lighting is ``PointLights`` for "point" tasks, a ``CubeMap`` for "environment" tasks)
+
+#: The task lightings this method takes.
+TASK_LIGHTINGS = ("point",)
+
+
+def task_inputs(handle, dataset, camera):
+    """The exact pixel-centre ``GBuffer`` of ``camera`` in the scene of ``handle``."""
+    from jprt.render.gbuffer import gbuffer
+
+    return gbuffer(handle, camera)
+
+
+def task_lighting(handle, dataset, params, config, lighting):
+    """Point lights are RRF's own lighting (Eq. 9 sums one network output per light)."""
+    return lighting

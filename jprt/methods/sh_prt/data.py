@@ -14,7 +14,7 @@ from jprt.methods.sh_prt.model import DEFAULT_CONFIG, SHData, order_to_degree
 from jprt.sphere import sh
 from jprt.sphere.cubemap import equirect_directions
 
-__all__ = ["bake", "make_dataset"]
+__all__ = ["bake", "make_dataset", "TASK_LIGHTINGS", "task_inputs", "task_lighting"]
 
 
 def bake(handle, atlas, degree: int, *, spp: int, env_height: int = 32, seed: int = 0,
@@ -69,3 +69,36 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
 
     arrays, _ = cache.cached("sh_prt", spec, build, cache_dir=cache_dir)
     return SHData(cache.unprefixed(arrays, "atlas_"), arrays["transfer"], {"bake_s": float(arrays["bake_s"]), "degree": degree})
+
+
+# --------------------------------------------------------------------------------------------
+# The shared tasks of experiments/atlas.py: how this method sees a task's camera view and lighting
+# (a task lighting is ``PointLights`` for "point" tasks, a ``CubeMap`` for "environment" tasks)
+
+#: The task lightings this method takes.
+TASK_LIGHTINGS = ("point", "environment")
+
+
+def task_inputs(handle, dataset: SHData, camera):
+    """The atlas G-buffer (lightmap ``uv`` per pixel) of ``camera`` over the baked atlas."""
+    from jprt.render import lightmap
+
+    return lightmap.atlas_gbuffer(handle, lightmap.Atlas(**dataset.atlas), camera)
+
+
+def task_lighting(handle, dataset: SHData, params, config, lighting):
+    """``SHLighting`` of a task lighting at the bake's degree: a cube map projected with exact
+    texel solid angles (``jprt.sphere.sh.project_cubemap``); local lights as deltas of their
+    unoccluded irradiance seen from the atlas centre (the distant-lighting assumption of SH PRT,
+    as in Belcour et al. 2022 §6.4)."""
+    from jprt.inputs import CubeMap, SHLighting
+    from jprt.methods.sh_prt.model import delta_light_coefficients
+    from jprt.render import lightmap
+
+    degree = int(dataset.meta["degree"])
+    if isinstance(lighting, CubeMap):
+        coefficients = np.asarray(sh.project_cubemap(np.asarray(lighting.radiance, np.float32), degree))
+    else:
+        center = np.asarray(dataset.atlas["position"]).mean(axis=0)
+        coefficients = delta_light_coefficients(*lightmap.incident_delta_lights(handle, center, lighting), degree)
+    return SHLighting(np.asarray(coefficients, np.float32))

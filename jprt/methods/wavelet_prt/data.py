@@ -17,7 +17,8 @@ from jprt.methods.wavelet_prt.model import (DEFAULT_CONFIG, GBUFFER_FIELDS, Wave
                                             importance_maps, prepare_environment, render_equirect, rotate_equirect,
                                             synthetic_environments)
 
-__all__ = ["make_dataset", "add_vertex_interpolation", "gbuffer_fields", "SHARED_ENVMAPS"]
+__all__ = ["make_dataset", "add_vertex_interpolation", "gbuffer_fields", "SHARED_ENVMAPS", "TASK_LIGHTINGS",
+           "task_inputs", "task_lighting"]
 
 #: The CC0 maps in ../shared/assets/envmaps (see its README), next to this checkout.
 SHARED_ENVMAPS = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "shared", "assets",
@@ -200,3 +201,19 @@ def add_vertex_interpolation(data: WaveletData, scene, edge: float = 0.1) -> Wav
                          stats=dict(data.stats, n_vertices=int(len(verts))))
 
 
+# --------------------------------------------------------------------------------------------
+# The shared tasks of experiments/atlas.py: how this method sees a task's camera view and lighting
+# (a task lighting is ``PointLights`` for "point" tasks, a ``CubeMap`` for "environment" tasks)
+
+#: The task lightings this method takes.
+TASK_LIGHTINGS = ("environment",)
+
+
+def task_inputs(handle, dataset: WaveletData, camera) -> dict:
+    """The ``GBUFFER_FIELDS`` of ``camera`` (``gbuffer_fields``)."""
+    return gbuffer_fields(handle, camera)
+
+
+def task_lighting(handle, dataset: WaveletData, params, config, lighting):
+    """A cube map is the method's own lighting (Algorithm 1 takes its top-K Haar wavelets)."""
+    return lighting

@@ -1,0 +1,126 @@
+"""The speed-accuracy atlas (experiments/atlas.py): its presets are valid for every method they
+name, equal error is read off Mitsuba's curve correctly, the table and figure are written; end to
+end at the ``test`` preset (slow)."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from jprt.cli import load_experiment, main as cli_main
+from jprt.config import apply_overrides, merge
+from jprt.methods import REGISTRY
+from jprt.sweep import ROW_KEYS, parse_grid, point_config
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ATLAS = load_experiment(os.path.join(ROOT, "experiments", "atlas.py"))
+
+
+@pytest.mark.parametrize("preset", sorted(ATLAS.PRESETS))
+def test_presets_resolve_for_every_method(preset):
+    """Every (task, method) of every preset: the method's config with the task's ``set`` items
+    and each grid point resolves strictly (a typo fails here, not an hour into the run)."""
+    config = merge(ATLAS.CONFIG, ATLAS.PRESETS[preset])
+    ran = set()
+    for task_name, task in config["tasks"].items():
+        for name in REGISTRY:
+            if ATLAS.applicability(task, name):
+                continue
+            ran.add(name)
+            module = ATLAS.experiment(task_name, task, name, config["eval"], "/tmp/unused")
+            for point in [dict()] + [{k: v[-1] for k, v in parse_grid(task["methods"][name]["grid"]).items()}]:
+                cfg = point_config(module.CONFIG, point)
+                REGISTRY[name].resolve({k: cfg[k] for k in REGISTRY[name].default_config})
+    assert ran == set(REGISTRY)  # every registered method is on some task
+
+
+def test_methods_without_adapter_or_knob_are_skipped_with_reason():
+    task = {**ATLAS.TASKS["local_lights"], "methods": {}}
+    assert "no size knob" in ATLAS.applicability(task, "rrf")
+    assert "takes environment" in ATLAS.applicability(ATLAS.TASKS["local_lights"], "wavelet_prt")
+
+
+def test_dotted_items_round_trip():
+    base = {"a": {"b": 1, "c": [1, 2]}, "d": "x"}
+    items = ATLAS._dotted({"a": {"b": 3, "c": [4]}, "d": "y"})
+    assert apply_overrides(base, items) == {"a": {"b": 3, "c": [4]}, "d": "y"}
+
+
+_curves = st.lists(st.tuples(st.integers(1, 4096), st.floats(1e-4, 1.0), st.floats(0.1, 1e4)), min_size=1,
+                   max_size=8, unique_by=lambda t: t[0])
+
+
+@given(curve=_curves, rmse=st.floats(1e-5, 2.0), frame_ms=st.floats(0.01, 100.0))
+@settings(max_examples=100, deadline=None)
+def test_equal_error_matches_brute_force(curve, rmse, frame_ms):
+    pts = [{"spp": s, "rmse": r, "ms": ms} for s, r, ms in curve]
+    out = ATLAS.equal_error(pts, rmse, frame_ms)
+    reached = [p for p in pts if p["rmse"] <= rmse]
+    if reached:
+        best = min(reached, key=lambda p: p["spp"])
+        assert out["equal_error_spp"] == best["spp"] and out["equal_error_reached"]
+        assert out["pathtrace_ms_equal_error"] == best["ms"]
+    else:  # the largest spp's time, a lower bound
+        assert out["equal_error_spp"] is None and out["equal_error_reached"] is False
+        assert out["pathtrace_ms_equal_error"] == max(pts, key=lambda p: p["spp"])["ms"]
+    assert out["speedup_equal_error"] == pytest.approx(out["pathtrace_ms_equal_error"] / frame_ms)
+    assert ATLAS.equal_error(pts, None, frame_ms)["equal_error_spp"] is None
+
+
+def _synthetic_record():
+    row = {k: 1.0 for k in ROW_KEYS} | {"status": "done", "model.hidden": [8, 4], "equal_error_spp": 4,
+                                        "equal_error_reached": True}
+    slow = dict(row, frame_ms=3.0, indirect_rmse=2.0, **{"model.hidden": [2, 1]})
+    curve = [{"spp": 1, "ms": 2.0, "rmse": 0.3}, {"spp": 4, "ms": 5.0, "rmse": 0.1}]
+    return {"tasks": {"t": {"title": "a task", "n_images": 2, "resolution": 8, "reference_spp": 16,
+                            "mitsuba_curve": curve, "methods": {
+                                "rrf": {"status": "done", "knobs": ["model.hidden"], "points": [row, slow],
+                                        "pareto": {"frame_ms": [0], "model_bytes": [0], "train_s": [0]}},
+                                "sh_prt": {"status": "skipped", "reason": "not this task"}}}}}
+
+
+def test_table_and_figure(tmp_path):
+    record = _synthetic_record()
+    text = ATLAS.table(record)
+    rows = [line for line in text.splitlines() if line.startswith("| rrf |")]
+    assert len(rows) == 1 and "hidden=[8,4]" in rows[0]  # the front (also the best); the dominated point not
+    assert "Not run: sh_prt (not this task)" in text and "4 spp 0.1000 in 5 ms" in text
+    path = str(tmp_path / "atlas_t.png")
+    ATLAS.plot_task(path, record["tasks"]["t"])
+    assert os.path.getsize(path) > 1000
+
+
+@pytest.mark.slow  # ~40 s cold: both tasks, every method, Mitsuba's curve
+@pytest.mark.mitsuba
+def test_atlas_test_preset(mi, tmp_path):
+    out = str(tmp_path / "atlas")
+    args = ["run", "experiments/atlas.py", "--preset", "test", "--set", f"output.dir={out}"]
+    assert cli_main(args) == 0
+    with open(os.path.join(out, "atlas.json")) as f:
+        record = json.load(f)
+    assert set(record["tasks"]) == {"local_lights", "environment"}
+    for task_name, task in record["tasks"].items():
+        curve = task["mitsuba_curve"]
+        assert [c["spp"] for c in curve] == [1, 4, 16] and all(c["ms"] > 0 and c["rmse"] > 0 for c in curve)
+        assert os.path.isfile(os.path.join(out, f"atlas_{task_name}.png"))
+        done = {n for n, m in task["methods"].items() if m["status"] == "done"}
+        assert done == ({"rrf", "datadriven", "sh_prt"} if task_name == "local_lights" else {"wavelet_prt", "sh_prt"})
+        for name in done:
+            m = task["methods"][name]
+            assert m["counts"]["failed"] == 0
+            for row in m["points"]:
+                assert set(ROW_KEYS) <= set(row)
+                assert np.isfinite(row["indirect_rmse"]) and row["frame_ms"] > 0
+                assert row["pathtrace_ms_equal_error"] in [c["ms"] for c in curve]
+            assert m["pareto"]["frame_ms"]
+    # a re-run trains nothing: every point comes back from its summary
+    assert cli_main(args) == 0
+    with open(os.path.join(out, "atlas.json")) as f:
+        again = json.load(f)
+    for task in again["tasks"].values():
+        for m in task["methods"].values():
+            if m["status"] == "done":
+                assert m["counts"]["cached"] == len(m["points"]) and m["counts"]["done"] == 0
