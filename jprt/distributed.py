@@ -7,6 +7,10 @@ here runs unless asked: ``jprt sweep --ray`` or the environment variable ``JPRT_
   machine, ``ray start --address=host:port`` on the others);
 * ``--ray`` without the variable: a local Ray instance on this machine's cores (no dashboard).
 
+Dataset renders are sharded two ways: ``jprt.render.dataset.render_dataset`` renders its (view,
+lighting) entries in shards, and the lightmap methods render blocks (``map_blocks``): data-driven
+PRT its lighting configurations, SH PRT its SH functions, each block seeded by its own index.
+
 Tasks write only content-addressed, atomic, checksummed entries (``jprt.cache``) or their own
 report folders, so a cluster fills the same cache a laptop would, and a retried task (a worker
 that died) rewrites the same files. On a cluster, point ``JPRT_CACHE`` of every node at one shared
@@ -20,7 +24,7 @@ from __future__ import annotations
 import os
 from typing import Any, Callable, Sequence
 
-__all__ = ["requested", "connect", "map_tasks"]
+__all__ = ["requested", "connect", "map_tasks", "map_blocks"]
 
 
 def requested(flag: bool | None = None) -> bool:
@@ -65,3 +69,23 @@ def map_tasks(fn: Callable, args: Sequence[tuple], *, num_cpus: float = 1, num_g
         if on_done is not None:
             on_done(i, results[i])
     return results
+
+
+def map_blocks(fn: Callable, args: Sequence[tuple], *, ray: bool | None = None, desc: str = "blocks",
+               progress: bool = True) -> list:
+    """``[fn(*a) for a in args]``, in order, with a progress bar over the blocks: as Ray tasks of
+    one CPU each when Ray is ``requested(ray)``, else in this process. ``fn`` is a module-level
+    function (Ray pickles it by reference) whose result depends only on its arguments (seeds
+    included), so both ways give the same arrays (up to Mitsuba's float rounding across processes)."""
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=len(args), desc=desc, unit="block", disable=not progress)
+    if requested(ray) and args:
+        out = map_tasks(fn, args, on_done=lambda i, r: bar.update(1))
+    else:
+        out = []
+        for a in args:
+            out.append(fn(*a))
+            bar.update(1)
+    bar.close()
+    return out

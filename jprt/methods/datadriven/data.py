@@ -55,11 +55,12 @@ def random_lights(rng: np.random.Generator, n: int, lights_cfg: dict, accept=Non
     return out
 
 
-def render_examples(handle, atlas, candidates, lightings, *, spp: int, seed: int = 0,
+def render_examples(handle, atlas, candidates, lightings, *, spp: int, seed: int = 0, first: int = 0,
                     progress: bool = True, desc: str = "examples") -> tuple[np.ndarray, np.ndarray]:
     """Direct at every candidate point (exact, one shadow ray per light) and indirect lightmap
     texels (``spp`` paths, full minus direct with equal seeds) for each lighting: (N, S, 3) and
-    (N, T, 3)."""
+    (N, T, 3). Lighting ``k`` is path traced with seed ``seed * 100003 + first + k`` (``first``:
+    the index of ``lightings[0]`` in the whole set, so blocks of it render what the set does)."""
     from tqdm.auto import tqdm
 
     from jprt.render import lightmap
@@ -70,14 +71,43 @@ def render_examples(handle, atlas, candidates, lightings, *, spp: int, seed: int
         direct.append(lightmap.radiance_at_points(handle, candidates["position"], candidates["normal"], spp=1,
                                                   max_depth=2))
         indirect.append(lightmap.indirect_at_points(handle, atlas["position"], atlas["normal"], spp=spp,
-                                                    seed=seed * 100003 + k))
+                                                    seed=seed * 100003 + first + k))
     return np.stack(direct), np.stack(indirect)
 
 
+#: Lighting configurations per Ray task when the examples are rendered on Ray.
+BLOCK = 8
+
+
+def _examples_block(desc: dict, atlas: dict, candidates: dict, lightings: list, spp: int, seed: int,
+                    first: int) -> tuple[np.ndarray, np.ndarray]:
+    """``render_examples`` of one block of lightings in a fresh scene (a Ray task)."""
+    from jprt.render.scenes import SceneHandle
+
+    return render_examples(SceneHandle(desc), atlas, candidates, lightings, spp=spp, seed=seed, first=first,
+                           progress=False)
+
+
+def _examples(handle, atlas, candidates, lightings, *, spp: int, seed: int, progress: bool, desc: str,
+              ray: bool | None):
+    """``render_examples`` of every lighting: in this process, or in blocks of ``BLOCK`` as Ray
+    tasks (``jprt.distributed``; the same seeds, so the same arrays)."""
+    from jprt import distributed
+
+    if not distributed.requested(ray) or not lightings:
+        return render_examples(handle, atlas, candidates, lightings, spp=spp, seed=seed, progress=progress, desc=desc)
+    args = [(handle.description, atlas, candidates, lightings[i:i + BLOCK], spp, seed, i)
+            for i in range(0, len(lightings), BLOCK)]
+    blocks = distributed.map_blocks(_examples_block, args, ray=True, desc=f"{desc} (Ray)", progress=progress)
+    return np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks])
+
+
 def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
-                 progress: bool = True) -> DDData:
+                 progress: bool = True, ray: bool | None = None) -> DDData:
     """Render the training and held-out examples of ``scene`` (default: ``config['scene']``),
-    cached by content hash under ``$JPRT_CACHE/datadriven/<hash>.npz`` (checksummed, atomic)."""
+    cached by content hash under ``$JPRT_CACHE/datadriven/<hash>.npz`` (checksummed, atomic).
+    ``ray`` (default: whether ``JPRT_RAY_ADDRESS`` is set) renders the configurations in blocks
+    as Ray tasks; the entry is the same either way."""
     from jprt.render.scenes import describe
 
     cfg = resolve(DEFAULT_CONFIG, config)
@@ -95,13 +125,13 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
             "data": dcfg}
 
     def build() -> dict:
-        return _render(desc, cfg, progress)
+        return _render(desc, cfg, progress, ray)
 
     arrays, path = cache.cached("datadriven", spec, build, cache_dir=cache_dir)
     return _unpack(arrays, spec, path)
 
 
-def _render(desc: dict, cfg: dict, progress: bool) -> dict:
+def _render(desc: dict, cfg: dict, progress: bool, ray: bool | None = None) -> dict:
     from jprt.render import lightmap
     from jprt.render.scenes import SceneHandle
 
@@ -121,12 +151,12 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
     cands = lightmap.surface_samples(handle, int(cfg["points"]["candidates"]),
                                      objects=list(cfg["points"]["objects"]) or objects,
                                      seed=int(cfg["points"]["seed"]))._asdict()
-    d, i = render_examples(handle, atlas, cands, train, spp=int(dcfg["spp"]), seed=int(dcfg["seed"]),
-                           progress=progress, desc="train configurations")
+    d, i = _examples(handle, atlas, cands, train, spp=int(dcfg["spp"]), seed=int(dcfg["seed"]), progress=progress,
+                     desc="train configurations", ray=ray)
     t_train = time.perf_counter() - t0
     if test:
-        dt, it = render_examples(handle, atlas, cands, test, spp=int(dcfg["test_spp"]), seed=int(dcfg["seed"]) + 1,
-                                 progress=progress, desc="held-out configurations")
+        dt, it = _examples(handle, atlas, cands, test, spp=int(dcfg["test_spp"]), seed=int(dcfg["seed"]) + 1,
+                           progress=progress, desc="held-out configurations", ray=ray)
     else:
         dt, it = np.zeros((0,) + d.shape[1:], np.float32), np.zeros((0,) + i.shape[1:], np.float32)
     arrays = {f"atlas_{k}": np.asarray(v) for k, v in atlas.items()}
