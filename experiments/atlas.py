@@ -127,6 +127,13 @@ EVAL = {
     "timing_repeats": 5,
     "exposure": 0.0,
     "images": 2,  # side-by-side rows per point
+    "tasks": [],  # run only these tasks ([] = all)
+    "methods": [],  # run only these methods ([] = all that apply)
+    # model only what the scene needs: per task, each method's cheapest point meeting `select`
+    # ("indirect_rel_rmse<=0.3", comma-separated constraints, as `jprt sweep --select`) by
+    # `minimize`, and the cheapest over all methods; each written as a config `jprt run --config` runs
+    "select": "",
+    "minimize": "frame_ms",
 }
 
 CONFIG = {"tasks": TASKS, "eval": EVAL, "output": {"dir": "results/atlas"}}
@@ -391,6 +398,8 @@ def main(config: dict) -> dict:
     os.makedirs(out, exist_ok=True)
     record = {"tasks": {}, "eval": e, "methods": {n: m.paper for n, m in REGISTRY.items()}}
     for task_name, task in config["tasks"].items():
+        if e["tasks"] and task_name not in e["tasks"]:
+            continue
         say = lambda msg, t=task_name: print(f"[atlas {t}] {msg}", file=sys.stderr, flush=True)  # noqa: E731
         t0 = time.perf_counter()
         td = task_data(task)
@@ -401,6 +410,8 @@ def main(config: dict) -> dict:
                  "n_images": len(td.dataset), "resolution": int(task["resolution"]),
                  "reference_spp": int(task["reference_spp"]), "mitsuba_curve": curve, "methods": {}}
         for name in REGISTRY:
+            if e["methods"] and name not in e["methods"]:
+                continue
             why = applicability(task, name)
             if why:
                 entry["methods"][name] = {"status": "skipped", "reason": why}
@@ -417,11 +428,19 @@ def main(config: dict) -> dict:
             entry["methods"][name] = {"status": "done", "knobs": list(grid), "points": rows,
                                       "pareto": sweep["pareto"], "sweep_folder": sweep["folder"],
                                       "counts": sweep["counts"]}
+            if e["select"]:
+                entry["methods"][name]["selected"] = _select(config, task_name, name, rows, grid, out, say)
         # the front over every method of the task (frame time against error)
         pts = [(n, i, r) for n, m in entry["methods"].items() if m["status"] == "done"
                for i, r in enumerate(m["points"]) if r["status"] != "failed"]
         on = pareto_front([r["frame_ms"] for _, _, r in pts], [r["indirect_rmse"] for _, _, r in pts])
         entry["front_frame_ms"] = [{"method": n, "point": i} for (n, i, _), o in zip(pts, on) if o]
+        if e["select"]:
+            chosen = [(m["selected"][e["minimize"]], n) for n, m in entry["methods"].items()
+                      if "config" in m.get("selected", {})]
+            entry["selected"] = {"select": e["select"], "minimize": e["minimize"],
+                                 "method": min(chosen)[1] if chosen else None}
+            say(f"cheapest method meeting {e['select']}: {entry['selected']['method']}")
         entry["seconds"] = time.perf_counter() - t0
         record["tasks"][task_name] = entry
         plot_task(os.path.join(out, f"atlas_{task_name}.png"), entry)
@@ -433,6 +452,34 @@ def main(config: dict) -> dict:
         f.write(table(record))
     print(f"atlas (atlas.json, atlas_<task>.png, atlas.md) written to {out}")
     return record
+
+
+def _select(config: dict, task_name: str, name: str, rows: list, grid: dict, out: str, say) -> dict:
+    """``jprt.sweep.select`` over one method's points: the chosen point (its knob values, the
+    minimised value) and ``selected_<task>_<method>.json``, the atlas config that runs just that
+    point (``jprt run experiments/atlas.py --config ...``); or the error naming the best reached."""
+    from jprt.sweep import select
+
+    e = config["eval"]
+    try:
+        row = select(rows, e["select"], e["minimize"])
+    except ValueError as err:
+        say(f"{name}: {err}")
+        return {"error": str(err)}
+    point = {k: row[k] for k in grid}
+    chosen = json.loads(json.dumps(config))
+    entry = chosen["tasks"][task_name]["methods"][name]
+    entry["set"] = list(entry["set"]) + [f"{k}={json.dumps(v)}" for k, v in point.items()]
+    entry["grid"] = []
+    chosen["eval"].update(tasks=[task_name], methods=[name], select="")
+    chosen["output"]["dir"] = os.path.join(out, f"selected_{task_name}_{name}")  # not over the whole atlas
+    path = os.path.join(out, f"selected_{task_name}_{name}.json")
+    io.write_json(path, {"experiment": os.path.abspath(__file__), "select": e["select"], "minimize": e["minimize"],
+                         "point": point, "config": chosen})
+    say(f"{name}: selected {point} ({e['minimize']} = {row[e['minimize']]:.4g}); run it with: jprt run "
+        f"experiments/atlas.py --config {path}")
+    return {"point": point, e["minimize"]: row[e["minimize"]], "indirect_rmse": row["indirect_rmse"],
+            "config": path}
 
 
 def _label(row: dict, knobs: list) -> str:
