@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.jprt-installed
 
-.PHONY: setup llvm test test-slow demo bench bench-rrf bench-datadriven bench-wavelet clean
+.PHONY: setup llvm test test-slow demo bench bench-rrf bench-datadriven bench-wavelet bench-atlas clean
 
 setup: llvm $(STAMP)
 
@@ -46,6 +46,9 @@ bench-datadriven: setup
 
 bench-wavelet: setup
 	$(PY) benchmarks/wavelet_prt.py
+
+bench-atlas: setup
+	$(PY) benchmarks/atlas.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -97,7 +97,8 @@ def test_table_and_figure(tmp_path):
 @pytest.mark.mitsuba
 def test_atlas_test_preset(mi, tmp_path):
     out = str(tmp_path / "atlas")
-    args = ["run", "experiments/atlas.py", "--preset", "test", "--set", f"output.dir={out}"]
+    args = ["run", "experiments/atlas.py", "--preset", "test", "--set", f"output.dir={out}", "--set",
+            "eval.select=indirect_rel_rmse<=100"]  # every point meets it: the cheapest frame is chosen
     assert cli_main(args) == 0
     with open(os.path.join(out, "atlas.json")) as f:
         record = json.load(f)
@@ -116,6 +117,19 @@ def test_atlas_test_preset(mi, tmp_path):
                 assert np.isfinite(row["indirect_rmse"]) and row["frame_ms"] > 0
                 assert row["pathtrace_ms_equal_error"] in [c["ms"] for c in curve]
             assert m["pareto"]["frame_ms"]
+            ok = [r for r in m["points"] if r["status"] != "failed"]
+            assert m["selected"]["frame_ms"] == min(r["frame_ms"] for r in ok)
+        fastest = min((m["selected"]["frame_ms"], n) for n, m in task["methods"].items() if m["status"] == "done")
+        assert task["selected"]["method"] == fastest[1]
+    # the selected config runs exactly that method's point on that task, in its own folder
+    path = record["tasks"]["local_lights"]["methods"]["sh_prt"]["selected"]["config"]
+    assert cli_main(["run", "experiments/atlas.py", "--config", path]) == 0
+    with open(os.path.join(out, "selected_local_lights_sh_prt", "atlas.json")) as f:
+        alone = json.load(f)
+    assert list(alone["tasks"]) == ["local_lights"] and list(alone["tasks"]["local_lights"]["methods"]) == ["sh_prt"]
+    (row,) = alone["tasks"]["local_lights"]["methods"]["sh_prt"]["points"]
+    (before,) = record["tasks"]["local_lights"]["methods"]["sh_prt"]["points"]
+    assert row["indirect_rmse"] == pytest.approx(before["indirect_rmse"], rel=1e-6)
     # a re-run trains nothing: every point comes back from its summary
     assert cli_main(args) == 0
     with open(os.path.join(out, "atlas.json")) as f:
