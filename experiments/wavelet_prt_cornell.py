@@ -62,13 +62,16 @@ EVAL_DEFAULTS = {
     "exposure": 0.0,
 }
 
-CONFIG = {**wp.DEFAULT_CONFIG, "eval": EVAL_DEFAULTS, "output": {"dir": "results/wavelet_prt_cornell"}}
+# resources: what one sweep point asks of a Ray cluster (``jprt sweep --ray``; training uses every core it gets)
+CONFIG = {**wp.DEFAULT_CONFIG, "eval": EVAL_DEFAULTS, "output": {"dir": "results/wavelet_prt_cornell"},
+          "resources": {"cpus": 2, "gpus": 0}}
 
 PRESETS = {
     "small": {},
     # the paper's sizes (§5): 64^2 cube faces, M = L = 64, 32-level hash grid with 2^19 entries,
     # 2048 pixels per step, 512^2 images; 1000 maps x 3 rotations and ~2000 views in the paper
     "paper": {
+        "resources": {"cpus": 4, "gpus": 1},
         "envmaps": {"face_size": 64},
         "cameras": {"width": 512, "height": 512, "sphere": {"n": 600}, "helix": {"n": 300}, "near": 16, "far": 16},
         "data": {"spp": 1024, "test_spp": 4096},

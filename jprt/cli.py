@@ -158,8 +158,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--minimize", default=None, metavar="KEY", help="what --select minimises, e.g. frame_ms")
     p.add_argument("--ray", action="store_true",
                    help="run the points as Ray tasks (a local instance, or $JPRT_RAY_ADDRESS=auto|host:port)")
-    p.add_argument("--cpus", type=float, default=1, help="CPUs one point needs on Ray (default 1)")
-    p.add_argument("--gpus", type=float, default=0, help="GPUs one point needs on Ray (default 0)")
+    p.add_argument("--cpus", type=float, default=None,
+                   help="CPUs one point needs on Ray (default: the config's resources.cpus, else 1)")
+    p.add_argument("--gpus", type=float, default=None,
+                   help="GPUs one point needs on Ray (default: the config's resources.gpus, else 0)")
     args = parser.parse_args(argv)
 
     from jprt.config import ConfigError

@@ -116,14 +116,15 @@ def _point_task(experiment_path: str, cfg: dict, folder: str) -> tuple[str, dict
 
 
 def run_sweep(module: ModuleType, config: Mapping, grid: Mapping[str, Sequence], *, run: Callable | None = None,
-              progress: bool = True, label: str = "", ray: bool | None = None, num_cpus: float = 1,
-              num_gpus: float = 0) -> dict:
+              progress: bool = True, label: str = "", ray: bool | None = None, num_cpus: float | None = None,
+              num_gpus: float | None = None) -> dict:
     """Run every point of ``grid`` over experiment ``module`` at ``config`` (its resolved CONFIG);
     returns the sweep record (also written as sweep.json / sweep.csv / pareto_*.png).
 
     ``run(module, config) -> summary`` runs one point in-process (default ``jprt.runner.run``).
     ``ray`` (default: whether ``JPRT_RAY_ADDRESS`` is set) runs the points as Ray tasks of
-    ``num_cpus`` / ``num_gpus`` each (``jprt.distributed``; the experiment is re-loaded from its
+    ``num_cpus`` / ``num_gpus`` each (default: the config's optional ``resources`` section,
+    ``{"cpus": 2, "gpus": 0}``, else 1 CPU; ``jprt.distributed``; the experiment is re-loaded from its
     file in the worker); a worker that dies is retried and its point is still one row.
     """
     from tqdm.auto import tqdm
@@ -167,6 +168,9 @@ def run_sweep(module: ModuleType, config: Mapping, grid: Mapping[str, Sequence],
         path = getattr(module, "__file__", None)
         if not path:
             raise ValueError("a sweep on Ray needs an experiment file (the workers load it by path)")
+        need = config.get("resources", {})
+        num_cpus = float(need.get("cpus", 1) if num_cpus is None else num_cpus)
+        num_gpus = float(need.get("gpus", 0) if num_gpus is None else num_gpus)
         distributed.map_tasks(_point_task, [(os.path.abspath(path), cfg, f) for _, cfg, f in todo],
                               num_cpus=num_cpus, num_gpus=num_gpus, on_done=finish)
     else:

@@ -151,3 +151,24 @@ def test_sweep_files_are_valid_for_their_experiments(name):
     assert len(points) >= 4
     for point in points:
         sweep.point_config(config, point)  # raises on an unknown key or a wrong type
+
+
+def test_ray_resources_come_from_the_config(experiment, monkeypatch):
+    """A point's Ray CPU / GPU needs: the config's ``resources`` section, unless given explicitly."""
+    from jprt import distributed
+
+    seen = []
+
+    def fake_map(fn, args, *, num_cpus, num_gpus, on_done, **kwargs):
+        seen.append((num_cpus, num_gpus))
+        for i, _ in enumerate(args):
+            on_done(i, ("failed", None, "not run here"))
+
+    monkeypatch.setattr(distributed, "map_tasks", fake_map)
+    experiment.__file__ = "fake_experiment.py"
+    experiment.CONFIG = {**experiment.CONFIG, "resources": {"cpus": 2, "gpus": 0.5}}
+    grid = {"model.bias": [0.0, 0.1]}
+    record = sweep.run_sweep(experiment, experiment.CONFIG, grid, progress=False, ray=True)
+    assert record["counts"]["failed"] == 2 and seen == [(2.0, 0.5)]
+    sweep.run_sweep(experiment, experiment.CONFIG, grid, progress=False, ray=True, num_cpus=1, num_gpus=0)
+    assert seen[-1] == (1.0, 0.0)
