@@ -112,6 +112,7 @@ def test_dataset_rendered_in_ray_shards_equals_the_single_process_one(local_ray,
     assert again.stats == {"rendered": 0, "cached": 8, "corrupt": 0}
 
 
+@pytest.mark.slow  # the shard test above covers the mechanism in the default suite
 @pytest.mark.mitsuba
 @pytest.mark.parametrize("name", ["datadriven", "sh_prt"])
 def test_lightmap_method_rendered_in_ray_blocks_equals_the_single_process_one(local_ray, mi, tmp_path, name):

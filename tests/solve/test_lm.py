@@ -119,6 +119,7 @@ def test_ill_conditioned_problems_never_return_nan():
     assert np.isfinite(float(result.loss)) and float(result.loss) <= float(start.history[0])
 
 
+@pytest.mark.slow  # ~7 s: importing and compiling the archived jaxopt (the comparison backend)
 def test_jaxopt_backend_runs_the_same_problem():
     params, data = problem(300)
     ours = lm.solve(residual, params, data, settings=lm.LMSettings(max_iters=20))

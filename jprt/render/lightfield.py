@@ -1,0 +1,179 @@
+"""Light-field capture (Currius et al. 2020 §3): for every texel of a lightmap atlas, the radiance
+arriving over the whole sphere of directions, as a world-space octahedral map
+(``jprt.sphere.octahedral``), path traced by Mitsuba from just above the surface.
+
+For texel t at position x_t with normal n_t and octahedral texel direction w_k (its centre), the
+capture is the mean of ``spp`` path samples of L_i(x_t + eps n_t, w_k): the radiance of a ray
+leaving x_t + eps n_t along w_k (``jprt.render.images.radiance_rays``). Two maps are kept, both from
+the same seeds:
+
+* ``full``: every path (``max_depth=-1``), directly seen emitters and environment included;
+* ``indirect``: only paths that have bounced before arriving: ``full`` minus the emitted radiance
+  seen directly along w_k (``max_depth=1``, the same seed: the difference cancels exactly in
+  Mitsuba 3, MITSUBA_NOTES.md). This is what a texel's lobes fit when the emitters are shaded
+  separately.
+
+Directions below the texel's surface (w_k . n_t <= 0) are not traced: ``below`` masks them (the
+paper's hemisphere mask of the fitting loss) and their values are 0.
+
+Texels are checked before capture (``jprt.render.lightmap.free_positions``): a capture point inside
+other geometry (a box standing on the floor covers floor texels) is pushed out along its normal by
+doubling offsets up to ``max_push`` x the texel size; what stays inside is flagged ``INSIDE`` and
+left at 0, never averaged into a neighbour. ``flags`` says which texels were pushed (``PUSHED``).
+
+``capture_lightfield`` caches the result through ``jprt.cache`` (content hash of scene, lighting,
+atlas and settings; checksummed, atomic) and renders in blocks of texels with a progress bar; an
+interrupted capture resumes from its finished blocks (each block is its own cache entry).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import NamedTuple, Sequence
+
+import numpy as np
+
+from jprt import cache
+from jprt.render.lightmap import Atlas, _eps, build_atlas, free_positions
+from jprt.render.scenes import SceneHandle, describe
+
+__all__ = ["LightField", "OK", "PUSHED", "INSIDE", "capture_points", "capture_block", "capture_lightfield"]
+
+#: ``LightField.flags`` values.
+OK, PUSHED, INSIDE = 0, 1, 2
+
+
+class LightField(NamedTuple):
+    """Captured incident radiance of the texels of an atlas.
+
+    Fields:
+      atlas: the ``jprt.render.lightmap.Atlas`` (as a dict of arrays).
+      size: n, the octahedral maps are n x n.
+      position: (T, 3) capture points (texel centre plus the offset used).
+      normal: (T, 3) unit shading normals of the texels.
+      full: (T, n, n, 3) float32 incident radiance, every path.
+      indirect: (T, n, n, 3) float32 incident radiance of paths that bounced (full minus the
+        directly seen emission).
+      below: (T, n, n) bool, directions at or below the texel's surface (not traced, 0).
+      flags: (T,) int8: OK, PUSHED (captured from further out) or INSIDE (not captured, 0).
+      meta: {"spp", "seed", "capture_s", "offsets"}.
+    """
+
+    atlas: dict
+    size: int
+    position: np.ndarray
+    normal: np.ndarray
+    full: np.ndarray
+    indirect: np.ndarray
+    below: np.ndarray
+    flags: np.ndarray
+    meta: dict
+
+
+def _digest(*arrays) -> str:
+    """SHA-256 of arrays' float32 bytes (the atlas part of a capture's cache key)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for x in arrays:
+        h.update(np.ascontiguousarray(np.asarray(x, np.float32)).tobytes())
+    return h.hexdigest()
+
+
+def _directions(size: int) -> np.ndarray:
+    from jprt.sphere import octahedral
+
+    if int(size) < 2 or int(size) % 2:
+        raise ValueError(f"octahedral map size must be even and >= 2, got {size}")
+    return np.asarray(octahedral.texel_directions(int(size)), np.float64).reshape(-1, 3)
+
+
+def capture_points(handle: SceneHandle, position, normal, texel_size: float, *,
+                   max_push: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+    """Capture points of texels: ``position + eps normal`` where that is in free space, else
+    pushed along the normal by texel_size x 1/4, 1/2, 1, ... up to ``max_push``; returns the
+    points (T, 3) and flags (T,) (OK, PUSHED, INSIDE)."""
+    position = np.asarray(position, np.float64).reshape(-1, 3)
+    normal = np.asarray(normal, np.float64).reshape(-1, 3)
+    eps = _eps(handle)
+    if not np.isfinite(eps) or eps <= 0:  # a scene without geometry has no scale
+        eps = 1e-4
+    points = position + eps * normal
+    flags = np.full(len(points), INSIDE, np.int8)
+    todo = np.arange(len(points))
+    offsets = [eps] + [texel_size * f for f in (0.25, 0.5, 1.0, 2.0, 4.0, 8.0) if f <= max_push]
+    for k, offset in enumerate(offsets):
+        if not len(todo):
+            break
+        trial = position[todo] + offset * normal[todo]
+        free = free_positions(handle, trial)
+        points[todo[free]] = trial[free]
+        flags[todo[free]] = OK if k == 0 else PUSHED
+        todo = todo[~free]
+    return points, flags
+
+
+def capture_block(handle: SceneHandle, points, normal, flags, size: int, *, spp: int,
+                  seed: int = 0) -> dict:
+    """The maps of one block of texels (see the module docstring): {"full", "indirect", "below"}."""
+    from jprt.render.images import radiance_rays
+
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    normal = np.asarray(normal, np.float64).reshape(-1, 3)
+    dirs = _directions(size)
+    m = dirs.shape[0]
+    below = (normal @ dirs.T) <= 0.0  # (B, m)
+    traced = ~below & (np.asarray(flags) != INSIDE)[:, None]
+    rows, cols = np.nonzero(traced)
+    full = np.zeros((len(points), m, 3), np.float32)
+    indirect = np.zeros((len(points), m, 3), np.float32)
+    if len(rows):
+        o, d = points[rows], dirs[cols]
+        every = radiance_rays(handle, o, d, spp=spp, seed=seed, max_depth=-1)
+        seen = radiance_rays(handle, o, d, spp=spp, seed=seed, max_depth=1)
+        full[rows, cols] = every
+        indirect[rows, cols] = every - seen
+    shape = (len(points), int(size), int(size))
+    return {"full": full.reshape(shape + (3,)), "indirect": indirect.reshape(shape + (3,)),
+            "below": below.reshape(shape)}
+
+
+def capture_lightfield(scene, lighting=None, *, objects: Sequence[str] | None = None, resolution: int = 64,
+                       size: int = 32, spp: int = 64, seed: int = 0, block: int = 256,
+                       atlas: Atlas | dict | None = None, cache_dir: str | None = None,
+                       progress: bool = True) -> LightField:
+    """Capture the light field of every texel of ``atlas`` (default: ``build_atlas`` of ``objects``
+    at ``resolution``) in ``scene`` under ``lighting`` (``None``: the scene's own emitters):
+    ``size`` x ``size`` octahedral maps, ``spp`` paths per direction. Blocks of ``block`` texels
+    are cache entries of their own (an interrupted capture resumes); the assembled light field is
+    returned (not stored twice)."""
+    from tqdm.auto import tqdm
+
+    from jprt.render.lights import lighting_description
+
+    desc = describe(scene)
+    handle = SceneHandle(desc, lighting)
+    if atlas is None:
+        atlas = build_atlas(handle, list(objects) if objects else None, resolution=int(resolution))
+    a = atlas._asdict() if isinstance(atlas, Atlas) else dict(atlas)
+    points, flags = capture_points(handle, a["position"], a["normal"], float(a["texel_size"]))
+    base = {"format": 1, "scene": desc, "lighting": lighting_description(lighting) if lighting is not None else None,
+            "atlas": _digest(a["position"], a["normal"]),
+            "size": int(size), "spp": int(spp), "seed": int(seed)}
+    t0 = time.perf_counter()
+    parts = []
+    starts = list(range(0, len(points), int(block)))
+    for b, start in enumerate(tqdm(starts, desc="light-field capture", unit="block", disable=not progress)):
+        stop = min(len(points), start + int(block))
+
+        def build(start=start, stop=stop, b=b):
+            return capture_block(handle, points[start:stop], np.asarray(a["normal"])[start:stop], flags[start:stop],
+                                 int(size), spp=int(spp), seed=int(seed) * 1000003 + b)
+
+        arrays, _ = cache.cached("lightfield", {**base, "block": [start, stop]}, build, cache_dir=cache_dir)
+        parts.append(arrays)
+    cat = lambda k: np.concatenate([p[k] for p in parts]) if parts else np.zeros((0,))  # noqa: E731
+    return LightField(a, int(size), points.astype(np.float32), np.asarray(a["normal"], np.float32), cat("full"),
+                      cat("indirect"), cat("below").astype(bool), flags,
+                      {"spp": int(spp), "seed": int(seed), "capture_s": time.perf_counter() - t0,
+                       "pushed": int((flags == PUSHED).sum()), "inside": int((flags == INSIDE).sum())})
