@@ -1,0 +1,208 @@
+"""Spherical-Gaussian light-field textures (Currius et al. 2020), the paper's math in pure JAX.
+
+* **Lobes** (§4, Eq. 1): the light field T_t(v) of texel t is approximated by
+  P_t(v) = sum_j mu_tj exp(lambda_tj (v . u_tj - 1)), N lobes of 7 numbers (axis, sharpness, RGB
+  amplitude).
+* **Constraints** (§4, "Constraints"): the paper projects gradients so that axes stay unit length
+  and amplitudes and sharpnesses positive; here the network's raw outputs are reparameterised
+  (``constrain``): u = r / |r|, mu = softplus(r_mu) >= 0, and log lambda = log lambda_min +
+  (log lambda_max - log lambda_min) sigmoid(r_lambda), bounded so the lobes store in float16
+  (lambda_max = 1e4 < 65504). Same constraints, no projection step.
+* **Loss** (§4 "Loss Function" and Appendix A, Eq. 9): the log-L2 loss
+  (log(T + 1) - log(P + 1))^2 per pixel and channel, weighted by each octahedral pixel's solid
+  angle (the projection is not area preserving), with directions below the texel's surface
+  masked out, and P evaluated at a direction jittered uniformly inside the pixel (§4
+  "Optimizations"). Appendix A's derivatives (Eq. 10-14) are what ``jax.grad`` computes; the
+  paper writes dmu_ic for dmu_jc in Eq. 12 and lambda_j x for lambda_j v_ix in Eq. 14 (the
+  derivative of v . u w.r.t. u_x is v_x), checked against autodiff in the tests.
+* **Encoder** (§4 "Encoder Network"): ``jprt.nn.cnn.sg_encoder`` maps a texel's light-field
+  image to its N x 7 raw parameters; trained with Adam on all texels (``fit_cnn``). Its input is
+  log(1 + T) (the paper does not say how HDR input is scaled; the loss compares logs too).
+* **Run time** (§6, Appendix B, Eq. 15-24 with the errata of ``jprt.sphere.sg``): per pixel, the
+  lobes of its texel (bilinear in the atlas), the GGX NDF as an SG warped to an ASG about the
+  reflected view direction, each lobe convolved with it, times Smith's G (separable GGX, in the
+  V = G / (4 n.l n.v) form) and Schlick's Fresnel at the reflected direction, times n.l; the
+  diffuse term is albedo / pi times the texel's irradiance, integrated from the captured map.
+  Eq. 17 as printed drops the 1 / (pi r^2) normalisation of the NDF; ``sg.ggx_ndf_sg`` keeps it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jprt.sphere import octahedral
+from jprt.sphere import sg
+
+__all__ = ["DEFAULT_CONFIG", "Lobes", "PARAMS_PER_LOBE", "constrain", "lobe_radiance", "jittered_directions",
+           "log_l2_loss", "fit_cnn", "encode", "texel_irradiance", "shade", "to_storage"]
+
+#: Raw numbers per lobe the encoder outputs: axis (3), sharpness (1), RGB amplitude (3).
+PARAMS_PER_LOBE = 7
+
+DEFAULT_CONFIG: dict[str, Any] = {
+    "model": {"n_lobes": 16, "channels": [32, 64, 128, 256], "min_sharpness": 0.5, "max_sharpness": 1.0e4,
+              "init_sharpness": 4.0},
+    "train": {"steps": 2000, "batch": 64, "learning_rate": 1e-3, "final_lr_fraction": 0.1, "seed": 0,
+              "jitter": True},
+}
+
+
+class Lobes(NamedTuple):
+    """N SG lobes per texel: axes (..., N, 3) unit, sharpness (..., N) > 0, amplitude (..., N, 3) >= 0."""
+
+    axes: jax.Array
+    sharpness: jax.Array
+    amplitude: jax.Array
+
+
+def constrain(raw, min_sharpness: float = 0.5, max_sharpness: float = 1.0e4, init_sharpness: float = 4.0) -> Lobes:
+    """Raw encoder outputs (..., N, 7) -> constrained ``Lobes`` (module docstring). A raw
+    sharpness of 0 means ``init_sharpness``: lobes start broad, so every lobe's gradient reaches
+    the whole image (sharp random lobes pointing away from the light die at the start)."""
+    raw = jnp.asarray(raw)
+    r = raw[..., :3]
+    norm = jnp.sqrt(jnp.sum(r * r, axis=-1, keepdims=True))
+    # a zero raw axis has no direction: +z stands in (any unit vector keeps the constraint)
+    axes = jnp.where(norm > 1e-12, r / jnp.maximum(norm, 1e-12), jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], r.dtype),
+                                                                                  r.shape))
+    lo, hi = math.log(min_sharpness), math.log(max_sharpness)
+    s0 = (math.log(init_sharpness) - lo) / (hi - lo)
+    sharpness = jnp.exp(lo + (hi - lo) * jax.nn.sigmoid(raw[..., 3] + math.log(s0 / (1.0 - s0))))
+    return Lobes(axes, sharpness, jax.nn.softplus(raw[..., 4:7]))
+
+
+def lobe_radiance(lobes: Lobes, directions):
+    """Eq. 1: P(v) = sum_j mu_j exp(lambda_j (v . u_j - 1)) for directions (..., M, 3) of each
+    texel's lobes (..., N): (..., M, 3)."""
+    cos = jnp.einsum("...md,...nd->...mn", directions, lobes.axes)
+    w = jnp.exp(lobes.sharpness[..., None, :] * (cos - 1.0))
+    return jnp.einsum("...mn,...nc->...mc", w, lobes.amplitude)
+
+
+def jittered_directions(key, size: int, shape=()):
+    """Directions (*shape, size^2, 3), each uniform in its octahedral pixel's (u, v) square (§4
+    "Optimizations": one jittered sample instead of the pixel's average)."""
+    centres = octahedral.texel_centers(size).reshape(-1, 2)
+    offsets = jax.random.uniform(key, tuple(shape) + centres.shape, minval=-1.0 / size, maxval=1.0 / size)
+    return octahedral.decode(jnp.clip(jnp.broadcast_to(centres, offsets.shape) + offsets, -1.0, 1.0))
+
+
+def log_l2_loss(lobes: Lobes, directions, targets, weights):
+    """Eq. 9 summed over channels, weighted mean over pixels: targets (..., M, 3) at directions
+    (..., M, 3) with weights (..., M) (solid angle x above-surface mask)."""
+    pred = lobe_radiance(lobes, directions)
+    err = jnp.sum(jnp.square(jnp.log1p(jnp.maximum(pred, 0.0)) - jnp.log1p(jnp.maximum(targets, 0.0))), axis=-1)
+    return jnp.sum(weights * err) / jnp.maximum(jnp.sum(weights), 1e-20)
+
+
+def _pixel_weights(size: int, below):
+    """Solid angle of every octahedral pixel, zero below the surface: (T, size^2)."""
+    sa = jnp.asarray(octahedral.texel_solid_angles(size)).reshape(-1)
+    return sa[None, :] * (1.0 - jnp.asarray(below, jnp.float32).reshape(below.shape[0], -1))
+
+
+def encode(net_params, images, config: dict) -> Lobes:
+    """The encoder's lobes for light-field images (T, n, n, 3) (its input is log(1 + T))."""
+    from jprt.nn.cnn import sg_encoder
+
+    m = config["model"]
+    net = sg_encoder(image_size=images.shape[1], n_lobes=int(m["n_lobes"]), params_per_lobe=PARAMS_PER_LOBE,
+                     channels=tuple(m["channels"]))
+    raw = net.apply(net_params, jnp.log1p(jnp.maximum(jnp.asarray(images, jnp.float32), 0.0)))
+    return constrain(raw, float(m["min_sharpness"]), float(m["max_sharpness"]), float(m["init_sharpness"]))
+
+
+def fit_cnn(images, below, config: dict, *, progress: bool = True):
+    """Train the encoder on every texel's light-field image (T, n, n, 3), ``below`` (T, n, n)
+    masking directions under the surface; Adam, minibatches of ``train.batch`` texels, cosine
+    decay. Returns (net_params, lobes of every texel, losses)."""
+    import optax
+
+    from jprt.nn.cnn import sg_encoder
+    from jprt.solve import adam
+
+    m, t = config["model"], config["train"]
+    images = jnp.asarray(images, jnp.float32)
+    n_tex, size = images.shape[0], images.shape[1]
+    net = sg_encoder(image_size=size, n_lobes=int(m["n_lobes"]), params_per_lobe=PARAMS_PER_LOBE,
+                     channels=tuple(m["channels"]))
+    weights = _pixel_weights(size, jnp.asarray(below))
+    targets = images.reshape(n_tex, -1, 3)
+    centres = octahedral.texel_directions(size).reshape(-1, 3)
+    batch = min(int(t["batch"]), n_tex)
+    jitter = bool(t["jitter"])
+
+    def loss_fn(params, batch):
+        inputs, target, weight, dirs = batch
+        raw = net.apply(params, inputs)
+        return log_l2_loss(constrain(raw, float(m["min_sharpness"]), float(m["max_sharpness"]), float(m["init_sharpness"])), dirs, target, weight)
+
+    def sampler(key, step, data):
+        logs, targets, weights = data
+        k1, k2 = jax.random.split(key)
+        idx = jax.random.choice(k1, n_tex, (batch,), replace=n_tex < batch)
+        dirs = jittered_directions(k2, size, (batch,)) if jitter else jnp.broadcast_to(centres, (batch,) + centres.shape)
+        return logs[idx], targets[idx], weights[idx], dirs
+
+    steps = int(t["steps"])
+    schedule = optax.cosine_decay_schedule(float(t["learning_rate"]), max(steps, 1), alpha=float(t["final_lr_fraction"]))
+    params = net.init(jax.random.PRNGKey(int(t["seed"])))
+    data = (jnp.log1p(jnp.maximum(images, 0.0)), targets, weights)  # an argument of the step, not a constant
+    result = adam.train(loss_fn, params, sampler, key=jax.random.PRNGKey(int(t["seed"]) + 1), steps=steps,
+                        learning_rate=schedule, eps=1e-8, progress=progress, data=data)
+    trained = result.state.params
+    lobes = jax.lax.map(lambda im: encode(trained, im[None], config), images)
+    lobes = Lobes(*(a[:, 0] for a in lobes))
+    return trained, lobes, np.asarray(result.losses)
+
+
+def texel_irradiance(images, normals, size: int):
+    """E_t = sum_i T_t(v_i) max(n_t . v_i, 0) dOmega_i: each texel's irradiance (T, 3) from its
+    captured map (the diffuse term's input), by quadrature at the pixel centres."""
+    dirs = octahedral.texel_directions(size).reshape(-1, 3)
+    sa = jnp.asarray(octahedral.texel_solid_angles(size)).reshape(-1)
+    cos = jnp.maximum(jnp.asarray(normals) @ dirs.T, 0.0)  # (T, M)
+    return jnp.einsum("tm,tmc->tc", cos * sa[None, :], jnp.asarray(images).reshape(len(normals), -1, 3))
+
+
+def _ggx_v1(m2, ndotx):
+    """Separable Smith-GGX term with the 1 / (2 n.x) folded in: 1 / (n.x + sqrt(m2 + (1 - m2) n.x^2))."""
+    return 1.0 / (ndotx + jnp.sqrt(m2 + (1.0 - m2) * ndotx * ndotx))
+
+
+def shade(lobes: Lobes, normal, view, roughness, specular, diffuse_albedo, irradiance):
+    """Outgoing radiance (..., 3) of pixels whose texel lobes are ``lobes`` (..., N): glossy from
+    the lobes (Appendix B, Eq. 15-24: NDF SG warped to an ASG, SG x ASG convolution, Smith G and
+    Schlick Fresnel at the reflected direction, times n.l) plus diffuse albedo / pi x irradiance.
+    ``roughness`` is GGX alpha (Mitsuba's roughconductor ``alpha``), ``specular`` the RGB
+    reflectance at normal incidence."""
+    normal = jnp.asarray(normal)
+    view = jnp.asarray(view)
+    roughness = jnp.maximum(jnp.asarray(roughness), 1e-3)
+    asg = sg.warp_ndf_to_asg(normal, view, roughness)
+    # the pixel's warped NDF against each of its N lobes: frame (..., 1, 3), sharpnesses (..., 1)
+    warped = sg.ASG(asg.x[..., None, :], asg.y[..., None, :], asg.z[..., None, :], asg.sharpness_x[..., None],
+                    asg.sharpness_y[..., None], asg.amplitude[..., None])
+    per_lobe = sg.convolve_sg_asg(lobes.axes, lobes.sharpness, 1.0, warped)  # (..., N)
+    conv = jnp.sum(per_lobe[..., None] * lobes.amplitude, axis=-2)  # (..., 3)
+    ndotv = jnp.clip(jnp.sum(normal * view, axis=-1), 1e-4, 1.0)
+    wi = asg.z  # the reflected view direction (Pettineo 2016: G and F at the warped lobe's axis)
+    ndotl = jnp.clip(jnp.sum(normal * wi, axis=-1), 0.0, 1.0)
+    h = wi + view
+    h = h / jnp.sqrt(jnp.maximum(jnp.sum(h * h, axis=-1, keepdims=True), 1e-20))
+    m2 = jnp.square(roughness)
+    vis = _ggx_v1(m2, ndotl) * _ggx_v1(m2, ndotv)
+    f0 = jnp.asarray(specular)
+    fresnel = f0 + (1.0 - f0) * jnp.power(1.0 - jnp.clip(jnp.sum(wi * h, axis=-1), 0.0, 1.0), 5.0)[..., None]
+    glossy = conv * (vis * ndotl)[..., None] * fresnel
+    return glossy + jnp.asarray(diffuse_albedo) / jnp.pi * jnp.asarray(irradiance)
+
+
+def to_storage(lobes: Lobes, dtype=jnp.float16) -> Lobes:
+    """Lobes as stored at run time (the paper: 16-bit floats; 7 numbers x N lobes per texel)."""
+    return Lobes(*(jnp.asarray(a, dtype) for a in lobes))
