@@ -91,8 +91,9 @@ def _directions(size: int) -> np.ndarray:
 def capture_points(handle: SceneHandle, position, normal, texel_size: float, *,
                    max_push: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
     """Capture points of texels: ``position + eps normal`` where that is in free space, else
-    pushed along the normal by texel_size x 1/4, 1/2, 1, ... up to ``max_push``; returns the
-    points (T, 3) and flags (T,) (OK, PUSHED, INSIDE)."""
+    pushed along the normal by texel_size x 1/4, 1/2, 1, ... up to ``max_push``, never through a
+    surface (a floor texel under a box is not moved onto the box's lid); returns the points
+    (T, 3) and flags (T,) (OK, PUSHED, INSIDE)."""
     position = np.asarray(position, np.float64).reshape(-1, 3)
     normal = np.asarray(normal, np.float64).reshape(-1, 3)
     eps = _eps(handle)
@@ -102,15 +103,26 @@ def capture_points(handle: SceneHandle, position, normal, texel_size: float, *,
     flags = np.full(len(points), INSIDE, np.int8)
     todo = np.arange(len(points))
     offsets = [eps] + [texel_size * f for f in (0.25, 0.5, 1.0, 2.0, 4.0, 8.0) if f <= max_push]
+    room = _distance_along(handle, position + eps * normal, normal)  # a push never passes through a surface
     for k, offset in enumerate(offsets):
         if not len(todo):
             break
         trial = position[todo] + offset * normal[todo]
-        free = free_positions(handle, trial)
+        free = free_positions(handle, trial) & (offset <= room[todo])
         points[todo[free]] = trial[free]
         flags[todo[free]] = OK if k == 0 else PUSHED
         todo = todo[~free]
     return points, flags
+
+
+def _distance_along(handle: SceneHandle, origins, directions) -> np.ndarray:
+    """Distance (K,) to the first surface along each ray (inf where none)."""
+    mi = handle.mi
+    o = np.asarray(origins, np.float32)
+    d = np.asarray(directions, np.float32)
+    si = handle.scene.ray_intersect(mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T)))
+    valid = np.array(si.is_valid(), bool).reshape(-1)
+    return np.where(valid, np.array(si.t, np.float64).reshape(-1), np.inf)
 
 
 def capture_block(handle: SceneHandle, points, normal, flags, size: int, *, spp: int,

@@ -146,3 +146,43 @@ def test_texel_irradiance_of_a_constant_sky_is_pi_l():
     normals = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]], np.float32)
     e = np.asarray(M.texel_irradiance(images, normals, size))
     np.testing.assert_allclose(e, 2.0 * np.pi, rtol=0.01)  # cosine quadrature at pixel centres
+
+
+def test_gradients_stay_finite_at_a_zero_raw_axis():
+    """A raw axis of exactly 0 (a fresh network can output one) gives a unit axis and finite
+    gradients (the norm must not be taken of the zero vector: inf * 0 = NaN through a where)."""
+    raw = jnp.zeros((2, 7)).at[1, :3].set(jnp.array([0.3, -0.4, 1.2]))
+    v = jnp.array([0.0, 0.6, 0.8])
+
+    def loss(raw):
+        lobes = M.constrain(raw)
+        return jnp.sum(M.lobe_radiance(lobes, v[None]))
+
+    g = jax.grad(loss)(raw)
+    assert np.isfinite(np.asarray(g)).all()
+    np.testing.assert_allclose(np.asarray(M.constrain(raw).axes[0]), [0.0, 0.0, 1.0])
+
+
+@pytest.mark.slow  # ~15 s: capture, fit and shade a tiny light-field texture end to end
+@pytest.mark.mitsuba
+def test_tiny_light_field_texture_end_to_end(mi, tmp_path):
+    from jprt.methods.sg_lightfield import data as D
+    from jprt.render import cameras, lightmap
+    from jprt.render.scenes import SceneHandle
+
+    cfg = M._cfg({"lightmap": {"resolution": 32}, "capture": {"size": 8, "spp": 8, "block": 64},
+                  "model": {"n_lobes": 4, "channels": [8, 16]}, "train": {"steps": 150, "batch": 32}})
+    data = D.make_dataset(None, cfg, cache_dir=str(tmp_path), progress=False)
+    assert data.images.shape[1:] == (8, 8, 3) and np.isfinite(data.images).all()
+    result = M.fit(data, cfg, progress=False)
+    losses = result.info["losses"]
+    assert np.isfinite(losses).all() and np.mean(losses[-10:]) < 0.5 * np.mean(losses[:10])
+    assert result.info["bytes_per_texel"] == 4 * 7 * 2  # 4 lobes of 7 float16 numbers
+    evaluate = jax.jit(M.evaluator(result.params, cfg))
+    gb = lightmap.atlas_gbuffer(SceneHandle(cfg["scene"]), lightmap.Atlas(**data.atlas),
+                                cameras.look_at((0.0, 0.0, 3.9), (0.0, 0.0, 0.0), width=16, height=16))
+    one = np.asarray(evaluate(gb, np.ones(3, np.float32)))
+    assert one.shape == (16, 16, 3) and np.isfinite(one).all() and one.max() > 0
+    assert np.array_equal(one[~gb.valid], np.zeros_like(one[~gb.valid]))
+    np.testing.assert_allclose(np.asarray(evaluate(gb, np.array([2.0, 1.0, 0.5], np.float32))),
+                               one * np.array([2.0, 1.0, 0.5]), rtol=1e-5, atol=1e-7)  # linear in the lights

@@ -48,3 +48,17 @@ def test_cornell_floor_texels_under_the_boxes_are_flagged_and_the_rest_see_the_l
     monkeypatch.setattr(lightfield, "capture_block", no_render)
     again = lightfield.capture_lightfield(scene, None, **kwargs)
     assert np.array_equal(again.full, lf.full) and np.array_equal(again.flags, lf.flags)
+
+
+def test_a_push_never_passes_through_a_surface(mi):
+    """Floor texels under the Cornell blocks stay INSIDE however far a push may go: moving them
+    onto a block's lid would capture the wrong light field."""
+    from jprt.render import lightmap
+    from jprt.render.scenes import SceneHandle
+
+    handle = SceneHandle({"name": "cornell_box", "area_light": False})
+    atlas = lightmap.build_atlas(handle, ["floor"], resolution=16)
+    _, near = lightfield.capture_points(handle, atlas.position, atlas.normal, atlas.texel_size)
+    _, far = lightfield.capture_points(handle, atlas.position, atlas.normal, atlas.texel_size, max_push=100.0)
+    assert (near == lightfield.INSIDE).sum() > 0
+    np.testing.assert_array_equal(far, near)

@@ -38,18 +38,54 @@ import numpy as np
 from jprt.sphere import octahedral
 from jprt.sphere import sg
 
-__all__ = ["DEFAULT_CONFIG", "Lobes", "PARAMS_PER_LOBE", "constrain", "lobe_radiance", "jittered_directions",
+__all__ = ["DEFAULT_CONFIG", "GLOSSY_RECEIVERS", "SGData", "Lobes", "fit", "evaluator", "example", "lookup_lobes", "PARAMS_PER_LOBE", "constrain", "lobe_radiance", "jittered_directions",
            "log_l2_loss", "fit_cnn", "encode", "texel_irradiance", "shade", "to_storage"]
 
 #: Raw numbers per lobe the encoder outputs: axis (3), sharpness (1), RGB amplitude (3).
 PARAMS_PER_LOBE = 7
 
+#: Receivers as Mitsuba rough conductors (so Eq. 15's BRDF is the rendered one) of GGX alpha
+#: 0.2 / 0.3 / 0.4 / 0.5, lit by the Cornell box's ceiling light (the paper's Table 2 setting).
+GLOSSY_RECEIVERS = {"name": "cornell_box", "area_light": True, "materials": {
+    "floor": {"type": "metal", "specular": [0.9, 0.9, 0.9], "roughness": 0.2},
+    "back": {"type": "metal", "specular": [0.85, 0.85, 0.9], "roughness": 0.3},
+    "small-box": {"type": "metal", "specular": [0.9, 0.8, 0.6], "roughness": 0.4},
+    "large-box": {"type": "metal", "specular": [0.8, 0.85, 0.9], "roughness": 0.5}}}
+
 DEFAULT_CONFIG: dict[str, Any] = {
+    "scene": GLOSSY_RECEIVERS,
+    "objects": ["floor", "back", "small-box", "large-box"],  # the receivers: the light-field texture covers them
+    "lightmap": {"resolution": 64},
+    # octahedral maps of `size`^2 directions, `spp` paths each; `field`: "indirect" (paths that
+    # bounced: the evaluator then predicts indirect light, as every jprt method does) or "full"
+    # (the emitters seen in the lobes too: direct + indirect, as the paper bakes)
+    "capture": {"size": 32, "spp": 64, "seed": 0, "block": 256, "field": "indirect"},
     "model": {"n_lobes": 16, "channels": [32, 64, 128, 256], "min_sharpness": 0.5, "max_sharpness": 1.0e4,
               "init_sharpness": 4.0},
     "train": {"steps": 2000, "batch": 64, "learning_rate": 1e-3, "final_lr_fraction": 0.1, "seed": 0,
               "jitter": True},
 }
+
+
+class SGData(NamedTuple):
+    """A captured light-field texture (``data.make_dataset``).
+
+    Fields:
+      atlas: the lightmap atlas (dict of arrays, ``jprt.render.lightmap.Atlas``).
+      images: (T, n, n, 3) the field the lobes fit (``capture.field``), one octahedral map per texel.
+      below: (T, n, n) directions under each texel's surface.
+      normal: (T, 3) texel normals.  flags: (T,) ``jprt.render.lightfield`` flags.
+      irradiance: (T, 3) irradiance of the same field (the diffuse term's input).
+      meta: capture settings and seconds.
+    """
+
+    atlas: dict
+    images: np.ndarray
+    below: np.ndarray
+    normal: np.ndarray
+    flags: np.ndarray
+    irradiance: np.ndarray
+    meta: dict
 
 
 class Lobes(NamedTuple):
@@ -66,10 +102,11 @@ def constrain(raw, min_sharpness: float = 0.5, max_sharpness: float = 1.0e4, ini
     the whole image (sharp random lobes pointing away from the light die at the start)."""
     raw = jnp.asarray(raw)
     r = raw[..., :3]
-    norm = jnp.sqrt(jnp.sum(r * r, axis=-1, keepdims=True))
-    # a zero raw axis has no direction: +z stands in (any unit vector keeps the constraint)
-    axes = jnp.where(norm > 1e-12, r / jnp.maximum(norm, 1e-12), jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], r.dtype),
-                                                                                  r.shape))
+    # a (near-)zero raw axis has no direction: +z stands in, chosen *before* the norm so that
+    # neither value nor gradient divides by zero (a where after it would pass inf * 0 = NaN back)
+    tiny = jnp.sum(r * r, axis=-1, keepdims=True) <= 1e-24
+    r = jnp.where(tiny, jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0], r.dtype), r.shape), r)
+    axes = r / jnp.sqrt(jnp.sum(r * r, axis=-1, keepdims=True))
     lo, hi = math.log(min_sharpness), math.log(max_sharpness)
     s0 = (math.log(init_sharpness) - lo) / (hi - lo)
     sharpness = jnp.exp(lo + (hi - lo) * jax.nn.sigmoid(raw[..., 3] + math.log(s0 / (1.0 - s0))))
@@ -206,3 +243,84 @@ def shade(lobes: Lobes, normal, view, roughness, specular, diffuse_albedo, irrad
 def to_storage(lobes: Lobes, dtype=jnp.float16) -> Lobes:
     """Lobes as stored at run time (the paper: 16-bit floats; 7 numbers x N lobes per texel)."""
     return Lobes(*(jnp.asarray(a, dtype) for a in lobes))
+
+
+def _cfg(config: dict | None) -> dict:
+    from jprt.methods.base import resolve
+
+    return resolve(DEFAULT_CONFIG, config)
+
+
+def fit(data: SGData, config: dict | None = None, *, progress: bool = True):
+    """Train the encoder on every captured texel (``fit_cnn``) and keep what the run time needs:
+    the lobes in float16 (7 numbers per lobe: 224 bytes per texel at 16 lobes), the texels'
+    irradiance and the atlas layout. Returns ``FitResult(params, info)``."""
+    import time
+
+    from jprt.methods.base import FitResult
+
+    cfg = _cfg(config)
+    t0 = time.perf_counter()
+    net, lobes, losses = fit_cnn(data.images, data.below, cfg, progress=progress)
+    stored = to_storage(lobes)
+    params = {"axes": stored.axes, "sharpness": stored.sharpness, "amplitude": stored.amplitude,
+              "irradiance": jnp.asarray(data.irradiance, jnp.float16),
+              "fill_index": np.asarray(data.atlas["fill_index"], np.int32)}
+    return FitResult(params, {"losses": losses, "train_s": time.perf_counter() - t0,
+                              "fit_log_l2": float(losses[-1]) if len(losses) else None,
+                              "bytes_per_texel": int(sum(np.asarray(a).nbytes for a in stored)) // len(data.images)})
+
+
+def lookup_lobes(params, uv) -> Lobes:
+    """The lobes at atlas UVs (..., 2): each parameter bilinear between the four nearest texels
+    (§6: the texture is filtered like any other), axes renormalised."""
+    from jprt.methods.atlas import atlas_image, atlas_lookup
+
+    fill = jnp.asarray(params["fill_index"])
+    n = params["sharpness"].shape[-1]
+    packed = jnp.concatenate([jnp.asarray(params["axes"], jnp.float32).reshape(-1, 3 * n),
+                              jnp.asarray(params["sharpness"], jnp.float32),
+                              jnp.asarray(params["amplitude"], jnp.float32).reshape(-1, 3 * n)], axis=-1)
+    at = atlas_lookup(atlas_image(packed, fill), jnp.asarray(uv, jnp.float32))
+    axes = at[..., :3 * n].reshape(at.shape[:-1] + (n, 3))
+    axes = axes / jnp.sqrt(jnp.maximum(jnp.sum(axes * axes, axis=-1, keepdims=True), 1e-20))
+    return Lobes(axes, at[..., 3 * n:4 * n], at[..., 4 * n:].reshape(at.shape[:-1] + (n, 3)))
+
+
+def evaluator(params, config: dict | None = None):
+    """``evaluate(inputs, scale) -> (H, W, 3)``: a G-buffer with atlas ``uv`` (``jprt.render.
+    lightmap.atlas_gbuffer``) shaded from its texels' lobes (``shade``); ``scale`` (3,) multiplies
+    the baked lighting per channel (light transport is linear in the emitters' power: the only
+    relighting a baked light field allows). Invalid pixels are 0."""
+    _cfg(config)
+    from jprt.methods.atlas import atlas_image, atlas_lookup
+
+    fill = jnp.asarray(params["fill_index"])
+
+    def evaluate(inputs, scale):
+        lobes = lookup_lobes(params, inputs.uv)
+        irradiance = atlas_lookup(atlas_image(jnp.asarray(params["irradiance"], jnp.float32), fill),
+                                  jnp.asarray(inputs.uv, jnp.float32))
+        out = shade(lobes, jnp.asarray(inputs.normal), jnp.asarray(inputs.view), jnp.asarray(inputs.roughness),
+                    jnp.asarray(inputs.specular_albedo), jnp.asarray(inputs.diffuse_albedo), irradiance)
+        out = out * jnp.asarray(scale, jnp.float32).reshape((1,) * (out.ndim - 1) + (3,))
+        return jnp.where(jnp.asarray(inputs.valid, bool)[..., None], out, 0.0)
+
+    return evaluate
+
+
+def example(data: SGData, config: dict | None = None):
+    """The atlas seen head-on: every texel shaded along its own normal (roughness 0.3, specular
+    0.9), at the bake's lighting (scale 1)."""
+    from jprt.methods.atlas import atlas_inputs
+
+    _cfg(config)
+    r = int(data.atlas["resolution"])
+    g = atlas_inputs(r, data.atlas["texel_index"])
+    normal = np.zeros((r * r, 3), np.float32)
+    normal[:, 2] = 1.0
+    normal[np.asarray(data.atlas["texel_index"])] = np.asarray(data.normal, np.float32)
+    normal = normal.reshape(r, r, 3)
+    g = g._replace(normal=normal, view=normal, reflected=normal, roughness=np.full((r, r), 0.3, np.float32),
+                   specular_albedo=np.full((r, r, 3), 0.9, np.float32))
+    return g, np.ones(3, np.float32)
