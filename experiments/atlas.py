@@ -316,8 +316,10 @@ def applicability(task: dict, name: str) -> str | None:
     """None when method ``name`` runs on ``task``, else why not."""
     data = _package_data(REGISTRY[name])
     kinds = getattr(data, "TASK_LIGHTINGS", None)
-    if kinds is None or not hasattr(data, "task_inputs"):
+    if kinds is None or (kinds and not hasattr(data, "task_inputs")):
         return f"{name} has no task adapter (data.TASK_LIGHTINGS / task_inputs / task_lighting)"
+    if not kinds:
+        return f"{name} is baked for its scene's own emitters and relights none of the tasks' lightings"
     if task["lighting"] not in kinds:
         return f"{name} takes {', '.join(kinds)} lighting, the task is {task['lighting']}"
     if name not in task["methods"]:

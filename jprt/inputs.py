@@ -21,7 +21,7 @@ from typing import NamedTuple, Union
 import numpy as np
 
 __all__ = ["GBuffer", "Camera", "PointLights", "SpotLights", "DirectionalLights", "EnvMap", "CubeMap",
-           "SHLighting", "PointRadiance", "Lighting", "validate_envmap", "validate_lighting", "vec3"]
+           "SHLighting", "PointRadiance", "LightScale", "Lighting", "validate_envmap", "validate_lighting", "vec3"]
 
 
 def vec3(v) -> tuple[float, float, float]:
@@ -255,6 +255,18 @@ class PointRadiance(NamedTuple):
     direct: np.ndarray
 
 
+class LightScale(NamedTuple):
+    """The lighting a method was baked with, scaled per channel (SG light-field textures: the
+    light field is captured under the scene's own emitters, and light transport is linear in
+    their power, so an RGB factor is the one relighting a baked texture allows).
+
+    Fields:
+      scale: (3,) float32 RGB factor (1 = as baked).
+    """
+
+    scale: np.ndarray
+
+
 Lighting = Union[PointLights, SpotLights, DirectionalLights, EnvMap, None]
 
 
@@ -293,7 +305,8 @@ def _register_export_serialization() -> None:
     """Let ``jax.export`` serialise functions whose arguments are these NamedTuples."""
     import jax
 
-    for t in (GBuffer, PointLights, SpotLights, DirectionalLights, EnvMap, CubeMap, SHLighting, PointRadiance):
+    for t in (GBuffer, PointLights, SpotLights, DirectionalLights, EnvMap, CubeMap, SHLighting, PointRadiance,
+              LightScale):
         jax.export.register_namedtuple_serialization(t, serialized_name=f"jprt.inputs.{t.__name__}")
 
 

@@ -125,7 +125,9 @@ def test_task_adapter(mi, fitted, name):
 
     m, config, dataset, result = fitted[name]
     data = sys.modules[m.make_dataset.__module__]
-    assert set(data.TASK_LIGHTINGS) <= {"point", "environment"} and data.TASK_LIGHTINGS
+    assert set(data.TASK_LIGHTINGS) <= {"point", "environment"}
+    if not data.TASK_LIGHTINGS:  # baked for its own lights (SG light-field textures): no task adapter to check
+        return
     camera = look_at((0.0, 0.0, 3.9), (0.0, 0.0, 0.0), width=8, height=8)
     face = int(config.get("envmaps", {}).get("face_size", 4))
     lightings = {"point": PointLights.create([[0.0, 0.6, 0.0]], [1.0, 1.0, 1.0]),

@@ -1,8 +1,32 @@
 """Spherical-Gaussian light-field textures (Currius et al. 2020): ``model`` (lobes, constraints,
-the log-L2 loss, the CNN encoder's training, the run-time shading; pure JAX). The light-field
-capture it fits is ``jprt.render.lightfield``. Not registered in ``jprt.methods.REGISTRY`` yet:
-the dataset, the baselines, environment visibility and the experiment are still to come."""
+the log-L2 loss, the CNN encoder's training, the run-time shading; pure JAX) and ``data`` (the
+receivers' light-field texture, captured by ``jprt.render.lightfield``). Still to come (issue 15):
+the per-texel baselines, environment visibility W_E, the experiment and its benchmark."""
 
-from jprt.methods.sg_lightfield import model
+from jprt.inputs import LightScale
+from jprt.methods.base import Method
+from jprt.methods.sg_lightfield import data, model
 
-__all__ = ["model"]
+__all__ = ["METHOD", "PRESETS", "data", "model"]
+
+#: Named config overrides; ``test`` captures, fits and shades a 32^2 atlas in seconds.
+PRESETS = {
+    "test": {
+        "lightmap": {"resolution": 32},
+        "capture": {"size": 8, "spp": 4, "block": 256},
+        "model": {"n_lobes": 4, "channels": [8, 16]},
+        "train": {"steps": 30, "batch": 32},
+    },
+}
+
+
+def _fit(dataset, config=None):
+    """``model.fit`` without a progress bar (the contract's signature)."""
+    return model.fit(dataset, config, progress=False)
+
+
+METHOD = Method.of_package(
+    "sg_lightfield",
+    "Currius, Dolonius, Assarsson, Sintorn 2020, Spherical Gaussian Light-field Textures for Fast Precomputed "
+    "Global Illumination",
+    LightScale, model, data, PRESETS, fit=_fit)

@@ -8,7 +8,11 @@ import numpy as np
 
 from jprt.methods.sg_lightfield.model import SGData, _cfg, texel_irradiance
 
-__all__ = ["make_dataset"]
+__all__ = ["make_dataset", "TASK_LIGHTINGS"]
+
+#: The shared tasks of experiments/atlas.py relight with lights the bake never saw: a light-field
+#: texture is baked for its scene's own emitters, so it takes part in none of them.
+TASK_LIGHTINGS: tuple = ()
 
 
 def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,

@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jprt.inputs import LightScale
 from jprt.sphere import octahedral
 from jprt.sphere import sg
 
@@ -288,16 +289,18 @@ def lookup_lobes(params, uv) -> Lobes:
 
 
 def evaluator(params, config: dict | None = None):
-    """``evaluate(inputs, scale) -> (H, W, 3)``: a G-buffer with atlas ``uv`` (``jprt.render.
-    lightmap.atlas_gbuffer``) shaded from its texels' lobes (``shade``); ``scale`` (3,) multiplies
-    the baked lighting per channel (light transport is linear in the emitters' power: the only
-    relighting a baked light field allows). Invalid pixels are 0."""
+    """``evaluate(inputs, lighting) -> (H, W, 3)``: a G-buffer with atlas ``uv`` (``jprt.render.
+    lightmap.atlas_gbuffer``) shaded from its texels' lobes (``shade``); ``lighting`` is a
+    ``jprt.inputs.LightScale`` (or its (3,) array): the baked lighting scaled per channel (light
+    transport is linear in the emitters' power: the only relighting a baked light field allows).
+    Invalid pixels are 0."""
     _cfg(config)
     from jprt.methods.atlas import atlas_image, atlas_lookup
 
     fill = jnp.asarray(params["fill_index"])
 
-    def evaluate(inputs, scale):
+    def evaluate(inputs, lighting):
+        scale = lighting.scale if hasattr(lighting, "scale") else lighting
         lobes = lookup_lobes(params, inputs.uv)
         irradiance = atlas_lookup(atlas_image(jnp.asarray(params["irradiance"], jnp.float32), fill),
                                   jnp.asarray(inputs.uv, jnp.float32))
@@ -323,4 +326,4 @@ def example(data: SGData, config: dict | None = None):
     normal = normal.reshape(r, r, 3)
     g = g._replace(normal=normal, view=normal, reflected=normal, roughness=np.full((r, r), 0.3, np.float32),
                    specular_albedo=np.full((r, r, 3), 0.9, np.float32))
-    return g, np.ones(3, np.float32)
+    return g, LightScale(np.ones(3, np.float32))
