@@ -294,7 +294,7 @@ def fit_em(directions, weights, values, init_axes, *, iterations: int = 100, ini
     values = jnp.asarray(values, jnp.float32)
     lum = jnp.maximum(jnp.mean(values, axis=-1), 0.0)
     w = lum * weights
-    total = jnp.sum(w)
+    total = jnp.maximum(jnp.sum(w), 1e-30)  # a black image (a texel inside geometry) has no mass: no 0 / 0
     axes = jnp.asarray(init_axes, jnp.float32)
     k = axes.shape[0]
     kappa = jnp.full((k,), init_sharpness, jnp.float32)
@@ -320,7 +320,10 @@ def fit_em(directions, weights, values, init_axes, *, iterations: int = 100, ini
 
     axes, kappa, pi = em(axes, kappa, pi)
     basis = jnp.exp(kappa[None, :] * (directions @ axes.T - 1.0))  # (N, K)
-    gram = (basis * weights[:, None]).T @ basis + 1e-9 * jnp.eye(k)
+    gram = (basis * weights[:, None]).T @ basis
+    # a ridge relative to the Gram's scale: coincident lobes (a black image collapses every axis)
+    # make it singular in float32, where an absolute 1e-9 is below rounding
+    gram = gram + (1e-6 * jnp.trace(gram) / k + 1e-30) * jnp.eye(k)
     rhs = (basis * weights[:, None]).T @ values
     amplitudes = jnp.maximum(jnp.linalg.solve(gram, rhs), 0.0)
     pred = basis @ amplitudes

@@ -9,13 +9,14 @@ from jprt.methods.sg_lightfield import data, model
 
 __all__ = ["METHOD", "PRESETS", "data", "model"]
 
-#: Named config overrides; ``test`` captures, fits and shades a 32^2 atlas in seconds.
+#: Named config overrides; ``test`` captures, fits and shades the floor's 16^2 atlas in seconds.
 PRESETS = {
     "test": {
-        "lightmap": {"resolution": 32},
-        "capture": {"size": 8, "spp": 4, "block": 256},
-        "model": {"n_lobes": 4, "channels": [8, 16]},
-        "train": {"steps": 30, "batch": 32},
+        "objects": ["floor"],
+        "lightmap": {"resolution": 16},
+        "capture": {"size": 8, "spp": 2, "block": 256},
+        "model": {"n_lobes": 2, "channels": [4, 8]},
+        "train": {"steps": 20, "batch": 16},
     },
 }
 

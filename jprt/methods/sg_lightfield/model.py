@@ -299,6 +299,7 @@ def evaluator(params, config: dict | None = None):
 
     fill = jnp.asarray(params["fill_index"])
 
+    @jax.jit
     def evaluate(inputs, lighting):
         scale = lighting.scale if hasattr(lighting, "scale") else lighting
         lobes = lookup_lobes(params, inputs.uv)
