@@ -188,6 +188,7 @@ def test_tiny_light_field_texture_end_to_end(mi, tmp_path):
                                one * np.array([2.0, 1.0, 0.5]), rtol=1e-5, atol=1e-7)  # linear in the lights
 
 
+@pytest.mark.slow  # ~5 s of compilation (the experiment's test preset will run them by default)
 def test_baselines_fit_the_same_texels_and_survive_a_black_one():
     """Every per-texel baseline on the known mixtures plus one black texel (a texel inside
     geometry): finite losses; the free-axis fits (GD, EM) beat the fixed bases on sharp lobes."""

@@ -187,6 +187,15 @@ def test_em_recovers_a_known_four_lobe_mixture(mixture_image):
     np.testing.assert_allclose(np.asarray(fit.sharpness)[order], TRUE_SHARPNESS, rtol=0.15)
 
 
+def test_em_on_a_black_image_is_black_not_nan(mixture_image):
+    """A texel inside geometry has a black light field: no mass, every axis collapses; the fit
+    must come back finite with zero amplitudes (it returned NaN: 0 / 0 and a singular Gram)."""
+    d, w, values, _ = mixture_image
+    fit = sg.fit_em(d, w, jnp.zeros_like(values), sg.peak_axes(d, values, 4), iterations=20)
+    assert np.isfinite(np.asarray(fit.amplitudes)).all() and np.isfinite(float(fit.loss))
+    np.testing.assert_array_equal(np.asarray(fit.amplitudes), 0.0)
+
+
 def test_alignment_regulariser_pulls_neighbouring_lobes_together():
     """Two texels whose single lobes point 20 degrees apart: the regulariser brings them closer."""
     from jprt.sphere import cubemap
