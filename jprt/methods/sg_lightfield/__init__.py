@@ -1,13 +1,16 @@
 """Spherical-Gaussian light-field textures (Currius et al. 2020): ``model`` (lobes, constraints,
 the log-L2 loss, the CNN encoder's training, the run-time shading; pure JAX) and ``data`` (the
-receivers' light-field texture, captured by ``jprt.render.lightfield``). Still to come (issue 15):
-the per-texel baselines, environment visibility W_E, the experiment and its benchmark."""
+receivers' light-field texture, captured by ``jprt.render.lightfield``) and ``baselines`` (the
+per-texel fits the paper compares with). Still to come (issue 15): environment visibility W_E, the
+experiment and its benchmark."""
+
+import functools
 
 from jprt.inputs import LightScale
 from jprt.methods.base import Method
-from jprt.methods.sg_lightfield import data, model
+from jprt.methods.sg_lightfield import baselines, data, model
 
-__all__ = ["METHOD", "PRESETS", "data", "model"]
+__all__ = ["METHOD", "PRESETS", "baselines", "data", "model"]
 
 #: Named config overrides; ``test`` captures, fits and shades the floor's 16^2 atlas in seconds.
 PRESETS = {
@@ -21,13 +24,9 @@ PRESETS = {
 }
 
 
-def _fit(dataset, config=None):
-    """``model.fit`` without a progress bar (the contract's signature)."""
-    return model.fit(dataset, config, progress=False)
-
-
 METHOD = Method.of_package(
     "sg_lightfield",
     "Currius, Dolonius, Assarsson, Sintorn 2020, Spherical Gaussian Light-field Textures for Fast Precomputed "
     "Global Illumination",
-    LightScale, model, data, PRESETS, fit=_fit)
+    LightScale, model, data, PRESETS,
+    fit=functools.partial(model.fit, progress=False))  # the contract's fit: no progress bar

@@ -2,6 +2,8 @@
 MLP, §5 training, Algorithm 1; pure JAX) and ``data`` (environment-lit images rendered with
 Mitsuba)."""
 
+import functools
+
 from jprt.inputs import CubeMap
 from jprt.methods.base import Method
 from jprt.methods.wavelet_prt import data, model
@@ -21,13 +23,9 @@ PRESETS = {
 }
 
 
-def _fit(dataset, config=None):
-    """``model.fit`` without checkpoints or a progress bar (the contract's signature)."""
-    return model.fit(dataset, config, progress=False)
-
-
 METHOD = Method.of_package(
     "wavelet_prt",
     "Raghavan, Luan, Ramamoorthi, Hasan 2023, Neural Free-Viewpoint Relighting for Glossy Indirect "
     "Illumination",
-    CubeMap, model, data, PRESETS, fit=_fit)
+    CubeMap, model, data, PRESETS,
+    fit=functools.partial(model.fit, progress=False))  # the contract's fit: no progress bar
