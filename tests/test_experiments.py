@@ -94,3 +94,13 @@ def test_wavelet_prt_test_preset(mi, tmp_path, monkeypatch):
     assert set(e["ablations"]) == {"log2_table_size", "reflection", "spatial"}
     for name in ("loss.png", "gt_transport_error_vs_k.png", "equal_error.png", "side_by_side_baseline.png"):
         assert os.path.isfile(os.path.join(folder, name)), name
+
+
+@pytest.mark.slow  # ~25 s: capture, CNN, held-out views, equal error, the five baselines
+def test_sg_lightfield_test_preset(mi, tmp_path):
+    s, folder = _run("sg_lightfield", tmp_path)
+    e = s["extra"]
+    assert set(e["fit_log_l2"]) == {"cnn", "gd", "gd_aligned", "em", "fixed_axes", "sh"}
+    assert all(np.isfinite(v) and v >= 0 for v in e["fit_log_l2"].values())
+    assert e["bytes_per_texel"] == 2 * 7 * 2  # the test preset's 2 lobes of 7 float16 numbers
+    assert e["texels"] > 0 and np.isfinite(e["psnr_delta_fp16"])

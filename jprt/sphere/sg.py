@@ -196,6 +196,9 @@ def peak_axes(directions, values, k: int, min_separation_deg: float = 5.0):
         cos = d @ d[i]
         near = (residual > 0.5 * peak) & (cos > 0.5) & (cos < 1.0 - 1e-9)
         lam = np.median(np.log(peak / residual[near]) / (1.0 - cos[near])) if near.any() else 10.0
+        # a direction taken for separation need not be its neighbourhood's peak: then the estimate
+        # is negative (it overflowed exp below); a lobe's sharpness is positive
+        lam = float(np.clip(lam, 0.1, 1e4))
         residual = np.maximum(residual - peak * np.exp(lam * (cos - 1.0)), 0.0)
         chosen.append(d[i])
     return np.asarray(chosen, np.float32)
