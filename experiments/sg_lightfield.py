@@ -84,7 +84,8 @@ def _gbuffer(run, camera):
 
 def held_out(run) -> HeldOut:
     """Mitsuba's indirect light of the held-out views (the scene's own emitters, ``reference_spp``)
-    against the evaluator on each view's atlas G-buffer; pixels on the receivers count."""
+    against the evaluator on each view's atlas G-buffer; only pixels on the receivers count
+    (the references are zero elsewhere, like the predictions)."""
     from jprt.render.dataset import render_dataset
 
     e = run.config["eval"]
@@ -96,8 +97,10 @@ def held_out(run) -> HeldOut:
     one = LightScale(np.ones(3, np.float32))
     preds = [np.asarray(run.evaluate(g, one)) for g in gbs]
     rad = [refs.radiance(k) for k in range(len(refs))]
-    return HeldOut(preds, [r["indirect"] for r in rad], [g.valid for g in gbs], [r["direct"] for r in rad],
-                   [f"view {k}" for k in range(len(gbs))])
+    # only the receivers have a light-field texture: every metric (tonemapped ones too) sees them alone
+    mask = [g.valid[..., None] for g in gbs]
+    return HeldOut(preds, [np.where(m, r["indirect"], 0.0) for m, r in zip(mask, rad)], [g.valid for g in gbs],
+                   [np.where(m, r["direct"], 0.0) for m, r in zip(mask, rad)], [f"view {k}" for k in range(len(gbs))])
 
 
 def frame(run):

@@ -40,7 +40,7 @@ from jprt.sphere import octahedral
 from jprt.sphere import sg
 
 __all__ = ["DEFAULT_CONFIG", "GLOSSY_RECEIVERS", "SGData", "Lobes", "fit", "evaluator", "example", "lookup_lobes", "PARAMS_PER_LOBE", "constrain", "lobe_radiance", "jittered_directions",
-           "log_l2_loss", "fit_cnn", "encode", "texel_irradiance", "shade", "to_storage"]
+           "log_l2_loss", "fit_cnn", "encode", "initial_amplitude", "texel_irradiance", "shade", "to_storage"]
 
 #: Raw numbers per lobe the encoder outputs: axis (3), sharpness (1), RGB amplitude (3).
 PARAMS_PER_LOBE = 7
@@ -97,10 +97,13 @@ class Lobes(NamedTuple):
     amplitude: jax.Array
 
 
-def constrain(raw, min_sharpness: float = 0.5, max_sharpness: float = 1.0e4, init_sharpness: float = 4.0) -> Lobes:
-    """Raw encoder outputs (..., N, 7) -> constrained ``Lobes`` (module docstring). A raw
-    sharpness of 0 means ``init_sharpness``: lobes start broad, so every lobe's gradient reaches
-    the whole image (sharp random lobes pointing away from the light die at the start)."""
+def constrain(raw, min_sharpness: float = 0.5, max_sharpness: float = 1.0e4, init_sharpness: float = 4.0,
+              init_amplitude: float = math.log(2.0)) -> Lobes:
+    """Raw encoder outputs (..., N, 7) -> constrained ``Lobes`` (module docstring). Raw zeros
+    mean ``init_sharpness`` and ``init_amplitude``: lobes start broad, so every lobe's gradient
+    reaches the whole image (sharp random lobes pointing away from the light die at the start),
+    and as bright as the data (``fit_cnn`` sets it from the images: lobes far brighter than the
+    light field are driven to zero amplitude and maximal sharpness, where they stay dead)."""
     raw = jnp.asarray(raw)
     r = raw[..., :3]
     # a (near-)zero raw axis has no direction: +z stands in, chosen *before* the norm so that
@@ -111,7 +114,8 @@ def constrain(raw, min_sharpness: float = 0.5, max_sharpness: float = 1.0e4, ini
     lo, hi = math.log(min_sharpness), math.log(max_sharpness)
     s0 = (math.log(init_sharpness) - lo) / (hi - lo)
     sharpness = jnp.exp(lo + (hi - lo) * jax.nn.sigmoid(raw[..., 3] + math.log(s0 / (1.0 - s0))))
-    return Lobes(axes, sharpness, jax.nn.softplus(raw[..., 4:7]))
+    offset = math.log(math.expm1(max(float(init_amplitude), 1e-30)))  # softplus(offset) = init_amplitude
+    return Lobes(axes, sharpness, jax.nn.softplus(raw[..., 4:7] + offset))
 
 
 def lobe_radiance(lobes: Lobes, directions):
@@ -144,15 +148,26 @@ def _pixel_weights(size: int, below):
     return sa[None, :] * (1.0 - jnp.asarray(below, jnp.float32).reshape(below.shape[0], -1))
 
 
-def encode(net_params, images, config: dict) -> Lobes:
-    """The encoder's lobes for light-field images (T, n, n, 3) (its input is log(1 + T))."""
+def initial_amplitude(images, below, n_lobes: int, init_sharpness: float) -> float:
+    """The amplitude making N broad lobes' mean match the images' mean above the surfaces: a lobe
+    of sharpness lambda averages (1 - exp(-2 lambda)) / (2 lambda) of its amplitude over the sphere."""
+    seen = ~np.asarray(below, bool)
+    mean = float(np.asarray(images, np.float64)[seen].mean()) if seen.any() else 0.0
+    lam = float(init_sharpness)
+    return max(mean, 1e-6) * 2.0 * lam / (-math.expm1(-2.0 * lam)) / int(n_lobes)
+
+
+def encode(net_params, images, config: dict, init_amplitude: float = math.log(2.0)) -> Lobes:
+    """The encoder's lobes for light-field images (T, n, n, 3) (its input is log(1 + T));
+    ``init_amplitude``: the one the encoder was trained with (``fit_cnn``'s info)."""
     from jprt.nn.cnn import sg_encoder
 
     m = config["model"]
     net = sg_encoder(image_size=images.shape[1], n_lobes=int(m["n_lobes"]), params_per_lobe=PARAMS_PER_LOBE,
                      channels=tuple(m["channels"]))
     raw = net.apply(net_params, jnp.log1p(jnp.maximum(jnp.asarray(images, jnp.float32), 0.0)))
-    return constrain(raw, float(m["min_sharpness"]), float(m["max_sharpness"]), float(m["init_sharpness"]))
+    return constrain(raw, float(m["min_sharpness"]), float(m["max_sharpness"]), float(m["init_sharpness"]),
+                     init_amplitude)
 
 
 def fit_cnn(images, below, config: dict, *, progress: bool = True):
@@ -175,10 +190,13 @@ def fit_cnn(images, below, config: dict, *, progress: bool = True):
     batch = min(int(t["batch"]), n_tex)
     jitter = bool(t["jitter"])
 
+    a0 = initial_amplitude(images, below, int(m["n_lobes"]), float(m["init_sharpness"]))
+
     def loss_fn(params, batch):
         inputs, target, weight, dirs = batch
         raw = net.apply(params, inputs)
-        return log_l2_loss(constrain(raw, float(m["min_sharpness"]), float(m["max_sharpness"]), float(m["init_sharpness"])), dirs, target, weight)
+        lobes = constrain(raw, float(m["min_sharpness"]), float(m["max_sharpness"]), float(m["init_sharpness"]), a0)
+        return log_l2_loss(lobes, dirs, target, weight)
 
     def sampler(key, step, data):
         logs, targets, weights = data
@@ -194,7 +212,7 @@ def fit_cnn(images, below, config: dict, *, progress: bool = True):
     result = adam.train(loss_fn, params, sampler, key=jax.random.PRNGKey(int(t["seed"]) + 1), steps=steps,
                         learning_rate=schedule, eps=1e-8, progress=progress, data=data)
     trained = result.state.params
-    lobes = jax.lax.map(lambda im: encode(trained, im[None], config), images)
+    lobes = jax.lax.map(lambda im: encode(trained, im[None], config, a0), images)
     lobes = Lobes(*(a[:, 0] for a in lobes))
     return trained, lobes, np.asarray(result.losses)
 
