@@ -24,7 +24,7 @@ def test_constraints_hold_for_any_raw_output(raw):
     assert (np.asarray(lobes.amplitude) >= 0).all() and np.isfinite(np.asarray(lobes.amplitude)).all()
     stored = M.to_storage(lobes)  # float16 holds every constrained sharpness (<= 1e4 < 65504)
     assert all(np.isfinite(np.asarray(a, np.float32)).all() for a in stored)
-    np.testing.assert_allclose(float(M.constrain(jnp.zeros((1, 7))).sharpness[0]), 4.0, rtol=1e-5)
+    np.testing.assert_allclose(float(M.constrain(jnp.zeros((1, 7))).sharpness[0]), 1.0, rtol=1e-5)
 
 
 def test_appendix_a_gradients_with_the_errata():
@@ -44,24 +44,26 @@ def test_appendix_a_gradients_with_the_errata():
     np.testing.assert_allclose(np.asarray(gu), np.asarray(mu * e * lam * v), rtol=1e-5)
 
 
-def _two_lobe_images(size, n_tex):
+def _two_lobe_images(size, n_tex, brightness=1.0):
     dirs = jnp.asarray(octahedral.texel_directions(size)).reshape(-1, 3)
     images, truth = [], []
     for t in range(n_tex):
         a1 = np.array([0.2 * np.cos(t), 0.2 * np.sin(t), 1.0])
         a2 = np.array([0.8, 0.1 * t / n_tex, 0.5])
         lobes = M.Lobes(jnp.asarray(np.stack([a1 / np.linalg.norm(a1), a2 / np.linalg.norm(a2)]), jnp.float32),
-                        jnp.asarray([30.0, 8.0]), jnp.asarray([[4.0, 3.0, 2.0], [0.5, 0.8, 1.0]]))
+                        jnp.asarray([30.0, 8.0]), brightness * jnp.asarray([[4.0, 3.0, 2.0], [0.5, 0.8, 1.0]]))
         images.append(np.asarray(M.lobe_radiance(lobes, dirs)).reshape(size, size, 3))
         truth.append(lobes)
     return np.stack(images), truth
 
 
 def test_cnn_recovers_a_known_two_lobe_mixture():
+    """As dim as a captured indirect light field (mean ~0.03): lobes that start far brighter than
+    the data collapse to zero amplitude and maximal sharpness and never recover."""
     size, n_tex = 16, 16
-    images, truth = _two_lobe_images(size, n_tex)
+    images, truth = _two_lobe_images(size, n_tex, brightness=0.05)
     config = {"model": {"n_lobes": 2, "channels": [8, 16], "min_sharpness": 0.5, "max_sharpness": 1e4,
-                        "init_sharpness": 4.0},
+                        "init_sharpness": 1.0},
               "train": {"steps": 500, "batch": 16, "learning_rate": 1e-2, "final_lr_fraction": 0.1, "seed": 0,
                         "jitter": False}}
     _, lobes, losses = M.fit_cnn(images, np.zeros(images.shape[:3], bool), config, progress=False)

@@ -62,7 +62,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     # (the emitters seen in the lobes too: direct + indirect, as the paper bakes)
     "capture": {"size": 32, "spp": 64, "seed": 0, "block": 256, "field": "indirect"},
     "model": {"n_lobes": 16, "channels": [32, 64, 128, 256], "min_sharpness": 0.5, "max_sharpness": 1.0e4,
-              "init_sharpness": 4.0},
+              "init_sharpness": 1.0},
     "train": {"steps": 2000, "batch": 64, "learning_rate": 1e-3, "final_lr_fraction": 0.1, "seed": 0,
               "jitter": True},
 }
@@ -97,7 +97,7 @@ class Lobes(NamedTuple):
     amplitude: jax.Array
 
 
-def constrain(raw, min_sharpness: float = 0.5, max_sharpness: float = 1.0e4, init_sharpness: float = 4.0,
+def constrain(raw, min_sharpness: float = 0.5, max_sharpness: float = 1.0e4, init_sharpness: float = 1.0,
               init_amplitude: float = math.log(2.0)) -> Lobes:
     """Raw encoder outputs (..., N, 7) -> constrained ``Lobes`` (module docstring). Raw zeros
     mean ``init_sharpness`` and ``init_amplitude``: lobes start broad, so every lobe's gradient
