@@ -178,7 +178,14 @@ def test_tiny_light_field_texture_end_to_end(mi, tmp_path):
     assert data.images.shape[1:] == (8, 8, 3) and np.isfinite(data.images).all()
     result = M.fit(data, cfg, progress=False)
     losses = result.info["losses"]
-    assert np.isfinite(losses).all() and np.mean(losses[-10:]) < 0.5 * np.mean(losses[:10])
+    assert np.isfinite(losses).all() and np.mean(losses[-10:]) < np.mean(losses[:10])
+    # far better than black lobes (the collapse this texture once trained into), at the pixel centres
+    from jprt.methods.sg_lightfield import baselines
+
+    lobes = M.Lobes(*(np.asarray(result.params[k], np.float32) for k in ("axes", "sharpness", "amplitude")))
+    black = M.Lobes(lobes.axes, lobes.sharpness, np.zeros_like(lobes.amplitude))
+    assert baselines.cnn_log_l2(lobes, data.images, data.below) < 0.5 * baselines.cnn_log_l2(black, data.images,
+                                                                                               data.below)
     assert result.info["bytes_per_texel"] == 4 * 7 * 2  # 4 lobes of 7 float16 numbers
     evaluate = jax.jit(M.evaluator(result.params, cfg))
     gb = lightmap.atlas_gbuffer(SceneHandle(cfg["scene"]), lightmap.Atlas(**data.atlas),
