@@ -262,20 +262,26 @@ def task_data(task: dict, progress: bool = True) -> TaskData:
     return _TASK_DATA[key]
 
 
+def timed_camera(td: TaskData, resolution: int):
+    """The first held-out view at ``resolution``: the frame every method and Mitsuba are timed on."""
+    from jprt.render import cameras as cams
+
+    c0 = td.cameras[0]
+    return cams.look_at(c0.origin, c0.target, fov=c0.fov, width=int(resolution), height=int(resolution))
+
+
 def mitsuba_curve(task: dict, e: dict, say=print) -> list[dict]:
     """Mitsuba's speed-accuracy curve on the task: for every spp of ``e["curve_spp"]``, the
     indirect RMSE of the held-out set path traced at that spp (full minus direct, seed
     ``curve_seed``) against the references, and the wall time (ms) of one frame of the first
     held-out view and lighting at ``timing_resolution`` (both renders)."""
-    from jprt.render import cameras as cams
     from jprt.render.images import direct_indirect
     from jprt.render.scenes import SceneHandle
 
     td = task_data(task)
     handle = SceneHandle(task["scene"], td.mitsuba[0])
     tr = int(e["timing_resolution"])
-    c0 = td.cameras[0]
-    timed = cams.look_at(c0.origin, c0.target, fov=c0.fov, width=tr, height=tr)
+    timed = timed_camera(td, tr)
     curve = []
     for spp in e["curve_spp"]:
         images = []
@@ -365,11 +371,8 @@ def experiment(task_name: str, task: dict, name: str, e: dict, out: str) -> type
         return HeldOut(preds, td.references, td.valid, td.direct, td.labels)
 
     def frame(run):
-        from jprt.render import cameras as cams
-
-        td, tr = task_data(task), int(e["timing_resolution"])
-        c0 = td.cameras[0]
-        return arguments(run, cams.look_at(c0.origin, c0.target, fov=c0.fov, width=tr, height=tr), td.lightings[0])
+        td = task_data(task)
+        return arguments(run, timed_camera(td, e["timing_resolution"]), td.lightings[0])
 
     def fit(run):
         key = (name, stable_hash({k: v for k, v in run.method_config.items() if k != "render"}))

@@ -34,7 +34,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from jprt import cache
-from jprt.render.lightmap import Atlas, _eps, build_atlas, free_positions
+from jprt.render.lightmap import Atlas, _eps, _intersect, build_atlas, free_positions
 from jprt.render.scenes import SceneHandle, describe
 
 __all__ = ["LightField", "OK", "PUSHED", "INSIDE", "capture_points", "capture_block", "capture_lightfield"]
@@ -117,10 +117,7 @@ def capture_points(handle: SceneHandle, position, normal, texel_size: float, *,
 
 def _distance_along(handle: SceneHandle, origins, directions) -> np.ndarray:
     """Distance (K,) to the first surface along each ray (inf where none)."""
-    mi = handle.mi
-    o = np.asarray(origins, np.float32)
-    d = np.asarray(directions, np.float32)
-    si = handle.scene.ray_intersect(mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T)))
+    si = _intersect(handle, origins, directions)
     valid = np.array(si.is_valid(), bool).reshape(-1)
     return np.where(valid, np.array(si.t, np.float64).reshape(-1), np.inf)
 

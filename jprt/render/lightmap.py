@@ -321,11 +321,16 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
 # Per-pixel atlas coordinates
 
 
-def _primitive_hits(handle: SceneHandle, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+def _intersect(handle: SceneHandle, origins, directions):
+    """Mitsuba's first intersections (``SurfaceInteraction3f``) of rays (N, 3) x (N, 3), in float32."""
     mi = handle.mi
-    o, d = origins.astype(np.float32), directions.astype(np.float32)
+    o, d = np.asarray(origins, np.float32), np.asarray(directions, np.float32)
     ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
-    si = handle.scene.ray_intersect(ray)
+    return handle.scene.ray_intersect(ray)
+
+
+def _primitive_hits(handle: SceneHandle, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    si = _intersect(handle, origins, directions)
     prim = np.array(si.prim_index, np.int64).reshape(-1)
     return np.where(np.array(si.is_valid(), bool).reshape(-1), prim, -1)
 
@@ -435,15 +440,13 @@ def free_positions(handle: SceneHandle, points, *, clearance: float = 0.0, n_dir
     ``n_dirs`` rays in all directions hit a surface from its back side) and no surface is closer
     than ``clearance`` along those rays. Used to reject random light positions inside the
     Cornell box's blocks, or touching a wall."""
-    mi = handle.mi
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     g = np.stack(np.meshgrid(*[np.array([-1.0, 0.0, 1.0])] * 3, indexing="ij"), -1).reshape(-1, 3)
     dirs = g[np.any(g != 0, axis=1)][:n_dirs]
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     o = np.repeat(pts, len(dirs), axis=0)
     d = np.tile(dirs, (len(pts), 1))
-    ray = mi.Ray3f(mi.Point3f(*o.T.astype(np.float32)), mi.Vector3f(*d.T.astype(np.float32)))
-    si = handle.scene.ray_intersect(ray)
+    si = _intersect(handle, o, d)
     valid = np.array(si.is_valid(), bool).reshape(-1)
     n = np.array(si.n, np.float64)
     n = (n.T if n.shape[0] == 3 and n.ndim == 2 else n).reshape(-1, 3)

@@ -42,7 +42,7 @@ __all__ = [
     "mixture_evaluate", "mixture_integral",
     "asg_evaluate", "orthonormal_basis",
     "ggx_ndf_sg", "warp_ndf_to_asg", "convolve_sg_asg",
-    "peak_axes", "fit_gd", "fit_em",
+    "peak_axes", "log_l2", "fit_gd", "fit_em",
 ]
 
 _TINY = 1e-20
@@ -213,10 +213,11 @@ class FitResult(NamedTuple):
     loss: jax.Array
 
 
-def _log_l2(pred, target, weights):
-    """Weighted mean over samples of the log-L2 loss (Currius et al. §4); weights match pred[..., 0]."""
-    err = jnp.square(jnp.log1p(jnp.maximum(pred, 0.0)) - jnp.log1p(target))
-    return jnp.sum(weights[..., None] * err) / jnp.sum(weights)
+def log_l2(pred, target, weights):
+    """Weighted mean over samples of the log-L2 loss (Currius et al. §4, Eq. 9) summed over
+    channels: (log(1 + P) - log(1 + T))^2, radiances clamped at 0; weights match pred[..., 0]."""
+    err = jnp.square(jnp.log1p(jnp.maximum(pred, 0.0)) - jnp.log1p(jnp.maximum(target, 0.0)))
+    return jnp.sum(weights[..., None] * err) / jnp.maximum(jnp.sum(weights), 1e-20)
 
 
 def fit_gd(directions, weights, values, init_axes, *, init_sharpness: float = 10.0, steps: int = 500,
@@ -253,7 +254,7 @@ def fit_gd(directions, weights, values, init_axes, *, init_sharpness: float = 10
     def loss_fn(p):
         axes, lam, amp = unpack(p)
         pred = jax.vmap(lambda a, l, m: mixture_evaluate(directions, a, l, m))(axes, lam, amp)
-        loss = _log_l2(pred, values, jnp.broadcast_to(weights, values.shape[:2]))
+        loss = log_l2(pred, values, jnp.broadcast_to(weights, values.shape[:2]))
         if neighbours is not None and align_weight > 0.0:
             nb = jnp.asarray(neighbours)
             align = jnp.sum(axes[:, None, :, :] * axes[nb], axis=-1)  # (B, M, K)
@@ -330,5 +331,5 @@ def fit_em(directions, weights, values, init_axes, *, iterations: int = 100, ini
     rhs = (basis * weights[:, None]).T @ values
     amplitudes = jnp.maximum(jnp.linalg.solve(gram, rhs), 0.0)
     pred = basis @ amplitudes
-    loss = _log_l2(pred, values, weights)
+    loss = log_l2(pred, values, weights)
     return FitResult(axes, kappa, amplitudes, loss)

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jprt.methods.sg_lightfield.model import Lobes, lobe_radiance, log_l2_loss
+from jprt.methods.sg_lightfield.model import Lobes, lobe_radiance, log_l2_loss, pixel_weights
 from jprt.sphere import octahedral, sg, sh
 
 __all__ = ["fibonacci_axes", "atlas_neighbours", "fit_per_texel", "fit_fixed_axes", "fit_sh", "compare",
@@ -64,11 +64,6 @@ def atlas_neighbours(atlas: dict) -> np.ndarray:
     return out
 
 
-def _weights(size: int, below) -> jnp.ndarray:
-    sa = jnp.asarray(octahedral.texel_solid_angles(size)).reshape(-1)
-    return sa[None, :] * (1.0 - jnp.asarray(below, jnp.float32).reshape(below.shape[0], -1))
-
-
 def _init_axes(images, n_lobes: int) -> np.ndarray:
     dirs = np.asarray(octahedral.texel_directions(images.shape[1])).reshape(-1, 3)
     return np.stack([sg.peak_axes(dirs, im.reshape(-1, 3), n_lobes) for im in np.asarray(images)])
@@ -80,7 +75,7 @@ def fit_per_texel(images, below, n_lobes: int, *, steps: int = 500, learning_rat
     lobes at once (``sg.fit_gd``), masked by ``below``."""
     size = images.shape[1]
     dirs = octahedral.texel_directions(size).reshape(-1, 3)
-    fit = sg.fit_gd(dirs, _weights(size, below), jnp.asarray(images).reshape(len(images), -1, 3),
+    fit = sg.fit_gd(dirs, pixel_weights(size, below), jnp.asarray(images).reshape(len(images), -1, 3),
                     _init_axes(images, n_lobes), steps=steps, learning_rate=learning_rate, neighbours=neighbours,
                     align_weight=align_weight)
     return Lobes(fit.axes, fit.sharpness, fit.amplitudes)
@@ -91,7 +86,7 @@ def fit_em_lobes(images, below, n_lobes: int, *, iterations: int = 100) -> Lobes
     size = images.shape[1]
     dirs = octahedral.texel_directions(size).reshape(-1, 3)
     fit = jax.vmap(lambda w, v, a: sg.fit_em(dirs, w, v, a, iterations=iterations))(
-        _weights(size, below), jnp.asarray(images).reshape(len(images), -1, 3), jnp.asarray(_init_axes(images, n_lobes)))
+        pixel_weights(size, below), jnp.asarray(images).reshape(len(images), -1, 3), jnp.asarray(_init_axes(images, n_lobes)))
     return Lobes(fit.axes, fit.sharpness, fit.amplitudes)
 
 
@@ -118,7 +113,7 @@ def fit_fixed_axes(images, below, n_lobes: int) -> Lobes:
     axes = jnp.asarray(fibonacci_axes(n_lobes))
     lam = math.log(2.0) / (1.0 - math.cos(math.sqrt(4.0 * math.pi / n_lobes)))
     basis = jnp.exp(lam * (dirs @ axes.T - 1.0))  # (M, K)
-    amp = _nnls_rows(basis, _weights(size, below), jnp.asarray(images).reshape(len(images), -1, 3))
+    amp = _nnls_rows(basis, pixel_weights(size, below), jnp.asarray(images).reshape(len(images), -1, 3))
     t = len(images)
     return Lobes(jnp.broadcast_to(axes, (t, n_lobes, 3)), jnp.full((t, n_lobes), lam, jnp.float32), amp)
 
@@ -134,7 +129,7 @@ def fit_sh(images, below, degree: int):
     size = images.shape[1]
     dirs = octahedral.texel_directions(size).reshape(-1, 3)
     y = sh.evaluate(dirs, int(degree))  # (M, K)
-    w = _weights(size, below)
+    w = pixel_weights(size, below)
     gram = jnp.einsum("mk,tm,ml->tkl", y, w, y) + 1e-6 * jnp.eye(y.shape[-1])[None]
     rhs = jnp.einsum("mk,tm,tmc->tkc", y, w, jnp.asarray(images).reshape(len(images), -1, 3))
     coeffs = jnp.linalg.solve(gram, rhs)
@@ -148,7 +143,7 @@ def compare(images, below, atlas: dict, n_lobes: int, *, steps: int = 500, align
     dirs = octahedral.texel_directions(size).reshape(-1, 3)
     t = len(images)
     targets = jnp.asarray(images).reshape(t, -1, 3)
-    weights = _weights(size, below)
+    weights = pixel_weights(size, below)
     at_centres = jnp.broadcast_to(dirs, (t,) + dirs.shape)
     out = {}
     for name in methods:
@@ -167,8 +162,7 @@ def compare(images, below, atlas: dict, n_lobes: int, *, steps: int = 500, align
         else:
             raise ValueError(f"unknown baseline {name!r}; baselines are {BASELINES}")
         pred = jax.block_until_ready(pred)
-        err = jnp.sum(jnp.square(jnp.log1p(jnp.maximum(pred, 0.0)) - jnp.log1p(targets)), axis=-1)
-        out[name] = {"log_l2": float(jnp.sum(weights * err) / jnp.sum(weights)), "fit_s": time.perf_counter() - t0,
+        out[name] = {"log_l2": float(sg.log_l2(pred, targets, weights)), "fit_s": time.perf_counter() - t0,
                      "prediction": np.asarray(pred)}
     return out
 
@@ -179,4 +173,4 @@ def cnn_log_l2(lobes: Lobes, images, below) -> float:
     dirs = octahedral.texel_directions(size).reshape(-1, 3)
     t = len(images)
     return float(log_l2_loss(lobes, jnp.broadcast_to(dirs, (t,) + dirs.shape), jnp.asarray(images).reshape(t, -1, 3),
-                             _weights(size, below)))
+                             pixel_weights(size, below)))

@@ -40,7 +40,7 @@ from jprt.sphere import octahedral
 from jprt.sphere import sg
 
 __all__ = ["DEFAULT_CONFIG", "GLOSSY_RECEIVERS", "SGData", "Lobes", "fit", "evaluator", "example", "lookup_lobes", "PARAMS_PER_LOBE", "constrain", "lobe_radiance", "jittered_directions",
-           "log_l2_loss", "fit_cnn", "encode", "initial_amplitude", "texel_irradiance", "shade", "to_storage"]
+           "log_l2_loss", "pixel_weights", "fit_cnn", "encode", "initial_amplitude", "texel_irradiance", "shade", "to_storage"]
 
 #: Raw numbers per lobe the encoder outputs: axis (3), sharpness (1), RGB amplitude (3).
 PARAMS_PER_LOBE = 7
@@ -137,12 +137,10 @@ def jittered_directions(key, size: int, shape=()):
 def log_l2_loss(lobes: Lobes, directions, targets, weights):
     """Eq. 9 summed over channels, weighted mean over pixels: targets (..., M, 3) at directions
     (..., M, 3) with weights (..., M) (solid angle x above-surface mask)."""
-    pred = lobe_radiance(lobes, directions)
-    err = jnp.sum(jnp.square(jnp.log1p(jnp.maximum(pred, 0.0)) - jnp.log1p(jnp.maximum(targets, 0.0))), axis=-1)
-    return jnp.sum(weights * err) / jnp.maximum(jnp.sum(weights), 1e-20)
+    return sg.log_l2(lobe_radiance(lobes, directions), targets, weights)
 
 
-def _pixel_weights(size: int, below):
+def pixel_weights(size: int, below):
     """Solid angle of every octahedral pixel, zero below the surface: (T, size^2)."""
     sa = jnp.asarray(octahedral.texel_solid_angles(size)).reshape(-1)
     return sa[None, :] * (1.0 - jnp.asarray(below, jnp.float32).reshape(below.shape[0], -1))
@@ -184,7 +182,7 @@ def fit_cnn(images, below, config: dict, *, progress: bool = True):
     n_tex, size = images.shape[0], images.shape[1]
     net = sg_encoder(image_size=size, n_lobes=int(m["n_lobes"]), params_per_lobe=PARAMS_PER_LOBE,
                      channels=tuple(m["channels"]))
-    weights = _pixel_weights(size, jnp.asarray(below))
+    weights = pixel_weights(size, jnp.asarray(below))
     targets = images.reshape(n_tex, -1, 3)
     centres = octahedral.texel_directions(size).reshape(-1, 3)
     batch = min(int(t["batch"]), n_tex)
