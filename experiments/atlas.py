@@ -207,25 +207,13 @@ def task_lightings(task: dict) -> list:
         raise ValueError(f"task lighting {task['lighting']!r}: 'point' or 'environment'")
     from jprt.methods.wavelet_prt import data as wp_data
     from jprt.methods.wavelet_prt import model as wp
-    from jprt.render.lights import EnvMap
 
     e = task["envmaps"]
     n = int(e["face_size"])
     if int(e["synthetic"]) > 0:
         return [CubeMap(c) for c in wp.synthetic_environments(int(e["synthetic"]), n, int(e["seed"]))]
-    folder = wp_data.SHARED_ENVMAPS
-    files = {os.path.splitext(f)[0]: os.path.join(folder, f) for f in (os.listdir(folder) if os.path.isdir(folder)
-                                                                       else [])}
-    missing = [name for name in e["names"] if name not in files]
-    if missing:
-        raise FileNotFoundError(f"environment maps {missing} not found in {folder} (../shared/assets/envmaps; "
-                                f"set tasks.environment.envmaps.synthetic > 0 for procedural maps)")
-    out = []
-    for name in e["names"]:
-        radiance = EnvMap.from_file(files[name]).radiance
-        out += [CubeMap(wp.prepare_environment(wp.rotate_equirect(radiance, float(r)), n,
-                                               normalise=bool(e["normalise"]))) for r in e["rotations_deg"]]
-    return out
+    cubes, _ = wp_data.load_environments(e["names"], e["rotations_deg"], n, normalise=bool(e["normalise"]))
+    return [CubeMap(c) for c in cubes]
 
 
 def mitsuba_lighting(lighting):

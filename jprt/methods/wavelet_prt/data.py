@@ -17,7 +17,7 @@ from jprt.methods.wavelet_prt.model import (DEFAULT_CONFIG, GBUFFER_FIELDS, Wave
                                             importance_maps, prepare_environment, render_equirect, rotate_equirect,
                                             synthetic_environments)
 
-__all__ = ["make_dataset", "add_vertex_interpolation", "gbuffer_fields", "SHARED_ENVMAPS", "TASK_LIGHTINGS",
+__all__ = ["make_dataset", "add_vertex_interpolation", "gbuffer_fields", "load_environments", "SHARED_ENVMAPS", "TASK_LIGHTINGS",
            "task_inputs", "task_lighting"]
 
 #: The CC0 maps in ../shared/assets/envmaps (see its README), next to this checkout.
@@ -35,30 +35,40 @@ def _environment_sets(ecfg: dict, seed: int):
         names = [f"synthetic_{i}" for i in range(len(train))]
         return np.stack(train), names, maps[-1:], ["synthetic_held_out"]
     folder = ecfg["folder"] or SHARED_ENVMAPS
-    if not os.path.isdir(folder):
-        raise FileNotFoundError(f"environment maps not found at {folder} (set envmaps.folder, or "
-                                f"envmaps.synthetic > 0 for procedural maps)")
-    from jprt.render.lights import EnvMap
-
-    stems = sorted(os.path.splitext(f)[0] for f in os.listdir(folder) if f.lower().endswith((".hdr", ".exr")))
-    files = {os.path.splitext(f)[0]: os.path.join(folder, f) for f in os.listdir(folder)}
+    stems = sorted(os.path.splitext(f)[0] for f in os.listdir(folder) if f.lower().endswith((".hdr", ".exr"))) \
+        if os.path.isdir(folder) else []
     held = list(ecfg["held_out"])
-    missing = [s for s in held + list(ecfg["train"]) if s not in files]
-    if missing:
-        raise FileNotFoundError(f"environment maps {missing} not in {folder}; available: {stems}")
     train_stems = list(ecfg["train"]) or [s for s in stems if s not in held]
     overlap = set(train_stems) & set(held)
     if overlap:
         raise ValueError(f"maps {sorted(overlap)} are both training and held-out maps")
+    envs, names = load_environments(train_stems, rotations, n, normalise=bool(ecfg["normalise"]), folder=folder)
+    tests, _ = load_environments(held, [0.0], n, normalise=bool(ecfg["normalise"]), folder=folder)
+    return envs, names, tests, held
+
+
+def load_environments(stems, rotations, face_size: int, *, normalise: bool = True,
+                      folder: str = "") -> tuple[np.ndarray, list[str]]:
+    """The maps ``stems`` of ``folder`` (default ../shared/assets/envmaps), each at every rotation
+    about +Y, as (E, 6, n, n, 3) cube maps (``prepare_environment``) and their names "stem@deg"."""
+    from jprt.render.lights import EnvMap
+
+    folder = folder or SHARED_ENVMAPS
+    if not os.path.isdir(folder):
+        raise FileNotFoundError(f"environment maps not found at {folder} (set envmaps.folder, or "
+                                f"envmaps.synthetic > 0 for procedural maps)")
+    files = {os.path.splitext(f)[0]: os.path.join(folder, f) for f in os.listdir(folder)}
+    missing = [s for s in stems if s not in files]
+    if missing:
+        available = sorted(os.path.splitext(f)[0] for f in os.listdir(folder) if f.lower().endswith((".hdr", ".exr")))
+        raise FileNotFoundError(f"environment maps {missing} not in {folder}; available: {available}")
     envs, names = [], []
-    for stem in train_stems:
+    for stem in stems:
         radiance = EnvMap.from_file(files[stem]).radiance
         for r in rotations:
-            envs.append(prepare_environment(rotate_equirect(radiance, r), n, normalise=bool(ecfg["normalise"])))
-            names.append(f"{stem}@{r:g}")
-    tests = [prepare_environment(EnvMap.from_file(files[s]).radiance, n, normalise=bool(ecfg["normalise"]))
-             for s in held]
-    return np.stack(envs), names, np.stack(tests) if tests else np.zeros((0, 6, n, n, 3), np.float32), held
+            envs.append(prepare_environment(rotate_equirect(radiance, float(r)), face_size, normalise=normalise))
+            names.append(f"{stem}@{float(r):g}")
+    return (np.stack(envs) if envs else np.zeros((0, 6, face_size, face_size, 3), np.float32)), names
 
 
 def _render_view(handle, camera, cube, spp: int, seed: int, max_depth: int):
