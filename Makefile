@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.jprt-installed
 
-.PHONY: setup llvm test test-slow demo bench bench-rrf bench-datadriven bench-wavelet bench-atlas clean
+.PHONY: setup llvm test test-slow demo bench bench-rrf bench-datadriven bench-wavelet bench-sg bench-atlas clean
 
 setup: llvm $(STAMP)
 
@@ -46,6 +46,9 @@ bench-datadriven: setup
 
 bench-wavelet: setup
 	$(PY) benchmarks/wavelet_prt.py
+
+bench-sg: setup
+	$(PY) benchmarks/sg_lightfield.py
 
 bench-atlas: setup
 	$(PY) benchmarks/atlas.py

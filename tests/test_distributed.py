@@ -57,6 +57,7 @@ SAME = ("indirect_rmse", "indirect_rel_rmse", "psnr_indirect", "ssim_indirect", 
         "equal_error_spp")
 
 
+@pytest.mark.slow  # ~13 s; a sweep on Ray still runs by default (the retry test below)
 def test_sweep_on_ray_equals_the_in_process_sweep(local_ray, experiment, tmp_path, monkeypatch):
     module, _ = experiment
     local = sweep.run_sweep(module, module.CONFIG, GRID, progress=False, ray=False)

@@ -96,7 +96,7 @@ def test_wavelet_prt_test_preset(mi, tmp_path, monkeypatch):
         assert os.path.isfile(os.path.join(folder, name)), name
 
 
-@pytest.mark.slow  # ~25 s: capture, CNN, held-out views, equal error, the five baselines
+@pytest.mark.slow  # ~40 s: capture, CNN, held-out views, equal error, baselines, midpoints, lobes, environment
 def test_sg_lightfield_test_preset(mi, tmp_path):
     s, folder = _run("sg_lightfield", tmp_path)
     e = s["extra"]
@@ -104,3 +104,14 @@ def test_sg_lightfield_test_preset(mi, tmp_path):
     assert all(np.isfinite(v) and v >= 0 for v in e["fit_log_l2"].values())
     assert e["bytes_per_texel"] == 2 * 7 * 2  # the test preset's 2 lobes of 7 float16 numbers
     assert e["texels"] > 0 and np.isfinite(e["psnr_delta_fp16"])
+    # every method interpolated at the captured midpoints, every lobe count, every environment variant
+    assert set(e["midpoint_log_l2"]) == set(e["fit_log_l2"]) and e["midpoints"] > 0
+    assert set(e["log_l2_by_lobes"]) == set(e["psnr_indirect_by_lobes"]) == set(e["frame_ms_by_lobes"]) == {"1", "2"}
+    assert set(e["psnr_indirect_baselines"]) == {"gd", "gd_aligned", "em", "fixed_axes"}
+    values = [*e["midpoint_log_l2"].values(), *e["psnr_indirect_baselines"].values(), *e["log_l2_by_lobes"].values(),
+              e["psnr_oct_quadrature"], e["reference_noise_psnr"], *e["psnr_indirect_by_roughness"].values(),
+              e["psnr_env_we"], e["psnr_env_we_raw"], e["psnr_env_reflected_visibility"], e["psnr_env_no_visibility"],
+              e["psnr_env_quadrature"], e["psnr_lobes_quadrature"]]
+    assert np.isfinite(values).all(), values
+    # nothing in the way is never better than the visibility the scene has (the box's walls block light)
+    assert e["psnr_env_no_visibility"] < e["psnr_env_reflected_visibility"]

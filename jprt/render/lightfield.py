@@ -24,6 +24,11 @@ left at 0, never averaged into a neighbour. ``flags`` says which texels were pus
 ``capture_lightfield`` caches the result through ``jprt.cache`` (content hash of scene, lighting,
 atlas and settings; checksummed, atomic) and renders in blocks of texels with a progress bar; an
 interrupted capture resumes from its finished blocks (each block is its own cache entry).
+
+``capture_visibility`` captures, from the same points, what the environment terms of §5 need:
+the fraction of each octahedral pixel's directions along which a ray escapes the scene (sees the
+distant environment), ``samples`` jittered rays per pixel; geometry only, so one capture serves
+every environment map.
 """
 
 from __future__ import annotations
@@ -37,7 +42,8 @@ from jprt import cache
 from jprt.render.lightmap import Atlas, _eps, _intersect, build_atlas, free_positions
 from jprt.render.scenes import SceneHandle, describe
 
-__all__ = ["LightField", "OK", "PUSHED", "INSIDE", "capture_points", "capture_block", "capture_lightfield"]
+__all__ = ["LightField", "Visibility", "OK", "PUSHED", "INSIDE", "capture_points", "capture_block", "capture_lightfield",
+           "visibility_block", "capture_visibility"]
 
 #: ``LightField.flags`` values.
 OK, PUSHED, INSIDE = 0, 1, 2
@@ -147,6 +153,34 @@ def capture_block(handle: SceneHandle, points, normal, flags, size: int, *, spp:
             "below": below.reshape(shape)}
 
 
+def _setup(scene, lighting, objects, resolution: int, atlas):
+    """The scene, its handle, the atlas (built when not given) and the texels' capture points."""
+    desc = describe(scene)
+    handle = SceneHandle(desc, lighting)
+    if atlas is None:
+        atlas = build_atlas(handle, list(objects) if objects else None, resolution=int(resolution))
+    a = atlas._asdict() if isinstance(atlas, Atlas) else dict(atlas)
+    points, flags = capture_points(handle, a["position"], a["normal"], float(a["texel_size"]))
+    return desc, handle, a, points, flags
+
+
+def _cached_blocks(namespace: str, base: dict, count: int, block: int, build, label: str, progress: bool,
+                   cache_dir: str | None):
+    """Texels in blocks of ``block``, each block ``build(start, stop, index)``'s arrays cached as
+    its own entry (``base`` + the block's range: a killed capture resumes), with a progress bar;
+    returns ``key -> the blocks' arrays concatenated`` (an empty array for no texels)."""
+    from tqdm.auto import tqdm
+
+    parts = []
+    starts = list(range(0, int(count), int(block)))
+    for b, start in enumerate(tqdm(starts, desc=label, unit="block", disable=not progress)):
+        stop = min(int(count), start + int(block))
+        arrays, _ = cache.cached(namespace, {**base, "block": [start, stop]},
+                                 lambda start=start, stop=stop, b=b: build(start, stop, b), cache_dir=cache_dir)
+        parts.append(arrays)
+    return lambda k: np.concatenate([p[k] for p in parts]) if parts else np.zeros((0,))
+
+
 def capture_lightfield(scene, lighting=None, *, objects: Sequence[str] | None = None, resolution: int = 64,
                        size: int = 32, spp: int = 64, seed: int = 0, block: int = 256,
                        atlas: Atlas | dict | None = None, cache_dir: str | None = None,
@@ -156,33 +190,92 @@ def capture_lightfield(scene, lighting=None, *, objects: Sequence[str] | None = 
     ``size`` x ``size`` octahedral maps, ``spp`` paths per direction. Blocks of ``block`` texels
     are cache entries of their own (an interrupted capture resumes); the assembled light field is
     returned (not stored twice)."""
-    from tqdm.auto import tqdm
-
     from jprt.render.lights import lighting_description
 
-    desc = describe(scene)
-    handle = SceneHandle(desc, lighting)
-    if atlas is None:
-        atlas = build_atlas(handle, list(objects) if objects else None, resolution=int(resolution))
-    a = atlas._asdict() if isinstance(atlas, Atlas) else dict(atlas)
-    points, flags = capture_points(handle, a["position"], a["normal"], float(a["texel_size"]))
+    desc, handle, a, points, flags = _setup(scene, lighting, objects, resolution, atlas)
     base = {"format": 1, "scene": desc, "lighting": lighting_description(lighting) if lighting is not None else None,
             "atlas": _digest(a["position"], a["normal"]),
             "size": int(size), "spp": int(spp), "seed": int(seed)}
     t0 = time.perf_counter()
-    parts = []
-    starts = list(range(0, len(points), int(block)))
-    for b, start in enumerate(tqdm(starts, desc="light-field capture", unit="block", disable=not progress)):
-        stop = min(len(points), start + int(block))
 
-        def build(start=start, stop=stop, b=b):
-            return capture_block(handle, points[start:stop], np.asarray(a["normal"])[start:stop], flags[start:stop],
-                                 int(size), spp=int(spp), seed=int(seed) * 1000003 + b)
+    def build(start, stop, b):
+        return capture_block(handle, points[start:stop], np.asarray(a["normal"])[start:stop], flags[start:stop],
+                             int(size), spp=int(spp), seed=int(seed) * 1000003 + b)
 
-        arrays, _ = cache.cached("lightfield", {**base, "block": [start, stop]}, build, cache_dir=cache_dir)
-        parts.append(arrays)
-    cat = lambda k: np.concatenate([p[k] for p in parts]) if parts else np.zeros((0,))  # noqa: E731
+    cat = _cached_blocks("lightfield", base, len(points), block, build, "light-field capture", progress, cache_dir)
     return LightField(a, int(size), points.astype(np.float32), np.asarray(a["normal"], np.float32), cat("full"),
                       cat("indirect"), cat("below").astype(bool), flags,
                       {"spp": int(spp), "seed": int(seed), "capture_s": time.perf_counter() - t0,
                        "pushed": int((flags == PUSHED).sum()), "inside": int((flags == INSIDE).sum())})
+
+
+class Visibility(NamedTuple):
+    """Environment visibility of the texels of an atlas (``capture_visibility``).
+
+    Fields:
+      atlas: the atlas (dict of arrays).  size: n, the maps are n x n.
+      position: (T, 3) capture points.  normal: (T, 3) unit texel normals.
+      visible: (T, n, n) float32 in [0, 1]: the fraction of the pixel's jittered rays that leave
+        the scene (0 below the surface and for INSIDE texels).
+      below: (T, n, n) bool, pixels whose centre is at or below the texel's surface.
+      flags: (T,) int8 as in ``LightField``.  meta: {"samples", "seed", "capture_s"}.
+    """
+
+    atlas: dict
+    size: int
+    position: np.ndarray
+    normal: np.ndarray
+    visible: np.ndarray
+    below: np.ndarray
+    flags: np.ndarray
+    meta: dict
+
+
+def visibility_block(handle: SceneHandle, points, normal, flags, size: int, *, samples: int = 4,
+                     seed: int = 0) -> dict:
+    """One block's maps (``Visibility``): {"visible", "below"}; a jittered ray that points below
+    the surface counts as blocked."""
+    from jprt.sphere import octahedral
+
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    normal = np.asarray(normal, np.float64).reshape(-1, 3)
+    n = int(size)
+    centres = np.asarray(octahedral.texel_centers(n), np.float64).reshape(-1, 2)
+    rng = np.random.default_rng(int(seed))
+    visible = np.zeros((len(points), n * n), np.float64)
+    below = (normal @ _directions(n).T) <= 0.0
+    active = np.asarray(flags) != INSIDE
+    for _ in range(int(samples)):
+        uv = np.clip(centres + rng.uniform(-1.0 / n, 1.0 / n, centres.shape), -1.0, 1.0)
+        dirs = np.asarray(octahedral.decode(uv), np.float64)
+        dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+        above = ((normal @ dirs.T) > 0.0) & active[:, None]
+        rows, cols = np.nonzero(above)
+        if len(rows):
+            si = _intersect(handle, points[rows], dirs[cols])
+            visible[rows, cols] += ~np.array(si.is_valid(), bool).reshape(-1)
+    visible /= max(int(samples), 1)
+    shape = (len(points), n, n)
+    return {"visible": visible.astype(np.float32).reshape(shape), "below": below.reshape(shape)}
+
+
+def capture_visibility(scene, *, objects: Sequence[str] | None = None, resolution: int = 64, size: int = 64,
+                       samples: int = 4, seed: int = 0, block: int = 256, atlas: Atlas | dict | None = None,
+                       cache_dir: str | None = None, progress: bool = True) -> Visibility:
+    """The environment visibility of every texel of ``atlas`` (default: ``build_atlas`` of
+    ``objects`` at ``resolution``) in ``scene``, from the capture points ``capture_lightfield``
+    uses: ``size`` x ``size`` octahedral maps, ``samples`` jittered rays per pixel. Cached per
+    block of texels like the light field (resumable)."""
+    desc, handle, a, points, flags = _setup(scene, None, objects, resolution, atlas)
+    base = {"format": 1, "kind": "visibility", "scene": desc, "atlas": _digest(a["position"], a["normal"]),
+            "size": int(size), "samples": int(samples), "seed": int(seed)}
+    t0 = time.perf_counter()
+
+    def build(start, stop, b):
+        return visibility_block(handle, points[start:stop], np.asarray(a["normal"])[start:stop], flags[start:stop],
+                                int(size), samples=int(samples), seed=int(seed) * 1000003 + b)
+
+    cat = _cached_blocks("visibility", base, len(points), block, build, "visibility capture", progress, cache_dir)
+    return Visibility(a, int(size), points.astype(np.float32), np.asarray(a["normal"], np.float32), cat("visible"),
+                      cat("below").astype(bool), flags,
+                      {"samples": int(samples), "seed": int(seed), "capture_s": time.perf_counter() - t0})

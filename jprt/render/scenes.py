@@ -87,20 +87,27 @@ def empty() -> dict:
     return {"name": "empty"}
 
 
-def cornell_box(*, area_light: bool = True, materials: dict | None = None) -> dict:
+def cornell_box(*, area_light: bool = True, materials: dict | None = None, open_top: bool = False) -> dict:
     """Mitsuba's built-in Cornell box (embedded default; needs no asset files).
 
     Args:
       area_light: keep the ceiling's area light. Turn it off to light the box with point lights
         or an environment map only (the light's quad is then removed).
       materials: per-object overrides keyed by ``CORNELL_OBJECTS`` names.
+      open_top: remove the ceiling, so an environment map lights the box through its top as well
+        as its open front (needs ``area_light=False``).
     """
     materials = dict(materials or {})
     unknown = set(materials) - set(CORNELL_OBJECTS)
     if unknown:
         raise ValueError(f"unknown Cornell box objects {sorted(unknown)}; objects are {list(CORNELL_OBJECTS)}")
+    if open_top and area_light:
+        raise ValueError("cornell_box: open_top removes the ceiling light; use area_light=False")
     merged = {k: _check_material(k, materials.get(k, v)) for k, v in _CORNELL_DEFAULT_MATERIALS.items()}
-    return {"name": "cornell_box", "area_light": bool(area_light), "materials": merged}
+    desc = {"name": "cornell_box", "area_light": bool(area_light), "materials": merged}
+    if open_top:  # only present when set, so existing descriptions (and their cache hashes) are unchanged
+        desc["open_top"] = True
+    return desc
 
 
 def glossy_cornell(*, floor_roughness: float = 0.15, sphere_roughness: float = 0.02,

@@ -1,16 +1,17 @@
 """Spherical-Gaussian light-field textures (Currius et al. 2020): ``model`` (lobes, constraints,
-the log-L2 loss, the CNN encoder's training, the run-time shading; pure JAX) and ``data`` (the
-receivers' light-field texture, captured by ``jprt.render.lightfield``) and ``baselines`` (the
-per-texel fits the paper compares with). Still to come (issue 15): environment visibility W_E, the
-experiment and its benchmark."""
+the log-L2 loss, the CNN encoder's training, the run-time shading; pure JAX), ``data`` (the
+receivers' light-field texture, captured by ``jprt.render.lightfield``, and the environment
+setting's inputs), ``environment`` (§5: the illumination-weighted environment visibility W_E and
+the pre-convolved environment U, Eq. 6-8) and ``baselines`` (the per-texel fits the paper compares
+with). ``experiments/sg_lightfield.py`` runs all of it; ``benchmarks/sg_lightfield.py`` reports it."""
 
 import functools
 
 from jprt.inputs import LightScale
 from jprt.methods.base import Method
-from jprt.methods.sg_lightfield import baselines, data, model
+from jprt.methods.sg_lightfield import baselines, data, environment, model
 
-__all__ = ["METHOD", "PRESETS", "baselines", "data", "model"]
+__all__ = ["METHOD", "PRESETS", "baselines", "data", "environment", "model"]
 
 #: Named config overrides; ``test`` captures, fits and shades the floor's 16^2 atlas in seconds.
 PRESETS = {

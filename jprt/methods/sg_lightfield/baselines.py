@@ -29,8 +29,8 @@ import numpy as np
 from jprt.methods.sg_lightfield.model import Lobes, lobe_radiance, log_l2_loss, pixel_weights
 from jprt.sphere import octahedral, sg, sh
 
-__all__ = ["fibonacci_axes", "atlas_neighbours", "fit_per_texel", "fit_fixed_axes", "fit_sh", "compare",
-           "BASELINES"]
+__all__ = ["fibonacci_axes", "atlas_neighbours", "fit_per_texel", "fit_fixed_axes", "fit_sh", "sh_radiance",
+           "interpolate_lobes", "compare", "BASELINES"]
 
 #: The baselines, in the order the report lists them.
 BASELINES = ("gd", "gd_aligned", "em", "fixed_axes", "sh")
@@ -81,11 +81,13 @@ def fit_per_texel(images, below, n_lobes: int, *, steps: int = 500, learning_rat
     return Lobes(fit.axes, fit.sharpness, fit.amplitudes)
 
 
-def fit_em_lobes(images, below, n_lobes: int, *, iterations: int = 100) -> Lobes:
-    """``em``: ``sg.fit_em`` on every texel (vmapped), weights masked by ``below``."""
+def fit_em_lobes(images, below, n_lobes: int, *, iterations: int = 100, max_sharpness: float = 1e4) -> Lobes:
+    """``em``: ``sg.fit_em`` on every texel (vmapped), weights masked by ``below``; sharpness
+    bounded like the CNN's lobes (float16 storage)."""
     size = images.shape[1]
     dirs = octahedral.texel_directions(size).reshape(-1, 3)
-    fit = jax.vmap(lambda w, v, a: sg.fit_em(dirs, w, v, a, iterations=iterations))(
+    fit = jax.vmap(lambda w, v, a: sg.fit_em(dirs, w, v, a, iterations=iterations,
+                                                        max_sharpness=max_sharpness))(
         pixel_weights(size, below), jnp.asarray(images).reshape(len(images), -1, 3), jnp.asarray(_init_axes(images, n_lobes)))
     return Lobes(fit.axes, fit.sharpness, fit.amplitudes)
 
@@ -124,21 +126,36 @@ def sh_degree_for(n_lobes: int) -> int:
 
 
 def fit_sh(images, below, degree: int):
-    """``sh``: SH coefficients ((l+1)^2, 3) per texel by weighted least squares over the visible
-    hemisphere; returns the reconstruction at the pixel centres (T, M, 3)."""
+    """``sh``: SH coefficients (T, (l+1)^2, 3) per texel by weighted least squares over the visible
+    hemisphere (``sh_radiance`` evaluates them)."""
     size = images.shape[1]
     dirs = octahedral.texel_directions(size).reshape(-1, 3)
     y = sh.evaluate(dirs, int(degree))  # (M, K)
     w = pixel_weights(size, below)
     gram = jnp.einsum("mk,tm,ml->tkl", y, w, y) + 1e-6 * jnp.eye(y.shape[-1])[None]
     rhs = jnp.einsum("mk,tm,tmc->tkc", y, w, jnp.asarray(images).reshape(len(images), -1, 3))
-    coeffs = jnp.linalg.solve(gram, rhs)
-    return jnp.einsum("mk,tkc->tmc", y, coeffs)
+    return jnp.linalg.solve(gram, rhs)
+
+
+def sh_radiance(coeffs, directions):
+    """SH coefficients (..., K, 3) at directions (M, 3): (..., M, 3)."""
+    degree = int(round(math.sqrt(coeffs.shape[-2]))) - 1
+    return jnp.einsum("mk,...kc->...mc", sh.evaluate(jnp.asarray(directions), degree), jnp.asarray(coeffs))
+
+
+def interpolate_lobes(a: Lobes, b: Lobes, t: float = 0.5) -> Lobes:
+    """Lobes as the run time filters them between two texels: every parameter linear, axes
+    renormalised (``model.lookup_lobes``)."""
+    axes = (1.0 - t) * jnp.asarray(a.axes) + t * jnp.asarray(b.axes)
+    axes = axes / jnp.sqrt(jnp.maximum(jnp.sum(axes * axes, axis=-1, keepdims=True), 1e-20))
+    return Lobes(axes, (1.0 - t) * jnp.asarray(a.sharpness) + t * jnp.asarray(b.sharpness),
+                 (1.0 - t) * jnp.asarray(a.amplitude) + t * jnp.asarray(b.amplitude))
 
 
 def compare(images, below, atlas: dict, n_lobes: int, *, steps: int = 500, align_weight: float = 0.1,
-            em_iterations: int = 100, methods=BASELINES) -> dict:
-    """Every baseline on the same texels: {name: {"log_l2", "fit_s", "prediction" (T, M, 3)}}."""
+            em_iterations: int = 100, max_sharpness: float = 1e4, methods=BASELINES) -> dict:
+    """Every baseline on the same texels: {name: {"log_l2", "fit_s", "prediction" (T, M, 3), and
+    "lobes" (``Lobes``, float32) or "sh" (T, K, 3) coefficients}}."""
     size = images.shape[1]
     dirs = octahedral.texel_directions(size).reshape(-1, 3)
     t = len(images)
@@ -148,22 +165,28 @@ def compare(images, below, atlas: dict, n_lobes: int, *, steps: int = 500, align
     out = {}
     for name in methods:
         t0 = time.perf_counter()
+        lobes, coeffs = None, None
         if name == "gd":
-            pred = lobe_radiance(fit_per_texel(images, below, n_lobes, steps=steps), at_centres)
+            lobes = fit_per_texel(images, below, n_lobes, steps=steps)
         elif name == "gd_aligned":
-            pred = lobe_radiance(fit_per_texel(images, below, n_lobes, steps=steps, neighbours=atlas_neighbours(atlas),
-                                               align_weight=align_weight), at_centres)
+            lobes = fit_per_texel(images, below, n_lobes, steps=steps, neighbours=atlas_neighbours(atlas),
+                                  align_weight=align_weight)
         elif name == "em":
-            pred = lobe_radiance(fit_em_lobes(images, below, n_lobes, iterations=em_iterations), at_centres)
+            lobes = fit_em_lobes(images, below, n_lobes, iterations=em_iterations, max_sharpness=max_sharpness)
         elif name == "fixed_axes":
-            pred = lobe_radiance(fit_fixed_axes(images, below, n_lobes), at_centres)
+            lobes = fit_fixed_axes(images, below, n_lobes)
         elif name == "sh":
-            pred = fit_sh(images, below, sh_degree_for(n_lobes))
+            coeffs = fit_sh(images, below, sh_degree_for(n_lobes))
         else:
             raise ValueError(f"unknown baseline {name!r}; baselines are {BASELINES}")
+        pred = lobe_radiance(lobes, at_centres) if lobes is not None else sh_radiance(coeffs, dirs)
         pred = jax.block_until_ready(pred)
         out[name] = {"log_l2": float(sg.log_l2(pred, targets, weights)), "fit_s": time.perf_counter() - t0,
                      "prediction": np.asarray(pred)}
+        if lobes is not None:
+            out[name]["lobes"] = Lobes(*(np.asarray(a, np.float32) for a in lobes))
+        else:
+            out[name]["sh"] = np.asarray(coeffs, np.float32)
     return out
 
 
