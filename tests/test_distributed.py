@@ -57,7 +57,7 @@ SAME = ("indirect_rmse", "indirect_rel_rmse", "psnr_indirect", "ssim_indirect", 
         "equal_error_spp")
 
 
-@pytest.mark.slow  # ~13 s; a sweep on Ray still runs by default (the retry test below)
+@pytest.mark.slow  # ~13 s; Ray still runs by default (the dataset-shard test below)
 def test_sweep_on_ray_equals_the_in_process_sweep(local_ray, experiment, tmp_path, monkeypatch):
     module, _ = experiment
     local = sweep.run_sweep(module, module.CONFIG, GRID, progress=False, ray=False)
@@ -76,6 +76,7 @@ def test_sweep_on_ray_equals_the_in_process_sweep(local_ray, experiment, tmp_pat
     assert again["counts"] == {"done": 0, "cached": 4, "failed": 0}  # nothing rendered or trained again
 
 
+@pytest.mark.slow  # ~12 s with its Ray start; Ray itself still runs by default (the dataset-shard test)
 def test_a_worker_that_dies_is_retried_and_nothing_is_duplicated(local_ray, experiment, tmp_path):
     module, marker = experiment
     grid = {"model.bias": [0.0, 0.01, 0.02, 0.03]}

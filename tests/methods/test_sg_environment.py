@@ -33,6 +33,7 @@ def test_weighted_visibility_is_one_in_the_open_and_zero_when_blocked():
     np.testing.assert_array_equal(np.asarray(below).reshape(5, -1), normal @ dirs.T <= 0.0)
 
 
+@pytest.mark.slow  # ~3 s; the open / blocked and plate tests cover Eq. 7 by default
 def test_weighted_visibility_weighs_by_the_light_in_the_lobe():
     """Half of the sky blocked: W_E follows where the light is, not the blocked fraction. With all
     light in the open half, a lobe pointing there sees W_E ~ 1; with all light in the blocked half, ~ 0."""
