@@ -8,9 +8,12 @@ seen from held-out views.
 Pipeline: capture the receivers' light field (``jprt.render.lightfield``, cached) -> train the CNN
 encoder on every texel -> held-out views: the evaluator on each view's atlas G-buffer against
 Mitsuba's indirect render of the same view (pixels on the receivers), the common summary, frame
-time, equal error; stages: the per-texel baselines on the same texels and the same loss
-(``jprt.methods.sg_lightfield.baselines``), the float16 storage's effect on the images, bytes per
-texel. The report goes to results/sg_lightfield/<config hash>/.
+time, equal error; stages: the per-texel baselines on the same texels and loss (fit, and their lobes
+at the held-out views), float16 storage, PSNR by roughness, the references' noise, the raw maps and
+the lobes shaded by quadrature, interpolation at captured midpoints, lobe counts, frame times by
+resolution, and §5's environment visibility in the open-top box (Table 3 setting). The report goes
+to results/sg_lightfield/<config hash>/; ``benchmarks/sg_lightfield.py`` turns it into
+benchmarks/results/sg_lightfield.json.
 """
 
 from __future__ import annotations
