@@ -401,7 +401,7 @@ def environment_visibility(run) -> dict:
                "fill_index": np.asarray(ed.atlas["fill_index"])}
     raw = atlas_image(np.asarray(ed.images).reshape(len(ed.images), -1), np.asarray(ed.atlas["fill_index"]))
     eps = lightmap._eps(handle)
-    m = ed.visible.shape[1]
+    m, size = ed.visible.shape[1], ed.images.shape[1]
     lit = np.asarray(ed.visible)[..., None] * env.octahedral_environment(ed.environment, m)[None]  # V L per texel
     lit_table = atlas_image(lit.reshape(len(lit), -1), np.asarray(ed.atlas["fill_index"]))
     preds = {"we": [], "we_raw": [], "reflected_visibility": [], "no_visibility": [], "quadrature": []}
@@ -413,7 +413,6 @@ def environment_visibility(run) -> dict:
         r = 2.0 * np.sum(g.normal * g.view, axis=-1, keepdims=True) * g.normal - g.view
         u = env.lookup_preconvolved(ed.u, ed.alphas, r, g.roughness)
         w = env.evaluate_lobes(sgm.lookup_lobes(texture, g.uv), r)
-        size = ed.images.shape[1]
         w_raw = np.asarray(jax.vmap(env.octahedral_lookup)(
             np.asarray(atlas_lookup(raw, g.uv)).reshape(-1, size, size, 3), r.reshape(-1, 3))).reshape(r.shape)
         hit = lightmap._intersect(handle, (g.position + eps * g.normal).reshape(-1, 3), r.reshape(-1, 3))

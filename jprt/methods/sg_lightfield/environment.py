@@ -30,18 +30,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jprt.methods.sg_lightfield.model import _glossy_factor, ggx_ndf
 from jprt.sphere import octahedral
 
 __all__ = ["ggx_ndf", "octahedral_environment", "preconvolve", "weighted_visibility", "lookup_preconvolved",
            "octahedral_lookup", "evaluate_lobes", "shade_environment"]
-
-
-def ggx_ndf(cos_h, alpha):
-    """GGX / Trowbridge-Reitz D(h) = alpha^2 / (pi ((n.h)^2 (alpha^2 - 1) + 1)^2), 0 for n.h <= 0."""
-    a2 = jnp.square(alpha)
-    c = jnp.maximum(cos_h, 0.0)
-    d = c * c * (a2 - 1.0) + 1.0
-    return jnp.where(cos_h > 0.0, a2 / (jnp.pi * d * d), 0.0)
 
 
 def octahedral_environment(radiance, size: int) -> np.ndarray:
@@ -171,8 +164,6 @@ def shade_environment(u_r, visibility, normal, view, roughness, specular):
     where that factor is 4. Eq. 8 as printed therefore overestimates by 1 / (n . w_o) at oblique
     views (measured against quadrature of the rendered BRDF under a constant sky, alpha 0.2:
     1.45x at 45 degrees, 1.01x at normal view; with the factor, within 3 %, tested)."""
-    from jprt.methods.sg_lightfield.model import _glossy_factor
-
     normal, view = jnp.asarray(normal), jnp.asarray(view)
     ndotv = jnp.sum(normal * view, axis=-1, keepdims=True)
     r = 2.0 * ndotv * normal - view

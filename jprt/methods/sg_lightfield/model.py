@@ -50,7 +50,7 @@ from jprt.sphere import sg
 
 __all__ = ["DEFAULT_CONFIG", "GLOSSY_RECEIVERS", "SGData", "Lobes", "fit", "evaluator", "example", "lookup_lobes", "PARAMS_PER_LOBE", "constrain", "lobe_radiance", "jittered_directions",
            "log_l2_loss", "pixel_weights", "fit_cnn", "encode", "initial_amplitude", "texel_irradiance", "shade", "to_storage",
-           "ggx_brdf_cos", "shade_quadrature", "storage_params"]
+           "ggx_ndf", "ggx_brdf_cos", "shade_quadrature", "storage_params"]
 
 #: Raw numbers per lobe the encoder outputs: axis (3), sharpness (1), RGB amplitude (3).
 PARAMS_PER_LOBE = 7
@@ -272,6 +272,14 @@ def shade(lobes: Lobes, normal, view, roughness, specular, diffuse_albedo, irrad
         jnp.asarray(diffuse_albedo) / jnp.pi * jnp.asarray(irradiance)
 
 
+def ggx_ndf(cos_h, alpha):
+    """GGX / Trowbridge-Reitz D(h) = alpha^2 / (pi ((n.h)^2 (alpha^2 - 1) + 1)^2), 0 for n.h <= 0."""
+    a2 = jnp.square(alpha)
+    c = jnp.maximum(cos_h, 0.0)
+    d = c * c * (a2 - 1.0) + 1.0
+    return jnp.where(cos_h > 0.0, a2 / (jnp.pi * d * d), 0.0)
+
+
 def ggx_brdf_cos(normal, view, wi, roughness, specular):
     """The rendered BRDF times the cosine, f(wi, view) (n . wi), of Mitsuba's rough conductor
     with ``material="none"`` (``jprt.render.scenes`` "metal"): GGX D, separable Smith G (the
@@ -281,8 +289,7 @@ def ggx_brdf_cos(normal, view, wi, roughness, specular):
     h = wi + view
     h = h / jnp.sqrt(jnp.maximum(jnp.sum(h * h, axis=-1, keepdims=True), 1e-20))
     a2 = jnp.square(roughness)
-    c = jnp.clip(jnp.sum(normal * h, axis=-1), 0.0, 1.0)
-    d = a2 / (jnp.pi * jnp.square(c * c * (a2 - 1.0) + 1.0))
+    d = ggx_ndf(jnp.sum(normal * h, axis=-1), roughness)
     value = jnp.where(ndotl > 0.0, d * _ggx_v1(a2, jnp.clip(ndotl, 0.0, 1.0)) * _ggx_v1(a2, ndotv) * ndotl, 0.0)
     f0 = jnp.asarray(specular)
     return value[..., None] * f0.reshape((1,) * (value.ndim + 1 - f0.ndim) + f0.shape)
