@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.jprt-installed
 
-.PHONY: setup llvm test test-slow demo bench bench-rrf bench-datadriven bench-wavelet bench-sg bench-atlas clean
+.PHONY: setup llvm test test-slow demo bench bench-rrf bench-datadriven bench-wavelet bench-sg bench-mrt bench-atlas clean
 
 setup: llvm $(STAMP)
 
@@ -49,6 +49,9 @@ bench-wavelet: setup
 
 bench-sg: setup
 	$(PY) benchmarks/sg_lightfield.py
+
+bench-mrt: setup
+	$(PY) benchmarks/mrt.py
 
 bench-atlas: setup
 	$(PY) benchmarks/atlas.py

@@ -63,6 +63,10 @@ def _dotted(overrides: dict, prefix: str = "") -> list[str]:
 _POINT_SCENARIO = {"lights": {"kind": "point", "position_lo": [-0.6, 0.3, -0.6], "position_hi": [0.6, 0.9, 0.6],
                               "intensity": [1.0, 1.0], "saturation": 0.0, "clearance": 0.1}}
 
+#: The Cornell box as MRT's proxy: one block spanning [-1, 1]^3, its +z side (the front) open.
+_CORNELL_PROXY = {"layout": {"cells": [[0, 0]], "edges": [], "exterior": [[[0, 0], 1]]}, "origin": [-1.0, -1.0, -1.0],
+                  "size": 2.0}
+
 _LOCAL_METHODS = {
     "rrf": {
         # Ren et al. 2013 §4 at the method's default (`small`) sizes: leaves split until the error
@@ -76,6 +80,13 @@ _LOCAL_METHODS = {
         "grid": ["basis.n=[4, 16, 64]", "points.count=[64, 256]"],
     },
     "sh_prt": {"set": [], "grid": ["sh.order=[2, 3, 5]"]},
+    "mrt": {
+        # Loos et al. 2011 §7.2: the box as one block of the dictionary, its front open to the camera;
+        # one held-out lighting of its own (it fits nothing to it)
+        "set": [f"proxy.{k}={json.dumps(v)}" for k, v in _CORNELL_PROXY.items()] + _dotted({"data": {"n_test": 1,
+                                                                                                "test_spp": 16}}),
+        "grid": ["dictionary.k_b=[8, 32]"],
+    },
 }
 
 _GLOSSY_MESHES = ["floor", "back", "green-wall", "red-wall", "small-box"]
@@ -150,6 +161,10 @@ PRESETS = {
                                    + _dotted(_POINT_SCENARIO),
                                    "grid": ["basis.n=[2, 4]"]},
                     "sh_prt": {"set": _dotted(REGISTRY["sh_prt"].presets["test"]), "grid": ["sh.order=[2]"]},
+                    "mrt": {"set": _dotted({**{k: v for k, v in REGISTRY["mrt"].presets["test"].items()
+                                                if k not in ("scene", "data")}, "data": {"n_test": 1, "test_spp": 4}})
+                            + [f"proxy.{k}={json.dumps(v)}" for k, v in _CORNELL_PROXY.items()],
+                        "grid": ["dictionary.k_b=[4, 12]"]},
                 },
             },
             "environment": {

@@ -115,3 +115,18 @@ def test_sg_lightfield_test_preset(mi, tmp_path):
     assert np.isfinite(values).all(), values
     # nothing in the way is never better than the visibility the scene has (the box's walls block light)
     assert e["psnr_env_no_visibility"] < e["psnr_env_reflected_visibility"]
+
+
+@pytest.mark.slow  # ~10 s (suite budget): the MRT pieces are unit-tested in tests/methods/test_mrt.py
+def test_mrt_test_preset(mi, tmp_path):
+    s, folder = _run("mrt", tmp_path)
+    e = s["extra"]
+    assert e["texel_rmse"]["rmse"] == pytest.approx(s["indirect_rmse"], rel=1e-5)  # the atlas holds every texel once
+    assert set(e["rmse_by_kb"]) == {"4", "12"} and set(e["rmse_by_feedback"]) == {"0", "1"}
+    assert e["projection_rmse"] <= e["texel_rmse"]["rmse"]  # no coefficients beat the projection
+    assert set(e["vector_irradiance_rmse"]) == {"scalar", "ohlsh", "quadratic"}
+    assert set(e["frame_ms_by_blocks"]) == {"1", "4"} and e["tbr_build_s"] >= 0
+    assert set(e["sv_energy_counts"]["n=96"]) >= {"F", "L_d", "M"}
+    values = [e["rmse_datadriven"], e["rmse_ambient"], e["rmse_no_interfaces"], e["rmse_no_enrichment"],
+              *e["rmse_by_krlf"].values(), *e["rmse_by_kr"].values(), e["volume_sh_relative_rmse"]]
+    assert np.isfinite(values).all() and min(values) > 0

@@ -8,6 +8,8 @@ A scene *description* is a plain dict (so it hashes into dataset cache keys and 
   {"name": "asset_room", "mesh": "/abs/spot.obj", "sha256": "...", "albedo": [...], ...}
                                              a UV-mapped mesh (object "asset") in an open room corner
   {"name": "empty"}                          no geometry: only the jprt lighting (probes, tests)
+  {"name": "blocks", "layout": {...}, "size": 1.0, "albedo": {...}}
+                                             a layout of cube blocks (``jprt.layouts``; MRT's scenes)
 
 Materials (``materials`` entries override the defaults per object):
 
@@ -42,6 +44,9 @@ __all__ = [
     "glossy_cornell",
     "xml",
     "asset_room",
+    "blocks",
+    "BLOCK_ALBEDO",
+    "BLOCK_INSET",
     "describe",
     "SceneHandle",
     "CORNELL_OBJECTS",
@@ -179,6 +184,37 @@ def asset_room(mesh: str, *, albedo=(0.75, 0.6, 0.45), margin: float = 1.0, size
             "size": float(size), "walls": bool(walls)}
 
 
+#: Default albedo of block layouts: floor, ceiling and a palette the side walls cycle through.
+BLOCK_ALBEDO = {"floor": [0.6, 0.6, 0.6], "ceiling": [0.75, 0.75, 0.75],
+                "walls": [[0.7, 0.7, 0.7], [0.75, 0.45, 0.35], [0.4, 0.6, 0.75], [0.65, 0.7, 0.45]]}
+#: Each block's faces sit this fraction of its size inside its cube, so the back-to-back walls of
+#: two unconnected neighbours never coincide (no z-fighting, no light through a shared plane).
+BLOCK_INSET = 5e-4
+
+
+def blocks(layout, *, size: float = 1.0, albedo: dict | None = None) -> dict:
+    """A layout of cube blocks (``jprt.layouts.Layout`` or its ``as_dict``) as one scene: every
+    block's floor, ceiling and walls are one-sided diffuse rectangles facing into the block (a
+    missing side is an opening onto its connected neighbour), ``size`` the edge of a block in
+    world units (cell (i, j) spans x in [i, i + 1] size, z in [j, j + 1] size, y in [0, size]).
+    No emitters: the lighting is jprt's."""
+    from jprt.layouts import layout_from_dict
+
+    lay = layout_from_dict(layout)
+    alb = copy.deepcopy(BLOCK_ALBEDO if albedo is None else albedo)
+    if set(alb) != {"floor", "ceiling", "walls"}:
+        raise ValueError(f"blocks albedo has keys floor, ceiling, walls (a palette), got {sorted(alb)}")
+    for key in ("floor", "ceiling"):
+        alb[key] = [float(c) for c in np.broadcast_to(np.asarray(alb[key], np.float64), (3,))]
+    alb["walls"] = np.asarray(alb["walls"], np.float64).reshape(-1, 3).tolist()
+    for v in [alb["floor"], alb["ceiling"], *alb["walls"]]:
+        if not all(0.0 <= c < 1.0 for c in v):
+            raise ValueError(f"blocks albedo values lie in [0, 1), got {v}")
+    if not float(size) > 0:
+        raise ValueError(f"blocks size must be positive, got {size}")
+    return {"name": "blocks", "layout": lay.as_dict(), "size": float(size), "albedo": alb}
+
+
 def describe(scene: dict | str) -> dict:
     """Normalise a scene given as a description dict or a name ("cornell_box", "glossy_cornell",
     or a path to an .xml file) into a full description."""
@@ -216,7 +252,10 @@ def describe(scene: dict | str) -> dict:
     if name == "asset_room":
         kwargs.pop("sha256", None)
         return asset_room(**kwargs)
-    raise ValueError(f"unknown scene name {name!r}: use 'empty', 'cornell_box', 'glossy_cornell', 'xml' or 'asset_room'")
+    if name == "blocks":
+        return blocks(**kwargs)
+    raise ValueError(f"unknown scene name {name!r}: use 'empty', 'cornell_box', 'glossy_cornell', 'xml', "
+                     "'asset_room' or 'blocks'")
 
 
 # --------------------------------------------------------------------------------------------
@@ -282,6 +321,8 @@ def _base_dict(desc: dict, mi) -> dict:
         return base
     if name == "asset_room":
         return _asset_room_dict(desc, mi)
+    if name == "blocks":
+        return _blocks_dict(desc, mi)
     if name == "xml":
         loaded = mi.load_file(desc["path"], optimize=False)
         base = {"type": "scene"}
@@ -326,6 +367,35 @@ def _asset_room_dict(desc: dict, mi) -> dict:
     }
     for key, to_world in walls.items():
         base[key] = {"type": "rectangle", "to_world": to_world, "bsdf": _bsdf_dict(_ROOM_MATERIALS[key], mi)}
+    return base
+
+
+def _blocks_dict(desc: dict, mi) -> dict:
+    from jprt import layouts
+
+    lay = layouts.layout_from_dict(desc["layout"])
+    size = float(desc["size"])
+    alb = desc["albedo"]
+    T = mi.ScalarTransform4f
+    base = {"type": "scene"}
+    shrink = 1.0 - 2.0 * BLOCK_INSET
+    for b, blk in enumerate(lay.blocks):
+        offset = np.array([blk.cell[0], 0.0, blk.cell[1]])
+        for f in range(6):
+            if f >= 2 and f - 2 in blk.open_sides:
+                continue
+            colour = (alb["floor"] if f == 0 else alb["ceiling"] if f == 1
+                      else alb["walls"][(b + f - 2) % len(alb["walls"])])
+            centre = (offset + 0.5 + shrink * (layouts.FACE_ORIGINS[f] + 0.5 * layouts.FACE_U[f]
+                                                + 0.5 * layouts.FACE_V[f] - 0.5)) * size
+            m = np.eye(4)
+            m[:3, 0] = layouts.FACE_U[f] * 0.5 * shrink * size
+            m[:3, 1] = layouts.FACE_V[f] * 0.5 * shrink * size
+            m[:3, 2] = layouts.FACE_NORMALS[f]  # the rectangle's +z normal faces into the block
+            m[:3, 3] = centre
+            base[f"block{b:03d}_{layouts.FACE_NAMES[f]}"] = {
+                "type": "rectangle", "to_world": T(m.tolist()),
+                "bsdf": _bsdf_dict({"type": "diffuse", "albedo": colour}, mi)}
     return base
 
 
