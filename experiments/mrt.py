@@ -61,7 +61,7 @@ PRESETS = {
     "small": {},
     # the paper's sizes (§7.1): 16^2 texels per face, k_rlf 128, 12^2 x 24^2 lightfields; 11 / 19 / 41 blocks
     "paper": {"dictionary": {"texels": 16}, "interfaces": {"spatial": 12, "directional": 24, "spatial_ss": 1,
-                                                           "directional_ss": 5, "k_rlf": 128},
+                                                           "directional_ss": 5, "k_rlf": 128, "k_r": 32},
               "eval": {"layouts": [{"blocks": 19, "seed": 19, "cycles": 2}, {"blocks": 41, "seed": 11, "cycles": 4}],
                        "table2_texels": [16]}},
     "test": {
@@ -110,7 +110,7 @@ def _atlas_images(texels, albedo_shape) -> list:
 
 
 def _predict(params, direct, albedo, cfg, **kw) -> np.ndarray:
-    arrays = {k: jnp.asarray(params[k]) for k in model._RUNTIME_KEYS}
+    arrays = {k: jnp.asarray(params[k]) for k in model._RUNTIME_KEYS if k in params}
     opts = {"feedback": int(cfg["runtime"]["feedback"]), "interfaces": bool(cfg["interfaces"]["enabled"])} | kw
     return np.asarray(model.lightmap(arrays, jnp.asarray(direct, jnp.float32), jnp.asarray(albedo, jnp.float32),
                                      **opts))
@@ -366,7 +366,8 @@ def _tilted_quadrature(t: int, normals: np.ndarray, radiance: np.ndarray, k: int
 
 
 def frame_times(run) -> dict:
-    """Frame time of the run time (§7.3 steps 1-5, ``runtime.feedback`` bounces, texels out) by
+    """Frame time of the run time (§7.3 steps 1-5, ``runtime.feedback`` bounces in the reduced
+    spaces with the level's ``feedback_operators``, texels out) by
     block count, T_b->r build times, XLA's FLOP count, and the f32 matmul rate of this process."""
     cfg = run.method_config
     dic = model.dictionary(cfg)
@@ -378,8 +379,11 @@ def frame_times(run) -> dict:
         lay = layouts.random_maze(nb, seed=nb, extra_edges=max(0, nb // 10)) if nb > 1 else layouts.corridor(1)
         ops = model.layout_operators(dic, lay.as_dict(), cfg)
         t = int(cfg["dictionary"]["texels"])
+        alb = layouts.texel_albedo(lay, t, _scene(run)["albedo"])
+        ops.update({k: v.astype(np.float32) for k, v in model.feedback_operators(
+            {k: np.asarray(ops[k], np.float64) for k in ("T_db", "U_b", "U_r_turned", "mask")}, alb).items()})
         arrays = jax.device_put({k: jnp.asarray(ops[k]) for k in model._RUNTIME_KEYS})
-        albedo = jax.device_put(jnp.asarray(layouts.texel_albedo(lay, t, _scene(run)["albedo"]), jnp.float32))
+        albedo = jax.device_put(jnp.asarray(alb, jnp.float32))
         direct = jax.device_put(jnp.asarray(rng.random((nb, layouts.texel_count(t), 3)), jnp.float32))
         fb = int(cfg["runtime"]["feedback"])
         fn = jax.jit(lambda a, d, al: model.lightmap(a, d, al, feedback=fb))

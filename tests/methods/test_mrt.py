@@ -166,6 +166,21 @@ def test_run_time_is_stable(dic, lay):
     assert out[mask].sum() > 0.05 * direct[mask].sum()
 
 
+def test_reduced_feedback_equals_texel_loop(dic):
+    d, cfg = dic
+    lay = layouts.random_maze(7, seed=4, extra_edges=2)
+    p = model.layout_operators(d, lay.as_dict(), cfg)
+    rng = np.random.default_rng(1)
+    direct = rng.random((len(lay.cells), layouts.texel_count(T), 3)).astype(np.float32)
+    albedo = layouts.texel_albedo(lay, T, {"floor": [0.6, 0.5, 0.4], "ceiling": [0.75] * 3,
+                                           "walls": [[0.7, 0.2, 0.3], [0.3, 0.6, 0.8]]}).astype(np.float32)
+    for fb in (0, 3):
+        want = model.lightmap_parts_texels(p, direct, albedo, feedback=fb)
+        got = model.lightmap_parts(p, direct, albedo, feedback=fb)
+        for g, w in zip(got, want):
+            np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-4, atol=1e-6 * float(np.abs(w).max()))
+
+
 def test_vector_irradiance_kinds(dic):
     d, cfg = dic
     p = model.layout_operators(d, layouts.corridor(2).as_dict(), cfg)

@@ -73,6 +73,7 @@ from jprt.methods.mrt import operators as ops
 
 __all__ = ["DEFAULT_CONFIG", "MRTData", "block_prior", "reduce_transfer", "enrich_prior", "block_operators",
            "interface_operators", "dictionary", "layout_operators", "lightmap", "lightmap_parts",
+           "lightmap_parts_texels", "feedback_operators",
            "projection", "vector_irradiance", "volume_probes", "atlas_layout", "atlas_gbuffer_inputs", "proxy_uv", "fit",
            "evaluator", "example", "TYPES"]
 
@@ -94,7 +95,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "enabled": True,
         "spatial": 4, "directional": 8,  # lightfield cells per axis (the paper: 12 and 24)
         "spatial_ss": 2, "directional_ss": 3,  # sub-rays per cell axis (the paper: 5 directional)
-        "k_rlf": 64, "k_r": 32,  # reduced lightfield and response modes (the paper: 128, 32)
+        "k_rlf": 64, "k_r": 16,  # reduced lightfield and response modes (the paper: 128, 32)
         "enrich_iterations": 3,
         "d_max": 8,  # interfaces a path may cross
     },
@@ -394,12 +395,16 @@ def _propagate(dic: dict, lay: layouts.Layout, d_max: int):
 # §7.3: the run time
 
 
-def lightmap_parts(params: dict, direct, albedo, *, feedback: int, interfaces: bool = True):
-    """Albedo-free indirect light (incident radiance / pi, i.e. E / pi) at every texel, split by
-    where it comes from: (within-block U_b b, through interfaces U_r r), each (B, n, 3) and summed
-    over 1 + ``feedback`` bounces (each bounce's outgoing light, albedo x incident, is the next
-    one's direct light). ``direct`` (B, n, 3) texel radiance in the layout's frame, ``albedo``
-    (B, n, 3). Pure JAX, jit-able; outgoing indirect radiance is albedo x (within + through)."""
+def _records(params: dict, b, n_blocks: int):
+    """r = T_b->r b, summed per receiving interface: (B, 4, k_r, 3) (block, side)."""
+    r = jnp.einsum("ejk,ekc->ejc", params["rec_T"], b[params["rec_src"]])
+    slot = params["rec_dst"] * 4 + params["rec_side"]
+    return jax.ops.segment_sum(r, slot, num_segments=4 * n_blocks).reshape((n_blocks, 4) + r.shape[1:])
+
+
+def lightmap_parts_texels(params: dict, direct, albedo, *, feedback: int, interfaces: bool = True):
+    """``lightmap_parts`` as §7.3 writes it: every bounce expanded to texels, multiplied by the
+    albedo and projected again (the reference the reduced-space feedback is tested against)."""
     mask = params["mask"][..., None]
     tdb, ub = params["T_db"], params["U_b"]
     n_blocks = tdb.shape[0]
@@ -411,15 +416,55 @@ def lightmap_parts(params: dict, direct, albedo, *, feedback: int, interfaces: b
         within = jnp.einsum("bnk,bkc->bnc", ub, b) * mask
         inter = jnp.zeros_like(within)
         if interfaces and params["rec_T"].shape[0]:
-            r = jnp.einsum("ejk,ekc->ejc", params["rec_T"], b[params["rec_src"]])
-            # r per receiving interface (block, side): sum the records, then one U_r product per side
-            slot = params["rec_dst"] * 4 + params["rec_side"]
-            r_slots = jax.ops.segment_sum(r, slot, num_segments=4 * n_blocks).reshape((n_blocks, 4) + r.shape[1:])
-            inter = jnp.einsum("snj,bsjc->bnc", params["U_r_turned"], r_slots) * mask
+            inter = jnp.einsum("snj,bsjc->bnc", params["U_r_turned"], _records(params, b, n_blocks)) * mask
         within_total = within_total + within
         inter_total = inter_total + inter
         light = albedo * (within + inter)
     return within_total, inter_total
+
+
+def feedback_operators(params: dict, albedo) -> dict:
+    """The feedback bounce in the reduced spaces (level initialisation: the albedo is static):
+    W[b, c] = T_d->b diag(albedo_c) U_b (k_b x k_b) maps a block's b to the b of its reflected
+    light, V[b, s, c] = T_d->b diag(albedo_c) U_r (turned to side s) (k_b x k_r) does the same
+    for the light arriving through side s. Then b' = W b + sum_s V r_s, and only the final sum
+    of all bounces is expanded to texels (equal to the texel-space loop, tested)."""
+    xp = jnp if isinstance(params["T_db"], jax.Array) else np
+    alb = xp.asarray(albedo, params["T_db"].dtype) * params["mask"][..., None]
+    w = xp.einsum("bkn,bnc,bnj->bckj", params["T_db"], alb, params["U_b"])
+    v = xp.einsum("bkn,bnc,snj->bsckj", params["T_db"], alb, params["U_r_turned"])
+    return {"W": w, "V": v}
+
+
+def lightmap_parts(params: dict, direct, albedo, *, feedback: int, interfaces: bool = True):
+    """Albedo-free indirect light (incident radiance / pi, i.e. E / pi) at every texel, split by
+    where it comes from: (within-block U_b b, through interfaces U_r r), each (B, n, 3) and summed
+    over 1 + ``feedback`` bounces (each bounce's outgoing light, albedo x incident, is the next
+    one's direct light). ``direct`` (B, n, 3) texel radiance in the layout's frame, ``albedo``
+    (B, n, 3). The bounces run in the reduced spaces (``feedback_operators``, taken from
+    ``params["W"]``, ``params["V"]`` when ``fit`` stored them); texels are touched twice: b of the
+    direct light, and the final expansion. Pure JAX, jit-able; outgoing indirect radiance is
+    albedo x (within + through)."""
+    mask = params["mask"][..., None]
+    n_blocks = params["T_db"].shape[0]
+    use_r = interfaces and params["rec_T"].shape[0] > 0
+    fb = params if "W" in params else feedback_operators(params, albedo)
+    b = jnp.einsum("bkn,bnc->bkc", params["T_db"], direct * mask)
+    b_total = b
+    r_total = None
+    for k in range(1 + int(feedback)):
+        r = _records(params, b, n_blocks) if use_r else None
+        if r is not None:
+            r_total = r if r_total is None else r_total + r
+        if k < int(feedback):
+            b = jnp.einsum("bckj,bjc->bkc", fb["W"], b)
+            if r is not None:
+                b = b + jnp.einsum("bsckj,bsjc->bkc", fb["V"], r)
+            b_total = b_total + b
+    within = jnp.einsum("bnk,bkc->bnc", params["U_b"], b_total) * mask
+    inter = (jnp.einsum("snj,bsjc->bnc", params["U_r_turned"], r_total) * mask if r_total is not None
+             else jnp.zeros_like(within))
+    return within, inter
 
 
 def lightmap(params: dict, direct, albedo, *, feedback: int = 4, interfaces: bool = True):
@@ -573,6 +618,9 @@ def fit(data: MRTData, config: dict | None = None) -> FitResult:
     lay = layout_operators(dic, data.layout, cfg)
     params = {k: v for k, v in lay.items() if k not in ("tbr_build_s", "kind", "turns")}
     params["albedo"] = np.asarray(data.albedo, np.float32)
+    fb = feedback_operators({k: np.asarray(params[k], np.float64) for k in ("T_db", "U_b", "U_r_turned", "mask")},
+                            data.albedo)
+    params.update(W=fb["W"].astype(np.float32), V=fb["V"].astype(np.float32))
     b, t = _texels_of(data.albedo)
     res, texel_index, fill = atlas_layout(b, t)
     params["texel_index"] = texel_index.astype(np.int32)
@@ -585,7 +633,7 @@ def fit(data: MRTData, config: dict | None = None) -> FitResult:
     return FitResult(params, info)
 
 
-_RUNTIME_KEYS = ("T_db", "U_b", "mask", "rec_src", "rec_dst", "rec_side", "rec_T", "U_r_turned")
+_RUNTIME_KEYS = ("T_db", "U_b", "mask", "rec_src", "rec_dst", "rec_side", "rec_T", "U_r_turned", "W", "V")
 
 
 def evaluator(params: dict, config: dict | None = None):
