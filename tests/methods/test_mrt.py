@@ -110,6 +110,19 @@ def test_lightfield_operators_conserve():
         assert float(np.asarray(r.sum(1)).mean()) == pytest.approx(0.2, abs=0.03), k
 
 
+@pytest.mark.parametrize("side", [0, 1, 3])
+def test_probe_sees_an_entering_lightfield(side):
+    # unit radiance entering through one side: from the block's centre that side covers 4 pi / 6
+    # of the sphere, so the SH DC coefficient is Y00 * 4 pi / 6 = sqrt(pi) / 3
+    op = ops.volume_lightfield_sh([[0.5, 0.5, 0.5]], 64, 2, 4, side)
+    dc = float(op[0, 0].sum())
+    assert dc == pytest.approx(np.sqrt(np.pi) / 3, rel=0.03)
+    # and the linear band points towards that side (SH order: y, z, x for l = 1)
+    lin = op[0, 1:4].sum(-1)
+    towards = layouts.SIDE_NORMALS[side]
+    assert np.dot(lin[[2, 0, 1]], towards) > 0.9 * np.linalg.norm(lin)
+
+
 def test_layout_kinds_and_turns():
     g = layouts.grid(3, 3)
     kinds = {b.cell: (b.kind, b.turns) for b in g.blocks}

@@ -73,7 +73,7 @@ from jprt.methods.mrt import operators as ops
 
 __all__ = ["DEFAULT_CONFIG", "MRTData", "block_prior", "reduce_transfer", "enrich_prior", "block_operators",
            "interface_operators", "dictionary", "layout_operators", "lightmap", "lightmap_parts",
-           "lightmap_parts_texels", "feedback_operators",
+           "lightmap_parts_texels", "feedback_operators", "coefficients",
            "projection", "vector_irradiance", "volume_probes", "atlas_layout", "atlas_gbuffer_inputs", "proxy_uv", "fit",
            "evaluator", "example", "TYPES"]
 
@@ -221,7 +221,7 @@ def interface_operators(blocks: dict, t: int, cfg: dict) -> dict:
     ug, sg, vgt = _svd(g)
     k_r = min(int(icfg["k_r"]), len(sg))
     return {"H_rlf": h, "H_pinv": h_pinv, "R_b": r_b, "R_rel": r_rel, "U_r": ug[:, :k_r],
-            "T_rlf_r": sg[:k_r, None] * vgt[:k_r], "sv_H": s, "sv_G": sg, "A_out": a_out, "F_rlf": f_rlf,
+            "T_rlf_r": sg[:k_r, None] * vgt[:k_r], "r_to_c": vgt[:k_r].T / sg[None, :k_r], "sv_H": s, "sv_G": sg, "A_out": a_out, "F_rlf": f_rlf,
             "propagation": prop}
 
 
@@ -252,7 +252,7 @@ def dictionary(config: dict | None = None, *, cache_dir: str | None = None) -> d
     ``jprt.cache`` under the ``dictionary``, ``interfaces``, ``vector`` and ``volume`` sections.
     ``info`` keys (``_info`` prefix) carry the singular values and timings."""
     cfg = _cfg(config)
-    spec = {"format": 3, **{k: cfg[k] for k in ("dictionary", "interfaces", "vector", "volume")}}
+    spec = {"format": 4, **{k: cfg[k] for k in ("dictionary", "interfaces", "vector", "volume")}}
 
     def build() -> dict:
         return _build_dictionary(cfg)
@@ -288,6 +288,13 @@ def _build_dictionary(cfg: dict) -> dict:
                    info_sv_H=io["sv_H"], info_sv_G=io["sv_G"], info_interfaces_s=np.array(time.perf_counter() - t1))
     t2 = time.perf_counter()
     vv = _vector_volume(blocks, t, cfg)
+    if cfg["interfaces"]["enabled"]:
+        # §6.5 "from b's and r's": the probes' SH of the lightfield entering through each side,
+        # read through the response coefficients (c ~ V_g Sigma_g^-1 r on the kept modes)
+        icfg = cfg["interfaces"]
+        out["U_rvol"] = np.stack([ops.volume_lightfield_sh(vv["probes"], int(cfg["volume"]["directions"]),
+                                                           int(icfg["spatial"]), int(icfg["directional"]), side)
+                                  @ (io["H_rlf"] @ io["r_to_c"]) for side in range(4)]).astype(np.float32)
     def padded(a):  # (4, X, 9, k) -> (4, X, 9, k_b)
         return np.pad(a, ((0, 0), (0, 0), (0, 0), (0, k_b - a.shape[-1])))
 
@@ -323,6 +330,7 @@ def layout_operators(dic: dict, layout, config: dict | None = None) -> dict:
         mask.append(_turned(dic["mask"][k], t, blk.turns, axis=0))
         uq.append(dic["U_quad"][k, blk.turns])
     out = {"T_db": np.stack(tdb).astype(np.float32), "U_b": np.stack(ub).astype(np.float32),
+           **({"U_rvol": dic["U_rvol"]} if "U_rvol" in dic else {}),
            "mask": np.stack(mask), "U_quad": np.stack(uq).astype(np.float32),
            "U_vol": np.stack([dic["U_vol"][TYPES.index(b.kind), b.turns] for b in blocks]).astype(np.float32),
            "kind": np.array([TYPES.index(b.kind) for b in blocks], np.int32),
@@ -436,34 +444,43 @@ def feedback_operators(params: dict, albedo) -> dict:
     return {"W": w, "V": v}
 
 
-def lightmap_parts(params: dict, direct, albedo, *, feedback: int, interfaces: bool = True):
-    """Albedo-free indirect light (incident radiance / pi, i.e. E / pi) at every texel, split by
-    where it comes from: (within-block U_b b, through interfaces U_r r), each (B, n, 3) and summed
-    over 1 + ``feedback`` bounces (each bounce's outgoing light, albedo x incident, is the next
-    one's direct light). ``direct`` (B, n, 3) texel radiance in the layout's frame, ``albedo``
-    (B, n, 3). The bounces run in the reduced spaces (``feedback_operators``, taken from
-    ``params["W"]``, ``params["V"]`` when ``fit`` stored them); texels are touched twice: b of the
-    direct light, and the final expansion. Pure JAX, jit-able; outgoing indirect radiance is
-    albedo x (within + through)."""
+def coefficients(params: dict, direct, albedo, *, feedback: int, interfaces: bool = True):
+    """The run time's reduced state summed over 1 + ``feedback`` bounces: b (B, k_b, 3) per block
+    and r (B, 4, k_r, 3) per receiving side (zeros without interfaces). The bounces run in the
+    reduced spaces (``feedback_operators``, taken from ``params["W"]``, ``params["V"]`` when
+    ``fit`` stored them): the texels are read once, for b of the direct light."""
     mask = params["mask"][..., None]
     n_blocks = params["T_db"].shape[0]
     use_r = interfaces and params["rec_T"].shape[0] > 0
     fb = params if "W" in params else feedback_operators(params, albedo)
     b = jnp.einsum("bkn,bnc->bkc", params["T_db"], direct * mask)
     b_total = b
-    r_total = None
+    k_r = params["U_r_turned"].shape[-1]
+    r_total = jnp.zeros((n_blocks, 4, k_r) + direct.shape[-1:], direct.dtype)
     for k in range(1 + int(feedback)):
         r = _records(params, b, n_blocks) if use_r else None
         if r is not None:
-            r_total = r if r_total is None else r_total + r
+            r_total = r_total + r
         if k < int(feedback):
             b = jnp.einsum("bckj,bjc->bkc", fb["W"], b)
             if r is not None:
                 b = b + jnp.einsum("bsckj,bsjc->bkc", fb["V"], r)
             b_total = b_total + b
+    return b_total, r_total
+
+
+def lightmap_parts(params: dict, direct, albedo, *, feedback: int, interfaces: bool = True):
+    """Albedo-free indirect light (incident radiance / pi, i.e. E / pi) at every texel, split by
+    where it comes from: (within-block U_b b, through interfaces U_r r), each (B, n, 3) and summed
+    over 1 + ``feedback`` bounces (each bounce's outgoing light, albedo x incident, is the next
+    one's direct light). ``direct`` (B, n, 3) texel radiance in the layout's frame, ``albedo``
+    (B, n, 3). The bounces run in the reduced spaces (``coefficients``); only their sum is
+    expanded to texels. Pure JAX, jit-able; outgoing indirect radiance is albedo x (within +
+    through)."""
+    mask = params["mask"][..., None]
+    b_total, r_total = coefficients(params, direct, albedo, feedback=feedback, interfaces=interfaces)
     within = jnp.einsum("bnk,bkc->bnc", params["U_b"], b_total) * mask
-    inter = (jnp.einsum("snj,bsjc->bnc", params["U_r_turned"], r_total) * mask if r_total is not None
-             else jnp.zeros_like(within))
+    inter = jnp.einsum("snj,bsjc->bnc", params["U_r_turned"], r_total) * mask
     return within, inter
 
 
@@ -518,10 +535,15 @@ def vector_irradiance(params: dict, b, normals_local, kind: str):
     raise ValueError(f"vector irradiance kind is 'scalar', 'quadratic' or 'ohlsh', got {kind!r}")
 
 
-def volume_probes(params: dict, b):
-    """Quadratic SH (B, P, 9, 3) of the radiance at each block's probe lattice (§6.5), from the
-    blocks' own b (within-block light)."""
-    return jnp.einsum("bpqk,bkc->bpqc", params["U_vol"], b)
+def volume_probes(params: dict, b, r=None):
+    """Quadratic SH (B, P, 9, 3) of the radiance at each block's probe lattice (§6.5, §7.3 step
+    8): U_bvol b from the block's own light plus, with ``r`` (B, 4, k_r, 3) the summed response
+    coefficients of its receiving sides (``coefficients``), U_rvol r for the light arriving
+    through them."""
+    out = jnp.einsum("bpqk,bkc->bpqc", params["U_vol"], b)
+    if r is not None and "U_rvol" in params:
+        out = out + jnp.einsum("spqj,bsjc->bpqc", params["U_rvol"], r)
+    return out
 
 
 # --------------------------------------------------------------------------------------------

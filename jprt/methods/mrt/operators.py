@@ -32,7 +32,7 @@ from jprt import layouts
 
 __all__ = ["form_factors", "point_light_direct", "prior_lights", "concentric", "concentric_inverse",
            "lightfield_rays", "entry_rays", "exit_resampling", "entry_response", "propagation", "face_mask",
-           "hemisphere_sh", "volume_sh"]
+           "hemisphere_sh", "volume_sh", "volume_lightfield_sh"]
 
 
 def face_mask(t: int, missing: tuple[int, ...]) -> np.ndarray:
@@ -301,4 +301,25 @@ def volume_sh(t: int, points, directions: int = 12) -> np.ndarray:
         f, hit = layouts.exit_face(np.repeat(p[None], len(d), 0), d)
         tex = layouts.locate(hit, t, layouts.FACE_NORMALS[f])
         np.add.at(out[i].T, tex, y)
+    return out
+
+
+def volume_lightfield_sh(points, directions: int, spatial: int, directional: int, side: int) -> np.ndarray:
+    """(P, 9, s) linear operator: quadratic SH (block frame) at points inside the block of the
+    radiance arriving through ``side`` from the lightfield entering there (in the parameters of
+    a block turned so that ``side`` is its side 0, as ``propagation`` and ``entry_response``
+    use): each direction whose ray leaves through that side reads the entering cell of the
+    opposite ray."""
+    d, w = _sphere_dirs(int(directions), hemisphere=False)
+    y = _sh9(d) * w[:, None]
+    turn = (4 - int(side)) % 4
+    pts = layouts.rotate_points(np.asarray(points, np.float64).reshape(-1, 3), turn)
+    dc = layouts.rotate_directions(d, turn)
+    out = np.zeros((len(pts), 9, _cells_total(spatial, directional)))
+    for i, p in enumerate(pts):
+        f, hit = layouts.exit_face(np.repeat(p[None], len(dc), 0), dc)
+        sel = f == 2
+        cell = _cell_of_exit(layouts.rotate_points(hit[sel], 2) + _N0, layouts.rotate_directions(-dc[sel], 2),
+                             spatial, directional)
+        np.add.at(out[i].T, cell, y[sel])
     return out
