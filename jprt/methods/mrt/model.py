@@ -41,8 +41,14 @@ paper's order:
 * **Vector irradiance** (§6.4, App. B): quadratic SH of each texel's incident radiance under
   each implicit light (``operators.hemisphere_sh``), mapped to 4 OHLSH coefficients
   (``jprt.sphere.sh.ohlsh``); ``vector_irradiance`` evaluates either for perturbed normals.
-* **Irradiance volumes** (§6.5): U_bvol maps b to quadratic SH at a ``volume_grid^3`` lattice of
-  probes in each block (``operators.volume_sh`` of L_imp); ``volume_probes`` evaluates it.
+* **Irradiance volumes** (§6.5, §7.3 step 8 "from b's and r's"): U_bvol maps b to quadratic SH
+  at a ``volume_grid^3`` lattice of probes in each block (``operators.volume_sh`` of L_imp);
+  U_rvol maps a receiving side's r to the SH of the lightfield entering there
+  (``operators.volume_lightfield_sh`` of H_rlf), reading r back as lightfield coefficients
+  c ~ V_g Sigma_g^-1 r on the k_r kept modes (the paper does not say how); ``volume_probes``.
+* **Feedback in the reduced spaces** (not in the paper, equal to it): the bounce
+  b' = T_d->b (albedo x (U_b b + U_r r)) is W b + sum_s V_s r with W, V precomputed per level
+  (``feedback_operators``), so a frame touches the texels twice, not twice per bounce.
 
 Decisions the paper leaves open: blocks are unit cubes (a layout's ``size`` scales the world,
 not the transport); lightfields are 4^2 positions x 8^2 directions at ``small`` (the paper's
