@@ -179,6 +179,7 @@ def test_pixel_features_reflection_encodings(reflection, size):
         wp.model({"model": {"reflection": "dce"}})
 
 
+@pytest.mark.slow  # ~10 s (suite budget): float64 check_grads of the whole model; training tests run its gradients
 def test_model_gradients():
     """Reverse-mode gradients of T_k w.r.t. every parameter (float64, so finite differences
     with a small step do not cross ReLU kinks)."""
