@@ -236,3 +236,18 @@ def test_blocks_scene_two_block_smoke(mi):
             assert far.max() > 0.01  # light reaches the neighbour through the opening
         else:
             assert far.max() == 0.0  # walls one-sided per block, back to back: nothing leaks
+
+
+@pytest.mark.parametrize("override, match", [({"dictionary": {"k_b": 0}}, "dictionary.k_b"),
+                                             ({"interfaces": {"spatial": 2.5}}, "interfaces.spatial"),
+                                             ({"runtime": {"feedback": -1}}, "runtime.feedback")])
+def test_bad_sizes_are_refused_with_one_line(override, match):
+    with pytest.raises(ValueError, match=match):
+        model._cfg(override)
+
+
+def test_non_block_scene_needs_a_proxy():
+    from jprt.methods.mrt import data
+
+    with pytest.raises(ValueError, match="proxy.layout"):
+        data.block_frame({"name": "cornell_box"}, model._cfg({}))

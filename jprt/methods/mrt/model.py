@@ -120,7 +120,22 @@ DEFAULT_CONFIG: dict[str, Any] = {
 
 
 def _cfg(config) -> dict:
-    return resolve(DEFAULT_CONFIG, config)
+    """``DEFAULT_CONFIG`` merged strictly with ``config``, its sizes checked (one line each)."""
+    cfg = resolve(DEFAULT_CONFIG, config)
+    positive = [("dictionary", k) for k in ("texels", "quadrature", "prior_grid", "k_d", "k_b")]
+    positive += [("interfaces", k) for k in ("spatial", "directional", "spatial_ss", "directional_ss", "k_rlf", "k_r",
+                                             "d_max")]
+    positive += [("vector", "directions"), ("volume", "grid"), ("volume", "directions")]
+    for section, key in positive:
+        v = cfg[section][key]
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ValueError(f"{section}.{key} must be a positive integer, got {v!r}")
+    for key in ("enrich_iterations",):
+        if int(cfg["interfaces"][key]) < 0:
+            raise ValueError(f"interfaces.{key} must be >= 0, got {cfg['interfaces'][key]!r}")
+    if int(cfg["runtime"]["feedback"]) < 0:
+        raise ValueError(f"runtime.feedback (extra bounces) must be >= 0, got {cfg['runtime']['feedback']!r}")
+    return cfg
 
 
 # --------------------------------------------------------------------------------------------
