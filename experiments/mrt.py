@@ -437,8 +437,7 @@ def frame_times(run) -> dict:
         ops = model.layout_operators(dic, lay.as_dict(), cfg)
         t = int(cfg["dictionary"]["texels"])
         alb = layouts.texel_albedo(lay, t, _scene(run)["albedo"])
-        ops.update({k: v.astype(np.float32) for k, v in model.feedback_operators(
-            {k: np.asarray(ops[k], np.float64) for k in ("T_db", "U_b", "U_r_turned", "mask")}, alb).items()})
+        ops.update(model.level_feedback(ops, alb))
         arrays = jax.device_put({k: jnp.asarray(ops[k]) for k in model._RUNTIME_KEYS})
         albedo = jax.device_put(jnp.asarray(alb, jnp.float32))
         direct = jax.device_put(jnp.asarray(rng.random((nb, layouts.texel_count(t), 3)), jnp.float32))

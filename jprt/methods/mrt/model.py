@@ -79,7 +79,7 @@ from jprt.methods.mrt import operators as ops
 
 __all__ = ["DEFAULT_CONFIG", "MRTData", "block_prior", "reduce_transfer", "enrich_prior", "block_operators",
            "interface_operators", "dictionary", "layout_operators", "lightmap", "lightmap_parts",
-           "lightmap_parts_texels", "feedback_operators", "coefficients",
+           "lightmap_parts_texels", "feedback_operators", "level_feedback", "coefficients",
            "projection", "vector_irradiance", "volume_probes", "atlas_layout", "atlas_gbuffer_inputs", "proxy_uv", "fit",
            "evaluator", "example", "TYPES"]
 
@@ -214,13 +214,10 @@ def interface_operators(blocks: dict, t: int, cfg: dict) -> dict:
     a_out = ops.exit_resampling(t, rays, sp, dr)
     f_rlf = ops.entry_response(t, rays, sp, dr, int(icfg["directional_ss"]), int(icfg["spatial_ss"]))
     prop = ops.propagation(rays, sp, dr)
-    cols, sources = [], []
-    for name in TYPES:
-        for side in layouts.DICTIONARY[name]:
-            lf = a_out @ layouts.rotate_pattern(blocks[name]["L_imp"], t, (4 - side) % 4)
-            cols.append(lf)
-            sources.append((name, side))
-    h_lf = np.concatenate(cols, axis=1)
+    # each type's implicit lights seen leaving through each of its missing sides (turned to side 0)
+    leaving = {(name, side): a_out @ layouts.rotate_pattern(blocks[name]["L_imp"], t, (4 - side) % 4)
+               for name in TYPES for side in layouts.DICTIONARY[name]}
+    h_lf = np.concatenate(list(leaving.values()), axis=1)
     u, s, _ = _svd(h_lf)
     k = min(int(icfg["k_rlf"]), int(np.sum(s > s[0] * 1e-10)))
     h = u[:, :k] * s[:k]
@@ -233,17 +230,14 @@ def interface_operators(blocks: dict, t: int, cfg: dict) -> dict:
         # lightfields they represent (H_rlf = U Sigma); rescale by H_lf's energy
         h = u2[:, :k] * (s2[:k] / s2[0] * s[0])
     h_pinv = np.linalg.pinv(h)
-    r_b = {}
-    for name in TYPES:
-        for side in layouts.DICTIONARY[name]:
-            r_b[(name, side)] = h_pinv @ (a_out @ layouts.rotate_pattern(blocks[name]["L_imp"], t, (4 - side) % 4))
+    r_b = {key: h_pinv @ lf for key, lf in leaving.items()}
     r_rel = {r: h_pinv @ (prop[r] @ h) for r in (1, 2, 3)}
     g = f_rlf @ h
     ug, sg, vgt = _svd(g)
     k_r = min(int(icfg["k_r"]), len(sg))
     return {"H_rlf": h, "H_pinv": h_pinv, "R_b": r_b, "R_rel": r_rel, "U_r": ug[:, :k_r],
-            "T_rlf_r": sg[:k_r, None] * vgt[:k_r], "r_to_c": vgt[:k_r].T / sg[None, :k_r], "sv_H": s, "sv_G": sg, "A_out": a_out, "F_rlf": f_rlf,
-            "propagation": prop}
+            "T_rlf_r": sg[:k_r, None] * vgt[:k_r], "r_to_c": vgt[:k_r].T / sg[None, :k_r], "sv_H": s, "sv_G": sg,
+            "A_out": a_out, "F_rlf": f_rlf, "propagation": prop}
 
 
 # --------------------------------------------------------------------------------------------
@@ -377,11 +371,13 @@ def _propagate(dic: dict, lay: layouts.Layout, d_max: int):
     r_rel = dic["R_rel"]
     records: dict[tuple[int, int, int], np.ndarray] = {}
     axis_sign = {0: (0, 1), 1: (1, 1), 2: (0, -1), 3: (1, -1)}
+    # the block across each open side, looked up once (None: an exterior opening)
+    across = {(x, s): lay.neighbour(x, s) for x, b in enumerate(blocks) for s in b.open_sides}
     for x, blk in enumerate(blocks):
         kind = TYPES.index(blk.kind)
         frontier = {}
         for s_w in blk.open_sides:
-            y = lay.neighbour(x, s_w)
+            y = across[(x, s_w)]
             if y is None:  # an exterior opening: the light leaves the layout
                 continue
             c = np.asarray(dic["R_b"][kind, (s_w - blk.turns) % 4], np.float64)
@@ -401,7 +397,7 @@ def _propagate(dic: dict, lay: layouts.Layout, d_max: int):
                     ax, sg = axis_sign[k_w]
                     if sign[ax] == -sg:
                         continue  # no straight ray turns back along an axis
-                    z = lay.neighbour(y, k_w)
+                    z = across[(y, k_w)]
                     if z is None:
                         continue
                     s2 = list(sign)
@@ -463,6 +459,14 @@ def feedback_operators(params: dict, albedo) -> dict:
     w = xp.einsum("bkn,bnc,bnj->bckj", params["T_db"], alb, params["U_b"])
     v = xp.einsum("bkn,bnc,snj->bsckj", params["T_db"], alb, params["U_r_turned"])
     return {"W": w, "V": v}
+
+
+def level_feedback(params: dict, albedo) -> dict:
+    """``feedback_operators`` of a level's params and albedo, computed in float64 and stored as
+    the float32 ``W`` and ``V`` the run time reads (what ``fit`` adds to its params)."""
+    fb = feedback_operators({k: np.asarray(params[k], np.float64) for k in ("T_db", "U_b", "U_r_turned", "mask")},
+                            np.asarray(albedo, np.float64))
+    return {k: v.astype(np.float32) for k, v in fb.items()}
 
 
 def coefficients(params: dict, direct, albedo, *, feedback: int, interfaces: bool = True):
@@ -661,9 +665,7 @@ def fit(data: MRTData, config: dict | None = None) -> FitResult:
     lay = layout_operators(dic, data.layout, cfg)
     params = {k: v for k, v in lay.items() if k not in ("tbr_build_s", "kind", "turns")}
     params["albedo"] = np.asarray(data.albedo, np.float32)
-    fb = feedback_operators({k: np.asarray(params[k], np.float64) for k in ("T_db", "U_b", "U_r_turned", "mask")},
-                            data.albedo)
-    params.update(W=fb["W"].astype(np.float32), V=fb["V"].astype(np.float32))
+    params.update(level_feedback(params, data.albedo))
     b, t = _texels_of(data.albedo)
     res, texel_index, fill = atlas_layout(b, t)
     params["texel_index"] = texel_index.astype(np.int32)
@@ -719,7 +721,6 @@ def evaluator(params: dict, config: dict | None = None):
 def example(data: MRTData, config: dict | None = None):
     """A held-out (inputs, lighting) pair: the atlas itself (every texel, its albedo) and the
     first held-out lighting's direct light at the texels."""
-    b, t = _texels_of(data.albedo)
     return atlas_gbuffer_inputs(data.albedo), PointRadiance(
         np.asarray(data.direct_test[0], np.float32).reshape(-1, 3))
 
