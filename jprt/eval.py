@@ -22,7 +22,8 @@ import numpy as np
 from jprt import io
 from jprt.metrics import error_map, tonemap
 
-__all__ = ["set_rmse", "time_call", "equal_error_spp", "side_by_side", "plot_series"]
+__all__ = ["set_rmse", "time_call", "xla_flops", "matmul_peak_gflops", "roofline", "equal_error_spp", "side_by_side",
+           "plot_series"]
 
 
 def set_rmse(predictions: Sequence, references: Sequence, valids: Sequence | None = None) -> float:
@@ -69,6 +70,42 @@ def time_call(fn: Callable, *args, repeats: int = 10, warmup: int = 2) -> dict:
         run()
         times.append(1e3 * (time.perf_counter() - t0))
     return {"median_ms": statistics.median(times), "min_ms": min(times), "times_ms": times}
+
+
+def xla_flops(jitted: Callable, *args) -> float | None:
+    """FLOPs of one call of ``jitted`` (a ``jax.jit`` function) on ``args``, as XLA's cost analysis
+    of the compiled program counts them (multiply-adds count 2; gathers, sorts and scatters count
+    nothing); None when the backend reports no count."""
+    try:
+        cost = jitted.lower(*args).compile().cost_analysis()
+    except Exception:  # noqa: BLE001 - a backend without cost analysis
+        return None
+    cost = cost[0] if isinstance(cost, (list, tuple)) and cost else cost
+    flops = cost.get("flops") if cost else None
+    return float(flops) if flops is not None and flops > 0 else None
+
+
+def matmul_peak_gflops(n: int = 1024, repeats: int = 10, dtype: str = "float32") -> float:
+    """The JAX matmul rate of this process (GFLOP/s): an n x n by n x n product, the fastest of
+    ``repeats`` timed runs after warm-up: what "near the machine's limit" is judged against."""
+    import jax
+    import jax.numpy as jnp
+
+    a = jax.device_put(jnp.asarray(np.random.default_rng(0).random((n, n)), dtype))
+    ms = time_call(jax.jit(lambda x: x @ x), a, repeats=repeats, warmup=2)["min_ms"]
+    return 2.0 * n ** 3 / (ms * 1e-3) / 1e9
+
+
+def roofline(jitted: Callable, *args, frame_ms: float, peak_gflops: float | None = None,
+             flops: float | None = None) -> dict:
+    """A frame time judged against the machine: ``frame_flops`` (``flops`` when given, else
+    ``xla_flops``), the achieved ``frame_gflops_per_s``, ``matmul_peak_gflops`` (measured now
+    unless given) and ``flops_fraction_of_peak`` = achieved / peak (None where nothing counts)."""
+    flops = xla_flops(jitted, *args) if flops is None else float(flops)
+    peak = matmul_peak_gflops() if peak_gflops is None else float(peak_gflops)
+    rate = None if flops is None else flops / (frame_ms * 1e-3) / 1e9
+    return {"frame_flops": flops, "frame_gflops_per_s": rate, "matmul_peak_gflops": peak,
+            "flops_fraction_of_peak": None if rate is None else rate / peak}
 
 
 def _leaves(out):

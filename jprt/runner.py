@@ -54,6 +54,8 @@ SUMMARY_SCHEMA: dict[str, str] = {
     "indirect_rmse": "RMSE of the indirect prediction over every valid pixel and channel of all held-out images "
                      "together (jprt.eval.set_rmse; HDR, linear)",
     "indirect_rel_rmse": "indirect_rmse / RMS of the reference indirect over the same pixels",
+    "p999_abs_error": "99.9th percentile of |prediction - reference| over every valid pixel and channel of the "
+                      "held-out images (linear HDR): seams and blotches that the RMSE averages away",
     "psnr_indirect": "PSNR (dB, sRGB-tonemapped, clipped, peak 1) of the indirect images, mean over images",
     "ssim_indirect": "SSIM of the tonemapped indirect images, mean over images; None for images under 11 x 11 "
                      "pixels (the SSIM window)",
@@ -69,6 +71,12 @@ SUMMARY_SCHEMA: dict[str, str] = {
                                 "tried when not reached: a lower bound); extra.pathtrace_curve has (spp, ms, rmse) "
                                 "of every spp the search tried",
     "speedup_equal_error": "pathtrace_ms_equal_error / frame_ms",
+    "frame_flops": "FLOPs of the timed frame: the method's own count (Method.frame_flops) where it has one, else "
+                   "XLA's cost analysis of the compiled evaluator (jprt.eval.xla_flops: gathers, sorts and scatters "
+                   "count none, a loop's body once); extra.frame_flops_source says which",
+    "matmul_peak_gflops": "f32 JAX matmul rate (GFLOP/s, 1024^3, fastest of 10) measured in the same run",
+    "flops_fraction_of_peak": "frame_flops / frame_ms against matmul_peak_gflops: the evaluator judged against the "
+                              "machine",
     "model_bytes": "bytes of the arrays the evaluator needs at run time (FitResult.info['model_bytes'] when the "
                    "method states it, else every array of the params)",
     "train_s": "seconds of the fit",
@@ -151,12 +159,17 @@ def method_config(method: Method, config: dict) -> dict:
 
 def common_summary(held: HeldOut, exposure: float = 0.0) -> dict:
     """The accuracy keys of ``SUMMARY_SCHEMA`` for a held-out set: indirect_rmse, indirect_rel_rmse,
-    psnr_indirect, ssim_indirect, psnr_full, flip_indirect, lpips_indirect (None where a metric does
+    p999_abs_error, psnr_indirect, ssim_indirect, psnr_full, flip_indirect, lpips_indirect (None where a metric does
     not apply: images too small for its window, no direct images, its package not installed)."""
     preds, refs, valid = held.predictions, held.references, held.valid
     rmse = jeval.set_rmse(preds, refs, valid)
     ref_rms = jeval.set_rmse([np.zeros_like(np.asarray(r)) for r in refs], refs, valid)
-    out = {"indirect_rmse": rmse, "indirect_rel_rmse": rmse / max(ref_rms, 1e-30)}
+    masks = [np.ones(np.shape(r)[:2], bool) if m is None else np.asarray(m, bool)
+             for r, m in zip(refs, valid if valid is not None else [None] * len(refs))]
+    errors = np.concatenate([np.abs(np.asarray(p, np.float64) - np.asarray(r, np.float64))[m].ravel()
+                             for p, r, m in zip(preds, refs, masks)])
+    out = {"indirect_rmse": rmse, "indirect_rel_rmse": rmse / max(ref_rms, 1e-30),
+           "p999_abs_error": float(np.percentile(errors, 99.9)) if errors.size else None}
     tm = lambda metric, p, r: float(metrics.tonemapped(metric, p, r, exposure))  # noqa: E731
     out["psnr_indirect"] = float(np.mean([tm(metrics.psnr, p, r) for p, r in zip(preds, refs)]))
     small = min(min(np.shape(r)[:2]) for r in refs) < 11  # SSIM's 11 x 11 window does not fit
@@ -200,7 +213,15 @@ def _timing(run: Run, experiment: ModuleType, repeats: int) -> None:
     fast = jax.jit(run.evaluate)  # the pure program: input checks run on concrete calls only
     s["frame_ms"] = jeval.time_call(fast, inputs, lighting, repeats=repeats)["median_ms"]
     s["frame_resolution"] = list(np.shape(fast(inputs, lighting))[:2])
-    run.say(f"frame {s['frame_resolution'][0]}x{s['frame_resolution'][1]}: {s['frame_ms']:.2f} ms")
+    own = run.method.frame_flops
+    flops = own(run.result.params, run.method_config, inputs, lighting) if own else None
+    roof = jeval.roofline(fast, inputs, lighting, frame_ms=s["frame_ms"], flops=flops)
+    s.update({k: roof[k] for k in ("frame_flops", "matmul_peak_gflops", "flops_fraction_of_peak")})
+    s["extra"]["frame_flops_source"] = "method" if own else "xla"
+    frac = "" if roof["flops_fraction_of_peak"] is None else (
+        f", {roof['frame_flops'] / 1e6:.1f} MFLOP = {100 * roof['flops_fraction_of_peak']:.1f} % of the "
+        f"{roof['matmul_peak_gflops']:.0f} GFLOP/s matmul peak")
+    run.say(f"frame {s['frame_resolution'][0]}x{s['frame_resolution'][1]}: {s['frame_ms']:.2f} ms{frac}")
 
 
 def _equal_error(run: Run, experiment: ModuleType, held: HeldOut) -> None:

@@ -59,3 +59,18 @@ def test_write_benchmark_records_the_run(tmp_path):
         r = json.load(f)
     assert r["x"] == 1.5 and r["context"]["command"] == "python benchmarks/x.py" and r["context"]["notes"] == "n"
     assert "cores" in r["context"]["device"] and r["context"]["date"].endswith("+00:00")
+
+
+def test_roofline_counts_a_matmul_and_judges_it_against_the_peak():
+    import jax
+    import jax.numpy as jnp
+
+    f = jax.jit(lambda a, b: a @ b)
+    a, b = jnp.ones((64, 32), jnp.float32), jnp.ones((32, 48), jnp.float32)
+    assert jeval.xla_flops(f, a, b) == pytest.approx(2 * 64 * 32 * 48, rel=0.01)
+    roof = jeval.roofline(f, a, b, frame_ms=0.5, peak_gflops=10.0)
+    assert roof["frame_gflops_per_s"] == pytest.approx(2 * 64 * 32 * 48 / 0.5e-3 / 1e9, rel=0.01)
+    assert roof["flops_fraction_of_peak"] == pytest.approx(roof["frame_gflops_per_s"] / 10.0)
+    # nothing to count (a copy): no fraction rather than a zero
+    assert jeval.roofline(jax.jit(lambda x: x[::-1]), a, frame_ms=1.0, peak_gflops=10.0)["flops_fraction_of_peak"] is None
+    assert jeval.matmul_peak_gflops(n=64, repeats=2) > 0

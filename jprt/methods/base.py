@@ -60,6 +60,10 @@ class Method(NamedTuple):
       evaluator: ``(params, config) -> fn(inputs, lighting) -> (H, W, 3)`` indirect radiance.
       example: ``(dataset, config) -> (inputs, lighting)`` a held-out pair of concrete arrays, the
         shapes the evaluator is timed and exported at.
+      frame_flops: optional ``(params, config, inputs, lighting) -> float``: the FLOPs one
+        evaluator call needs by the method's own count (``model.frame_flops`` when the package
+        has one), for evaluators whose loops XLA's cost analysis counts once; None: the runner
+        reports XLA's count (``jprt.eval.xla_flops``).
     """
 
     name: str
@@ -71,6 +75,7 @@ class Method(NamedTuple):
     fit: Callable
     evaluator: Callable
     example: Callable
+    frame_flops: Callable | None = None
 
     def resolve(self, config: Mapping | None = None) -> dict:
         """``default_config`` deep-merged with ``config``; an unknown key raises ConfigError."""
@@ -82,7 +87,7 @@ class Method(NamedTuple):
         """The method of a package laid out as DESIGN.md says: ``model.DEFAULT_CONFIG``,
         ``data.make_dataset``, ``model.fit`` (or ``fit``), ``model.evaluator``, ``model.example``."""
         return cls(name, paper, lighting, model.DEFAULT_CONFIG, presets, data.make_dataset, fit or model.fit,
-                   model.evaluator, model.example)
+                   model.evaluator, model.example, getattr(model, "frame_flops", None))
 
 
 def resolve(default_config: Mapping, config: Mapping | None = None) -> dict:

@@ -129,18 +129,24 @@ def mlp(sizes: Sequence[int], *, activation: str = "tanh", output_activation: st
     return MLP(init_fn, apply_fn, sizes)
 
 
-def ranges(a, *, eps: float = 1e-8):
+def ranges(a, *, eps: float = 1e-5):
     """Centre and half-range per feature of samples ``a`` (samples on the first axes, features
     last), the map of Ren et al. 2013 Appendix A (Beale et al.'s mapminmax) to [-1, 1]; constant
-    features get a half-range of 1 (they map to 0). NumPy in, NumPy out (same dtype); else JAX."""
+    features get a half-range of 1 (they map to 0). NumPy in, NumPy out (same dtype); else JAX.
+
+    A feature counts as constant when its half-range is at most ``eps`` x max(1, |centre|): a
+    coordinate that is constant up to float32 rounding (a wall's z from ray intersections varies
+    by ~1e-7) must not be stretched to [-1, 1], or the network fits that noise with weights of
+    1e8 and the rendering is speckled wherever the rounding differs (the RRF's floor blotches)."""
     xp = np if isinstance(a, np.ndarray) else jnp
     a = xp.asarray(a).reshape(-1, a.shape[-1])
     lo, hi = a.min(axis=0), a.max(axis=0)
     half = 0.5 * (hi - lo)
-    return 0.5 * (hi + lo), xp.where(half > eps, half, 1.0)
+    centre = 0.5 * (hi + lo)
+    return centre, xp.where(half > eps * xp.maximum(1.0, xp.abs(centre)), half, xp.ones_like(half))
 
 
-def with_scaling(params, x=None, y=None, *, eps: float = 1e-8):
+def with_scaling(params, x=None, y=None, *, eps: float = 1e-5):
     """Return params whose input/output scaling maps the ranges of ``x`` / ``y`` (samples on the
     first axes, features last) to [-1, 1] (``ranges``)."""
     scaling = dict(params["scaling"])

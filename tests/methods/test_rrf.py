@@ -55,8 +55,27 @@ def test_smooth_target_single_leaf():
     assert info["leaf_val_error"][0] < 0.01  # stated: a smooth target is fit below 1 % relative error
     test = rng.random((500, 3)).astype(np.float32)
     ref = 1.0 + 0.5 * np.sin(2.0 * test[:, 0]) + 0.3 * test[:, 1] * test[:, 2]
-    pred = np.asarray(rrf._predict(params, jnp.asarray(test), jnp.zeros(500, jnp.int32)))
+    pred = np.asarray(rrf._predict_sorted(params, jnp.asarray(test), jnp.zeros(500, jnp.int32), clamp=False))
     assert rrf._relative_error(pred[:, 0], ref) < 0.01
+
+
+def test_a_feature_constant_in_training_stays_constant_at_run_time():
+    """The seam of ``make demo`` (the tall box's top face, which no training ray hit, so every
+    training normal of its leaf had y = 0): the renderer clips each input to its leaf's training
+    range, so a feature that was constant there is held at that constant instead of extrapolated."""
+    rng = np.random.default_rng(3)
+    x = rng.random((600, 3)).astype(np.float32)
+    x[:, 2] = 0.0
+    y = np.stack([1.0 + 0.5 * np.sin(3.0 * x[:, 0]) * x[:, 1]] * 3, axis=1)
+    cfg = {"model": {"hidden": [4, 2]}, "train": {"max_iters": 15, "progress": False}, "tree": {"min_samples": 50}}
+    params, _ = rrf.fit_arrays(x, y, np.zeros(len(x), np.int32), cfg)
+    seen = np.asarray(rrf._predict_sorted(params, jnp.asarray(x), jnp.zeros(600, jnp.int32)))
+    x_new = x.copy()
+    x_new[:, 2] = 1.0
+    held = np.asarray(rrf._predict_sorted(params, jnp.asarray(x_new), jnp.zeros(600, jnp.int32)))
+    free = np.asarray(rrf._predict_sorted(params, jnp.asarray(x_new), jnp.zeros(600, jnp.int32), clamp=False))
+    np.testing.assert_allclose(held, seen, rtol=1e-5, atol=1e-6)
+    assert np.abs(free - seen).max() > 1e-3  # extrapolated, the output moves
 
 
 def _reference_phi(layers, scaling, x):
@@ -223,26 +242,45 @@ def test_make_dataset_material_mode(mi, tmp_path):
 
 
 def test_blocked_prediction_matches_per_leaf_numpy(model):
-    """The sorted-block evaluation equals evaluating each sample's own leaf network directly."""
+    """The sorted-block evaluation equals evaluating each sample's own leaf network directly, with
+    and without the inputs clipped to each leaf's trained range; the tiled, sort-free evaluation
+    of the renderer equals it (and takes the sorted path past its capacity)."""
     params, _ = model
     rng = np.random.default_rng(7)
     n = 1000
     x = np.concatenate([rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3)), rng.uniform([-0.5, 0.3, -0.5],
                         [0.5, 0.9, 0.5], (n, 3)), rng.normal(size=(n, 3)), rng.random((n, 7))], axis=1).astype(np.float32)
     obj = rng.integers(-1, 3, n)  # -1 and 2: no tree -> 0
-    got = np.asarray(rrf._predict(params, jnp.asarray(x), jnp.asarray(obj), block=16))
+    got = np.asarray(rrf._predict_sorted(params, jnp.asarray(x), jnp.asarray(obj), block=16, clamp=False))
     tree = kdtree.KDTree(**{k: np.asarray(v) for k, v in params["tree"].items()})
     safe = np.clip(obj, 0, 1)
     lo, hi = np.asarray(params["obj_lo"])[safe], np.asarray(params["obj_hi"])[safe]
     leaf = kdtree.brute_force_lookup(tree, obj, (x - lo) / np.where(hi - lo > 1e-8, hi - lo, 1.0))
     leaves = jax.tree_util.tree_map(np.asarray, params["leaves"])
-    want = np.zeros((n, 3), np.float32)
+    want, want_c = np.zeros((n, 3), np.float32), np.zeros((n, 3), np.float32)
     for i in np.flatnonzero(leaf >= 0):
         s = {k: v[leaf[i]] for k, v in leaves["scaling"].items()}
         layers = [{k: v[leaf[i]] for k, v in layer.items()} for layer in leaves["layers"]]
         want[i] = _reference_phi(layers, s, x[i][None])[0]
+        clipped = np.clip(x[i], s["in_min"], s["in_max"])  # the leaf's training range
+        want_c[i] = _reference_phi(layers, s, clipped[None])[0]
     assert np.any(leaf < 0) and np.all(got[leaf < 0] == 0)
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+    got_c = np.asarray(rrf._predict_sorted(params, jnp.asarray(x), jnp.asarray(obj), block=16, clamp=True))
+    np.testing.assert_allclose(got_c, want_c, rtol=1e-4, atol=1e-5)
+    assert np.abs(want_c - want).max() > 1e-2  # the normals drawn from N(0, 1) leave the trained range
+    # the renderer's form: one light for every sample, the other columns shared; sorted by object and
+    # position so that runs of samples share leaves as image rows do
+    x[:, 6:9] = [0.1, 0.5, -0.2]
+    order = np.lexsort((x[:, 0], obj))
+    x, obj = x[order], obj[order]
+    shared = np.delete(x, [6, 7, 8], axis=1)
+    ref = np.asarray(rrf._predict_sorted(params, jnp.asarray(x), jnp.asarray(obj), block=16, clamp=True))
+    for tile, chunk in ((8, 2), (4, 3), (16, 1)):
+        tiled = rrf._predict_tiles(params, jnp.asarray(shared.reshape(40, 25, -1)), jnp.asarray(x[:1, 6:9]),
+                                   jnp.ones((1, 3)), jnp.asarray(obj.reshape(40, 25)), light_cols=(6, 7, 8), tile=tile,
+                                   chunk=chunk, clamp=True, nonnegative=False)
+        np.testing.assert_allclose(np.asarray(tiled).reshape(n, 3), ref, rtol=1e-4, atol=1e-5)
 
 
 def test_discontinuity_splits_only_near_it():

@@ -114,3 +114,7 @@ def test_mlp_host_init_and_ranges():
     np.testing.assert_array_equal(np.asarray(scaled["in_center"]), centre)
     np.testing.assert_array_equal(np.asarray(scaled["in_halfrange"]), half)
     np.testing.assert_allclose(np.asarray(net.apply(a, x)), np.asarray(net.apply(b, x)))
+    # constant up to float32 rounding (a wall's coordinate from ray hits) is constant too
+    x[:, 3] = np.float32(-1.0) + np.random.default_rng(2).integers(-2, 3, 50) * np.spacing(np.float32(1.0))
+    assert ranges(x)[1][3] == 1.0 and ranges(x * 1e3)[1][3] == 1.0
+    assert ranges(x)[1][0] != 1.0

@@ -3,7 +3,9 @@ Mitsuba through ``jprt.render`` and cached by ``jprt.cache``.
 
 N_l light positions and N_v viewpoints by Latin hypercube sampling in user boxes; N_r random
 primary rays per (light, view) pair; attributes at the first hit and the path-traced indirect
-radiance (full minus direct, same seed). Material mode (Appendix B): one viewpoint, the edited
+radiance (full minus direct, same seed). Deviation, stated: with ``data.oversample`` > 1 the N_r
+rays are drawn from oversample x N_r uniform screen rays, balanced over the surfaces they hit
+(``_balanced``), so that faces seen at grazing angles are in the training data too. Material mode (Appendix B): one viewpoint, the edited
 object's roughness and albedo drawn by Latin hypercube sampling instead of views.
 """
 
@@ -59,7 +61,7 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
     for key in ("n_lights", "n_views", "n_rays", "spp"):
         if int(data_cfg[key]) <= 0:
             raise ValueError(f"data.{key} must be positive, got {data_cfg[key]}")
-    spec = {"format": 1, "scene": desc, "data": {k: v for k, v in data_cfg.items() if k != "val_fraction"}}
+    spec = {"format": 2, "scene": desc, "data": {k: v for k, v in data_cfg.items() if k != "val_fraction"}}
     if mode == "view":
         spec["data"].pop("material")
 
@@ -99,6 +101,27 @@ def _meta(spec: dict, arrays: dict) -> dict:
             "material_object": data.get("material", {}).get("object")}
 
 
+def _balanced(gb, origins, directions, n: int, rng):
+    """``n`` of the candidate rays (origins, directions), drawn without replacement with weights
+    1 / (candidates hitting the same object with the same dominant normal axis): every surface a
+    view sees gets samples, however small it is on screen (a face seen at a grazing angle that
+    uniform screen rays miss leaves its leaf's network without a single sample of its normal, which
+    the renderer then extrapolates: the black line along the top edge of the tall box in
+    ``make demo``). Rays that miss the scene are never drawn."""
+    valid = np.flatnonzero(np.asarray(gb.valid))
+    if len(valid) <= n:
+        keep = valid
+    else:
+        normal = np.asarray(gb.normal)[valid]
+        axis = np.argmax(np.abs(normal), axis=1)
+        side = np.take_along_axis(normal, axis[:, None], axis=1)[:, 0] > 0
+        group = np.asarray(gb.object_id)[valid] * 6 + axis * 2 + side
+        _, inverse, counts = np.unique(group, return_inverse=True, return_counts=True)
+        w = 1.0 / np.sqrt(counts[inverse])
+        keep = np.sort(rng.choice(valid, size=n, replace=False, p=w / w.sum()))
+    return origins[keep], directions[keep]
+
+
 def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
     from tqdm import tqdm
 
@@ -109,9 +132,12 @@ def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
     from jprt.render.scenes import SceneHandle
 
     n_rays, spp, seed = int(data_cfg["n_rays"]), int(data_cfg["spp"]), int(data_cfg["seed"])
-    # The same rays for each setup's G-buffer pass; fresh random rays for every (light, setup) pair.
-    rays = [[cams.random_rays(cam, n_rays, rng) for _ in lights] for _, cam, _ in setups]
+    over = int(data_cfg["oversample"])
     base = SceneHandle(base_desc, PointLights.create([lights[0]], [1.0, 1.0, 1.0]))
+    # The same rays for each setup's G-buffer pass; fresh random rays for every (light, setup) pair.
+    rays = [[cams.random_rays(cam, n_rays * over, rng) for _ in lights] for _, cam, _ in setups]
+    if over > 1:  # keep n_rays of the candidates, balanced over the surfaces they hit
+        rays = [[_balanced(gbuffer_rays(base, o, d), o, d, n_rays, rng) for o, d in per_setup] for per_setup in rays]
     out: dict[str, list] = {k: [] for k in ("position", "view", "light", "normal", "brdf", "edit", "object_id",
                                             "direct", "indirect", "pair")}
     bar = tqdm(total=len(setups) * len(lights), desc="rrf samples", unit="pair", disable=not progress, leave=False)
@@ -119,11 +145,12 @@ def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
         handle = base if edit is None else SceneHandle(desc, PointLights.create([lights[0]], [1.0, 1.0, 1.0]))
         o = np.concatenate([r[0] for r in rays[s]])
         d = np.concatenate([r[1] for r in rays[s]])
+        ends = np.cumsum([len(r[0]) for r in rays[s]])
         gb = gbuffer_rays(handle, o, d)
         gb_attr = gb if edit is None else gbuffer_rays(base, o, d)  # material mode: a from the base scene
         brdf = brdf_vector(gb_attr.diffuse_albedo, gb_attr.specular_albedo, gb_attr.roughness)
         for li, light in enumerate(lights):
-            sl = slice(li * n_rays, (li + 1) * n_rays)
+            sl = slice(ends[li] - len(rays[s][li][0]), ends[li])
             keep = gb.valid[sl]
             handle.set_lighting(PointLights.create([light], [1.0, 1.0, 1.0]))
             rad = indirect_rays(handle, o[sl][keep], d[sl][keep], spp=spp, seed=seed * 100003 + s * 1009 + li)

@@ -87,14 +87,16 @@ class BuildReport(NamedTuple):
     n_fits: int
 
 
-def traverse(tree: KDTree, object_id, x, *, xp=jnp):
+def traverse(tree: KDTree, object_id, x, *, xp=jnp, column: Callable | None = None):
     """Leaf index for each sample, -1 where the object has no tree (or object_id < 0).
 
     Args:
       tree: a ``KDTree`` (NumPy or JAX arrays).
       object_id: (...,) int object of each sample.
-      x: (..., D) normalised inputs.
+      x: (..., D) normalised inputs (None with ``column``).
       xp: ``jax.numpy`` (default; jit/vmap-able) or ``numpy`` (host-side, no compilation).
+      column: instead of ``x``, ``column(axis) -> (...,)``: each sample's normalised input on
+        the axis ``axis`` (...,) its current node splits (so x need never exist as one array).
 
     A fixed number of steps (the tree's depth, static) of vectorised gathers.
     """
@@ -103,7 +105,6 @@ def traverse(tree: KDTree, object_id, x, *, xp=jnp):
     left, right = xp.asarray(tree.left), xp.asarray(tree.right)
     roots = xp.asarray(tree.roots)
     object_id = xp.asarray(object_id)
-    x = xp.asarray(x)
     n_obj = roots.shape[0]
     ok = (object_id >= 0) & (object_id < n_obj)
     node = xp.where(ok, roots[xp.clip(object_id, 0, n_obj - 1)], -1)
@@ -111,7 +112,10 @@ def traverse(tree: KDTree, object_id, x, *, xp=jnp):
     node = xp.maximum(node, 0)
     for _ in range(depth):
         a = axis[node]
-        value = xp.take_along_axis(x, xp.maximum(a, 0)[..., None], axis=-1)[..., 0]
+        if column is None:
+            value = xp.take_along_axis(x, xp.maximum(a, 0)[..., None], axis=-1)[..., 0]
+        else:
+            value = column(xp.maximum(a, 0))
         child = xp.where(value >= thr[node], right[node], left[node])
         node = xp.where(a >= 0, child, node)
     return xp.where(has, xp.asarray(tree.leaf)[node], -1)

@@ -55,8 +55,8 @@ from jprt.nn.mlp import MLP, mlp, ranges
 from jprt.solve.lm import LMSettings, solve_batched
 
 __all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features",
-           "split_samples", "input_size", "fit", "fit_arrays", "evaluator", "check_inputs", "example", "refit_leaves",
-           "parameter_count", "light_box"]
+           "split_samples", "input_size", "fit", "fit_arrays", "evaluator", "frame_flops", "check_inputs", "example",
+           "refit_leaves", "parameter_count", "light_box"]
 
 #: Inputs of Phi for each attribute set (Ren et al. Fig. 3: basic vs augmented attributes).
 ATTRIBUTE_SETS = {
@@ -80,6 +80,7 @@ DEFAULT_CONFIG: dict = {
         "n_lights": 20,
         "n_views": 20,
         "n_rays": 100,
+        "oversample": 8,  # n_rays drawn from oversample x n_rays screen rays, balanced over surfaces (data.py)
         "spp": 512,
         "seed": 0,
         "val_fraction": 0.3,
@@ -91,8 +92,10 @@ DEFAULT_CONFIG: dict = {
     "train": {"max_iters": 40, "trial_iters": 10, "trial_samples": 1024, "max_fail": 6, "rtol": 1e-6, "damping": 1e-3, "chunk_size": 1024, "seed": 0,
               "subset": 1.0, "progress": True},
     # evaluator: lights outside the trained box ("error" | "clamp" | "allow", box grown by
-    # `tolerance` of its size); samples per leaf block of the batched networks
-    "render": {"extrapolation": "error", "tolerance": 0.02, "block": 512},
+    # `tolerance` of its size); the tiled networks and their input / output clamps (evaluator
+    # docstring)
+    "render": {"extrapolation": "error", "tolerance": 0.02, "tile": 16, "chunk": 16,
+               "clamp_inputs": True, "nonnegative": True},
 }
 
 
@@ -288,7 +291,8 @@ class _NodeFitter:
             xi, yi = self.x[p.train], self.y[p.train]
             ic, ih = ranges(xi)
             oc, oh = ranges(yi)
-            scaling = {"in_center": ic, "in_halfrange": ih, "out_center": oc, "out_halfrange": oh}
+            scaling = {"in_center": ic, "in_halfrange": ih, "out_center": oc, "out_halfrange": oh,
+                       "in_min": xi.min(axis=0), "in_max": xi.max(axis=0)}  # the range the renderer clips to
             scalings.append(scaling)
             n = len(p.train)
             xs[j, :n] = (xi - ic) / ih
@@ -481,21 +485,73 @@ def _leaf_errors(params, xn, x, y, object_id, is_train):
 # Evaluation (Eq. 8, Eq. 9)
 
 
-def _predict(params, x, object_id, block: int = 512):
-    """Phi(x) for samples x (N, D) of objects ``object_id`` (N,); 0 for samples of objects without
-    a tree (or object_id < 0).
+#: tanh(x) = x P(x^2) / Q(x^2) on |x| <= 7.905 (+-1 beyond in float32): the 13/6 minimax rational
+#: approximation Eigen uses for float tanh (generic_fast_tanh_float), written out so the renderer's
+#: hidden layers stay one fused multiply-add chain (XLA's tanh streams each layer through memory
+#: again on this CPU: 2-4x slower per element). Within 3e-7 of tanh in float64 (tested).
+_TANH_P = (-2.76076847742355e-16, 2.00018790482477e-13, -8.60467152213735e-11, 5.12229709037114e-08,
+           1.48572235717979e-05, 6.37261928875436e-04, 4.89352455891786e-03)
+_TANH_Q = (1.19825839466702e-06, 1.18534705686654e-04, 2.26843463243900e-03, 4.89352518554385e-03)
 
-    kd-tree traversal gives each sample a leaf; samples are then sorted by leaf into a padded
-    layout where every leaf owns whole blocks of ``block`` samples, so each block is one small
-    dense matrix product with its leaf's weights (the "one network per partition" kernels of
-    Ren et al. §4, with no loop over leaves and only N + (L + 1) x block padded rows)."""
-    n, d = x.shape
-    leaves = params["leaves"]
-    n_leaves = leaves["layers"][0]["w"].shape[0]
+
+def _tanh(x):
+    """tanh by the rational approximation above (float32)."""
+    x = jnp.clip(x, -7.90531110763549805, 7.90531110763549805)
+    x2 = x * x
+    p = functools.reduce(lambda acc, c: acc * x2 + c, _TANH_P[1:], jnp.full_like(x, _TANH_P[0]))
+    q = functools.reduce(lambda acc, c: acc * x2 + c, _TANH_Q[1:], jnp.full_like(x, _TANH_Q[0]))
+    return x * p / q
+
+
+def _in_min(s):
+    """The smallest training input of each feature of a leaf's scaling ``s`` (models fitted
+    before the bounds were stored: the scaled range [-1, 1])."""
+    return s["in_min"] if "in_min" in s else s["in_center"] - s["in_halfrange"]
+
+
+def _in_max(s):
+    """The largest training input of each feature (see ``_in_min``)."""
+    return s["in_max"] if "in_max" in s else s["in_center"] + s["in_halfrange"]
+
+
+def _leaf_apply(leaves, leaf, x, *, clamp: bool):
+    """Phi_N of Eq. 8 for rows ``x`` (B, R, D), the network of leaf ``leaf[b]`` on row block b:
+    with ``clamp`` the inputs clipped to the range of the leaf's training samples (a tanh network
+    is not extrapolated; a feature constant in training stays at its constant), Appendix A's
+    input scaling, the tanh layers, the output scaling."""
+    s = jax.tree_util.tree_map(lambda a: a[leaf], leaves["scaling"])
+    if clamp:
+        x = jnp.clip(x, _in_min(s)[:, None, :], _in_max(s)[:, None, :])
+    h = (x - s["in_center"][:, None, :]) / s["in_halfrange"][:, None, :]
+    layers = leaves["layers"]
+    for i, layer in enumerate(layers):
+        h = jnp.einsum("brd,bdh->brh", h, layer["w"][leaf]) + layer["b"][leaf][:, None, :]
+        h = jnp.tanh(h) if i < len(layers) - 1 else h
+    return h * s["out_halfrange"][:, None, :] + s["out_center"][:, None, :]
+
+
+def _leaf_of(params, x, object_id):
+    """kd-tree leaf of each sample x (..., D) of objects ``object_id`` (...,); -1 for objects
+    without a tree (or object_id < 0)."""
     obj = jnp.clip(object_id, 0, params["obj_lo"].shape[0] - 1)
     lo, hi = params["obj_lo"][obj], params["obj_hi"][obj]
     xn = (x - lo) / jnp.where(hi - lo > 1e-8, hi - lo, 1.0)
-    leaf = kdtree.traverse(_tree(params), object_id, xn)
+    return kdtree.traverse(_tree(params), object_id, xn)
+
+
+def _predict_sorted(params, x, object_id, block: int = 512, clamp: bool = True):
+    """Phi(x) for samples x (N, D) of objects ``object_id`` (N,) in any order; 0 for samples of
+    objects without a tree (or object_id < 0).
+
+    Samples are sorted by leaf into a padded layout where every leaf owns whole blocks of
+    ``block`` samples, so each block is one small dense matrix product with its leaf's weights
+    (N + (L + 1) x block padded rows). For samples in any order (the tests' oracle); on images
+    the renderer's ``_predict_tiles`` gives the same numbers without XLA's sort and scatter, which
+    dominate this function's time on a CPU."""
+    n, d = x.shape
+    leaves = params["leaves"]
+    n_leaves = leaves["layers"][0]["w"].shape[0]
+    leaf = _leaf_of(params, x, object_id)
     group = jnp.where(leaf >= 0, leaf, n_leaves)  # group n_leaves: no network, output 0
     counts = jnp.bincount(group, length=n_leaves + 1)
     padded = (counts + block - 1) // block * block
@@ -509,11 +565,109 @@ def _predict(params, x, object_id, block: int = 512):
     xp = jnp.zeros((n_blocks * block, d), x.dtype).at[dest].set(x[order])
     block_group = jnp.searchsorted(ends, jnp.arange(n_blocks) * block, side="right")
     has_net = block_group < n_leaves
-    bl = jnp.minimum(block_group, n_leaves - 1)
-    per_block = jax.tree_util.tree_map(lambda a: a[bl], leaves)  # each block's leaf network (Eq. 8)
-    y = jax.vmap(_network(_sizes(leaves["layers"])).apply)(per_block, xp.reshape(n_blocks, block, d))
+    y = _leaf_apply(leaves, jnp.minimum(block_group, n_leaves - 1), xp.reshape(n_blocks, block, d), clamp=clamp)
     y = jnp.where(has_net[:, None, None], y, 0.0).reshape(n_blocks * block, -1)
     return jnp.zeros((n, y.shape[-1]), y.dtype).at[order].set(y[dest])
+
+
+def _predict_tiles(params, shared, light_pos, light_rgb, object_id, *, light_cols: tuple, tile: int, chunk: int,
+                   clamp: bool, nonnegative: bool):
+    """Eq. 9, sum over lights k of c_k Phi(x_p, l_k) (each term max(., 0) with ``nonnegative``),
+    for the pixels of an H x W image without a sort or a scatter: (H, W, R).
+
+    ``shared`` (H, W, D - 3) holds every input but the light position, whose columns in x are
+    ``light_cols``; ``object_id`` (H, W) (-1: no network, output 0). The image is cut into
+    ``tile`` x ``tile`` pixel tiles (neighbouring pixels' leaves agree almost everywhere). Every
+    (leaf, tile) pair that some pixel of the tile needs under some light is one work item: the
+    tile's pixels through that leaf's network, masked to the pixels whose leaf it is. Items are
+    listed leaf by leaf, each leaf's list padded to whole chunks of ``chunk`` items, so a chunk is
+    one network applied to ``chunk`` x tile^2 pixels: one dense product per layer, features x
+    pixels (the layout XLA's CPU dot runs fastest for layers 20 wide), in cache. A loop runs
+    over exactly the chunks there are; each finds its items by cumulative sums and a binary
+    search, reads its tiles by dynamic slices and adds its result into them. The light is
+    constant over a frame, so its part of the first layer is one bias per (leaf, light), and
+    the rest of the first layer, the widest product, is computed once for all K lights (Eq. 9's
+    sum shares the position / view / normal / BRDF part)."""
+    hh, ww, ds = shared.shape
+    k = light_pos.shape[0]
+    leaves = params["leaves"]
+    layers = leaves["layers"]
+    n_leaves = layers[0]["w"].shape[0]
+    n_out = light_rgb.shape[-1]
+    lc = np.asarray(light_cols)
+    d = ds + 3
+    rest = np.asarray([c for c in range(d) if c not in light_cols])
+    th, tw = -(-hh // tile), -(-ww // tile)
+    n_tiles, tp = th * tw, tile * tile
+
+    def tiles(a, fill):  # (H, W, ...) -> (T, tile * tile, ...), each tile contiguous
+        a = jnp.pad(a, ((0, th * tile - hh), (0, tw * tile - ww)) + ((0, 0),) * (a.ndim - 2), constant_values=fill)
+        a = a.reshape((th, tile, tw, tile) + a.shape[2:])
+        return jnp.swapaxes(a, 1, 2).reshape((n_tiles, tp) + a.shape[4:])
+
+    xs = tiles(shared, 0.0)  # (T, tp, Ds)
+    obj = tiles(object_id, -1).reshape(-1)
+    # column of x -> column of xs (light columns: -1)
+    col_of = np.full(d, -1)
+    col_of[rest] = np.arange(ds)
+    safe_obj = jnp.clip(obj, 0, params["obj_lo"].shape[0] - 1)
+
+    def leaf_under(lp):  # kd-tree leaf of every pixel under light lp, x never materialised
+        def column(axis):
+            src = jnp.asarray(col_of)[axis]
+            raw = jnp.where(src >= 0, jnp.take_along_axis(xs.reshape(-1, ds), jnp.maximum(src, 0)[:, None], axis=1)[:, 0],
+                            lp[jnp.clip(axis - int(lc[0]), 0, 2)])
+            lo, hi = params["obj_lo"][safe_obj, axis], params["obj_hi"][safe_obj, axis]
+            return (raw - lo) / jnp.where(hi - lo > 1e-8, hi - lo, 1.0)
+
+        return kdtree.traverse(_tree(params), obj, None, column=column)
+
+    leaf = jax.vmap(leaf_under)(light_pos).reshape(k, n_tiles, tp)
+    present = jnp.any(leaf[..., None] == jnp.arange(n_leaves)[None, None, None, :], axis=(0, 2)).T  # (L, T)
+    rank = jnp.cumsum(present.astype(jnp.int32), axis=1)  # (L, T): 1 + the item's rank in its leaf's list
+    count = rank[:, -1]
+    padded = (count + chunk - 1) // chunk * chunk
+    end = jnp.cumsum(padded)
+    start = end - padded
+    # the r-th present tile of leaf l: leaf l's ranks offset by l (T + 1) are one increasing list
+    keys = (rank + (jnp.arange(n_leaves) * (n_tiles + 1))[:, None]).reshape(-1)
+
+    def chunk_body(c, out):  # chunk c: its leaf's network on its tiles' pixels, added into out
+        slot = c * chunk + jnp.arange(chunk)
+        lf = jnp.clip(jnp.searchsorted(end, c * chunk, side="right", method="compare_all"), 0, n_leaves - 1)
+        r = slot - start[lf]
+        live = r < count[lf]
+        tl = jnp.searchsorted(keys, lf * (n_tiles + 1) + r + 1, side="left", method="scan_unrolled") - lf * n_tiles
+        tl = jnp.where(live, jnp.clip(tl, 0, n_tiles - 1), 0)
+        mine = (leaf[:, tl, :] == lf) & live[None, :, None]  # (K, chunk, tp)
+        s = jax.tree_util.tree_map(lambda a: a[lf], leaves["scaling"])
+        z = xs[tl].reshape(chunk * tp, ds).T  # (Ds, N): features x pixels
+        zl = light_pos  # (K, 3)
+        if clamp:
+            z = jnp.clip(z, _in_min(s)[rest][:, None], _in_max(s)[rest][:, None])
+            zl = jnp.clip(zl, _in_min(s)[lc][None, :], _in_max(s)[lc][None, :])
+        z = (z - s["in_center"][rest][:, None]) / s["in_halfrange"][rest][:, None]
+        zl = (zl - s["in_center"][lc][None, :]) / s["in_halfrange"][lc][None, :]
+        w0 = layers[0]["w"][lf]
+        h0 = w0[rest].T @ z  # (H1, N): the light-free part, once for all lights
+        bias = zl @ w0[lc] + layers[0]["b"][lf][None, :]  # (K, H1)
+        y_sum = jnp.zeros((n_out, chunk * tp), h0.dtype)
+        for kk in range(k):  # Eq. 9's sum
+            h = _tanh(h0 + bias[kk][:, None])
+            for i, layer in enumerate(layers[1:], start=1):
+                h = layer["w"][lf].T @ h + layer["b"][lf][:, None]
+                h = _tanh(h) if i < len(layers) - 1 else h
+            y = h * s["out_halfrange"][:, None] + s["out_center"][:, None]
+            y = jnp.maximum(y, 0.0) if nonnegative else y
+            y_sum = y_sum + jnp.where(mine[kk].reshape(1, -1), y * light_rgb[kk][:, None], 0.0)
+        y_sum = y_sum.T.reshape(chunk, tp, n_out)
+        for i in range(chunk):  # into each item's tile (padding items add zeros to tile 0)
+            out = jax.lax.dynamic_update_index_in_dim(out, out[tl[i]] + y_sum[i], tl[i], 0)
+        return out
+
+    out = jax.lax.fori_loop(0, end[-1] // chunk, chunk_body, jnp.zeros((n_tiles, tp, n_out), light_rgb.dtype))
+    out = jnp.swapaxes(out.reshape(th, tw, tile, tile, n_out), 1, 2)
+    return out.reshape(th * tile, tw * tile, n_out)[:hh, :ww]
 
 
 def light_box(params) -> tuple[np.ndarray, np.ndarray]:
@@ -537,24 +691,28 @@ jax.export.register_namedtuple_serialization(EditInputs, serialized_name="jprt.m
 
 
 def _render(params, gb: dict, light_pos, light_rgb, edit, *, attributes: str, material: bool,
-            clamp: bool, block: int):
-    """Eq. 9 for every pixel of ``gb``: sum over lights k of c_k Phi(x_p, v, l_k, n, a)."""
+            clamp: bool, render: dict):
+    """Eq. 9 for every pixel of ``gb``: sum over lights k of c_k max(Phi(x_p, v, l_k, n, a), 0)
+    (indirect radiance is never negative; the clamp is per light, so the image stays linear in
+    the light colours)."""
     h, w = gb["object_id"].shape
     if clamp:
         light_pos = jnp.clip(light_pos, params["light_lo"][None, :], params["light_hi"][None, :])
     brdf = brdf_vector(gb["diffuse_albedo"], gb["specular_albedo"], gb["roughness"]).reshape(-1, 7)
-    k = light_pos.shape[0]
     p = h * w
-
-    def per_light(lp):
-        e = None if not material else jnp.broadcast_to(edit, (p, 2))
-        return features(attributes, gb["position"].reshape(-1, 3), gb["view"].reshape(-1, 3),
-                        jnp.broadcast_to(lp, (p, 3)), gb["normal"].reshape(-1, 3), brdf, e)
-
-    x = jax.vmap(per_light)(light_pos).reshape(k * p, -1)
-    obj = jnp.where(gb["valid"].reshape(-1), gb["object_id"].reshape(-1), -1)
-    y = _predict(params, x, jnp.tile(obj, k), block).reshape(k, p, -1)
-    return jnp.einsum("kpc,kc->pc", y, light_rgb).reshape(h, w, -1)
+    e = None if not material else jnp.broadcast_to(edit, (p, 2))
+    # light position set to NaN marks its columns; every other column is the pixel's own
+    x = features(attributes, gb["position"].reshape(-1, 3), gb["view"].reshape(-1, 3),
+                 jnp.full((p, 3), jnp.nan), gb["normal"].reshape(-1, 3), brdf, e)
+    names = ATTRIBUTE_SETS[attributes]
+    widths = dict(_WIDTHS, view=2 if material else 3)
+    start = sum(widths[n] for n in names[:names.index("light")])
+    light_cols = (start, start + 1, start + 2)
+    shared = jnp.delete(x, jnp.asarray(light_cols), axis=1, assume_unique_indices=True).reshape(h, w, -1)
+    obj = jnp.where(gb["valid"], gb["object_id"], -1)
+    return _predict_tiles(params, shared, light_pos, light_rgb, obj, light_cols=light_cols, tile=int(render["tile"]),
+                          chunk=int(render["chunk"]), clamp=bool(render["clamp_inputs"]),
+                          nonnegative=bool(render["nonnegative"]))
 
 
 #: G-buffer fields Eq. 9 reads, with their dtypes.
@@ -579,7 +737,13 @@ def evaluator(params, config: dict | None = None):
     * ``extrapolation``: lights outside the trained light box (grown by ``tolerance`` of its
       size): "error" raises ValueError (default), "clamp" moves them onto the box, "allow"
       evaluates anyway (RRFs extrapolate poorly, Ren et al. §7).
-    * ``block``: samples per leaf block in ``_predict`` (one dense product per block).
+    * ``tile``, ``chunk``: the sort-free networks (``_predict_tiles``): ``tile`` x ``tile`` pixel
+      tiles, ``chunk`` (leaf, tile) work items of one leaf per dense product.
+    * ``clamp_inputs``: each leaf network sees its inputs clipped to the range of its training
+      samples (a tanh network extrapolated outside it goes anywhere: the black line along the
+      top edge of the tall box in ``make demo`` was its top face, which no training ray hit, so
+      the normal's y was 0 in every training sample of that leaf and 1 there).
+    * ``nonnegative``: max(Phi, 0) per light (indirect radiance is never negative).
 
     On concrete inputs the G-buffer and lights are checked first (``check_inputs``: empty
     G-buffer, NaN attributes at valid pixels, NaN lights, lights outside the box); under
@@ -595,7 +759,7 @@ def evaluator(params, config: dict | None = None):
     params = jax.tree_util.tree_map(jnp.asarray, params)
     # params are constants of the program: kd-tree traversal unrolls over the tree's depth
     render = jax.jit(functools.partial(_render, params, attributes=cfg["model"]["attributes"], material=material,
-                                       clamp=extrapolation == "clamp", block=int(rc["block"])))
+                                       clamp=extrapolation == "clamp", render=rc))
 
     def evaluate(inputs, lights):
         if material != isinstance(inputs, EditInputs):
@@ -609,6 +773,25 @@ def evaluator(params, config: dict | None = None):
         return render(_gbuffer_arrays(gb), light_pos, light_rgb, jnp.asarray(edit, jnp.float32).reshape(2))
 
     return evaluate
+
+
+def frame_flops(params, config: dict | None, inputs, lights) -> float:
+    """FLOPs one ``evaluator`` call needs (``Method.frame_flops``): per valid pixel of an object
+    with networks, the light-free part of the first layer once and, per light, its light part,
+    the other layers and the colour weighting (2 per multiply-add, 1 per bias add); the input
+    and output scaling and the tanh are not counted. What the networks must compute, not what the
+    tiles execute (masked pixels of shared tiles, padding items)."""
+    cfg = _cfg(config)
+    gb = inputs.gbuffer if cfg["data"]["mode"] == "material" else inputs
+    sizes = _sizes(params["leaves"]["layers"])
+    n_obj = int(np.asarray(params["tree"]["roots"]).shape[0])
+    obj = np.asarray(gb.object_id)
+    has_tree = np.asarray(params["tree"]["roots"])[np.clip(obj, 0, n_obj - 1)] >= 0
+    pixels = int(np.sum(np.asarray(gb.valid, bool) & (obj >= 0) & (obj < n_obj) & has_tree))
+    k = int(np.asarray(lights.position).reshape(-1, 3).shape[0])
+    shared = 2 * (sizes[0] - 3) * sizes[1]
+    per_light = 2 * 3 * sizes[1] + 2 * sizes[1] + sum(2 * a * b + b for a, b in zip(sizes[1:-1], sizes[2:])) + 2 * sizes[-1]
+    return float(pixels * (shared + k * per_light))
 
 
 def check_inputs(params, gbuffer, lights, *, extrapolation: str = "error", tolerance: float = 0.02) -> None:
