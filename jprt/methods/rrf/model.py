@@ -290,7 +290,7 @@ class _NodeFitter:
         for j, p in enumerate(problems):
             xi, yi = self.x[p.train], self.y[p.train]
             ic, ih = ranges(xi)
-            oc, oh = ranges(yi)
+            oc, oh = ranges(yi, eps=1e-8)  # outputs: any spread is signal (dim texels are small)
             scaling = {"in_center": ic, "in_halfrange": ih, "out_center": oc, "out_halfrange": oh,
                        "in_min": xi.min(axis=0), "in_max": xi.max(axis=0)}  # the range the renderer clips to
             scalings.append(scaling)
