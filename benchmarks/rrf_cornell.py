@@ -19,13 +19,14 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 
 KEYS = ("indirect_rmse", "indirect_rel_rmse", "p999_abs_error", "psnr_indirect", "ssim_indirect", "psnr_full",
-        "reference_spp", "equal_error_spp", "pathtrace_ms_equal_error", "frame_ms", "frame_resolution",
-        "frame_ms_4lights", "frame_ms_4lights_over_1light", "frame_flops", "frame_flops_4lights", "matmul_peak_gflops",
+        "reference_spp", "equal_error_spp", "pathtrace_ms_equal_error", "frame_ms", "frame_ms_min", "frame_resolution",
+        "frame_ms_4lights", "frame_ms_4lights_min", "frame_ms_4lights_over_1light", "frame_flops", "frame_flops_4lights", "matmul_peak_gflops",
         "flops_fraction_of_peak", "flops_fraction_of_peak_4lights", "gbuffer_ms", "speedup_equal_error",
         "speedup_equal_error_with_gbuffer", "n_leaves", "model_bytes", "train_s", "dataset_s", "rmse_basic_attributes",
         "rmse_augmented", "rmse_single_mlp_same_params", "std_subsets", "std_inits")
 CONTEXT = ("n_samples", "n_params", "test_pairs", "pathtrace_rmse_by_spp", "pathtrace_note", "single_mlp",
-           "robustness", "fig6_training_size", "fig7_training_spp", "tree_levels", "leaves_per_object", "total_s")
+           "robustness", "fig6_training_size", "fig7_training_spp", "tree_levels", "leaves_per_object", "total_s",
+           "sampling_ablation", "frame_flops_source")
 
 
 def main() -> int:

@@ -45,6 +45,9 @@ def test_method_contract(mi, fitted, name):
     image = np.asarray(evaluate(inputs, lighting))
     assert image.ndim == 3 and image.shape[-1] == 3 and np.isfinite(image).all()
     assert np.abs(image).max() > 0
+    if m.frame_flops is not None:  # the method's own FLOP count of a frame (the runner's roofline)
+        flops = m.frame_flops(result.params, config, inputs, lighting)
+        assert np.isfinite(flops) and flops > 0
 
     traces = []
 

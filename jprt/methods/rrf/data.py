@@ -3,9 +3,11 @@ Mitsuba through ``jprt.render`` and cached by ``jprt.cache``.
 
 N_l light positions and N_v viewpoints by Latin hypercube sampling in user boxes; N_r random
 primary rays per (light, view) pair; attributes at the first hit and the path-traced indirect
-radiance (full minus direct, same seed). Deviation, stated: with ``data.oversample`` > 1 the N_r
-rays are drawn from oversample x N_r uniform screen rays, balanced over the surfaces they hit
-(``_balanced``), so that faces seen at grazing angles are in the training data too. Material mode (Appendix B): one viewpoint, the edited
+radiance (full minus direct, same seed). Option, not in the paper: with ``data.oversample`` > 1
+the N_r rays are drawn from oversample x N_r uniform screen rays, balanced over the surfaces they
+hit (``_balanced``), so that faces seen at grazing angles are in the training data too (the
+``demo`` preset of experiments/rrf_cornell.py; at the ``small`` sizes uniform rays reach those
+faces and were more accurate: benchmarks/results/rrf_cornell.json, ``sampling_ablation``). Material mode (Appendix B): one viewpoint, the edited
 object's roughness and albedo drawn by Latin hypercube sampling instead of views.
 """
 

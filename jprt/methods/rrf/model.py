@@ -80,7 +80,9 @@ DEFAULT_CONFIG: dict = {
         "n_lights": 20,
         "n_views": 20,
         "n_rays": 100,
-        "oversample": 8,  # n_rays drawn from oversample x n_rays screen rays, balanced over surfaces (data.py)
+        # > 1: n_rays drawn from oversample x n_rays screen rays, balanced over the surfaces they hit
+        # (data.py): for small budgets, where uniform rays miss faces seen at grazing angles
+        "oversample": 1,
         "spp": 512,
         "seed": 0,
         "val_fraction": 0.3,
