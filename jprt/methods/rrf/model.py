@@ -572,60 +572,70 @@ def _predict_sorted(params, x, object_id, block: int = 512, clamp: bool = True):
     return jnp.zeros((n, y.shape[-1]), y.dtype).at[order].set(y[dest])
 
 
-def _predict_tiles(params, shared, light_pos, light_rgb, object_id, *, light_cols: tuple, tile: int, chunk: int,
+def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols: tuple, tile: int, chunk: int,
                    clamp: bool, nonnegative: bool):
     """Eq. 9, sum over lights k of c_k Phi(x_p, l_k) (each term max(., 0) with ``nonnegative``),
     for the pixels of an H x W image without a sort or a scatter: (H, W, R).
 
-    ``shared`` (H, W, D - 3) holds every input but the light position, whose columns in x are
-    ``light_cols``; ``object_id`` (H, W) (-1: no network, output 0). The image is cut into
-    ``tile`` x ``tile`` pixel tiles (neighbouring pixels' leaves agree almost everywhere). Every
-    (leaf, tile) pair that some pixel of the tile needs under some light is one work item: the
-    tile's pixels through that leaf's network, masked to the pixels whose leaf it is. Items are
-    listed leaf by leaf, each leaf's list padded to whole chunks of ``chunk`` items, so a chunk is
-    one network applied to ``chunk`` x tile^2 pixels: one dense product per layer, features x
-    pixels (the layout XLA's CPU dot runs fastest for layers 20 wide), in cache. A loop runs
-    over exactly the chunks there are; each finds its items by cumulative sums and a binary
-    search, reads its tiles by dynamic slices and adds its result into them. The light is
-    constant over a frame, so its part of the first layer is one bias per (leaf, light), and
-    the rest of the first layer, the widest product, is computed once for all K lights (Eq. 9's
-    sum shares the position / view / normal / BRDF part)."""
-    hh, ww, ds = shared.shape
+    ``parts`` is a list of (H, W, c_i) arrays whose concatenation is every input of x but the
+    light position, in x's column order; the light's columns in x are ``light_cols``;
+    ``object_id`` (H, W) (-1: no network, output 0). The image is cut into ``tile`` x ``tile``
+    pixel tiles (neighbouring pixels' leaves agree almost everywhere). Every (leaf, tile) pair
+    that some pixel of the tile needs under some light is one work item: the tile's pixels
+    through that leaf's network, masked to the pixels whose leaf it is. Items are listed leaf by
+    leaf, each leaf's list padded to whole chunks of ``chunk`` items, so a chunk is one network
+    applied to ``chunk`` x tile^2 pixels: one dense product per layer, features x pixels (the
+    layout XLA's CPU dot runs fastest for layers 20 wide), in cache. A loop runs over exactly the
+    chunks there are; each finds its items by cumulative sums and a binary search, reads its
+    tiles straight from the G-buffer (one gather of tile-sized slices per field: the frame is
+    never copied into another layout) and adds its result into them. The light is constant over
+    a frame, so its part of the first layer is one bias per (leaf, light), and the rest of the
+    first layer, the widest product, is computed once for all K lights (Eq. 9's sum shares the
+    position / view / normal / BRDF part)."""
+    hh, ww = object_id.shape
     k = light_pos.shape[0]
     leaves = params["leaves"]
     layers = leaves["layers"]
     n_leaves = layers[0]["w"].shape[0]
     n_out = light_rgb.shape[-1]
+    ds = sum(int(q.shape[-1]) for q in parts)
     lc = np.asarray(light_cols)
     d = ds + 3
     rest = np.asarray([c for c in range(d) if c not in light_cols])
     th, tw = -(-hh // tile), -(-ww // tile)
     n_tiles, tp = th * tw, tile * tile
+    if (th * tile, tw * tile) != (hh, ww):
+        pad = ((0, th * tile - hh), (0, tw * tile - ww))
+        parts = [jnp.pad(q, pad + ((0, 0),)) for q in parts]
+        object_id = jnp.pad(object_id, pad, constant_values=-1)
+    where = np.cumsum([0] + [int(q.shape[-1]) for q in parts])  # x column c_s of shared is in part i
+    safe_obj = jnp.clip(object_id, 0, params["obj_lo"].shape[0] - 1)
+    # the axes the trees split (params are constants of the program): each pixel's normalised
+    # input on them, selected per node without a per-pixel gather of x's columns
+    split_axes = [int(a) for a in np.unique(np.asarray(params["tree"]["axis"])) if a >= 0]
 
-    def tiles(a, fill):  # (H, W, ...) -> (T, tile * tile, ...), each tile contiguous
-        a = jnp.pad(a, ((0, th * tile - hh), (0, tw * tile - ww)) + ((0, 0),) * (a.ndim - 2), constant_values=fill)
-        a = a.reshape((th, tile, tw, tile) + a.shape[2:])
-        return jnp.swapaxes(a, 1, 2).reshape((n_tiles, tp) + a.shape[4:])
-
-    xs = tiles(shared, 0.0)  # (T, tp, Ds)
-    obj = tiles(object_id, -1).reshape(-1)
-    # column of x -> column of xs (light columns: -1)
-    col_of = np.full(d, -1)
-    col_of[rest] = np.arange(ds)
-    safe_obj = jnp.clip(obj, 0, params["obj_lo"].shape[0] - 1)
+    def column(cs):  # column cs of the shared inputs, (H, W)
+        i = int(np.searchsorted(where, cs, side="right") - 1)
+        return parts[i][..., cs - where[i]]
 
     def leaf_under(lp):  # kd-tree leaf of every pixel under light lp, x never materialised
-        def column(axis):
-            src = jnp.asarray(col_of)[axis]
-            raw = jnp.where(src >= 0, jnp.take_along_axis(xs.reshape(-1, ds), jnp.maximum(src, 0)[:, None], axis=1)[:, 0],
-                            lp[jnp.clip(axis - int(lc[0]), 0, 2)])
-            lo, hi = params["obj_lo"][safe_obj, axis], params["obj_hi"][safe_obj, axis]
-            return (raw - lo) / jnp.where(hi - lo > 1e-8, hi - lo, 1.0)
+        normalised = {}
+        for a in split_axes:
+            raw = lp[a - int(lc[0])] if a in light_cols else column(int(np.flatnonzero(rest == a)[0]))
+            lo, hi = params["obj_lo"][:, a][safe_obj], params["obj_hi"][:, a][safe_obj]
+            normalised[a] = (raw - lo) / jnp.where(hi - lo > 1e-8, hi - lo, 1.0)
 
-        return kdtree.traverse(_tree(params), obj, None, column=column)
+        def value(axis):
+            out = jnp.zeros(axis.shape, jnp.float32)
+            for a, v in normalised.items():
+                out = jnp.where(axis == a, v, out)
+            return out
 
-    leaf = jax.vmap(leaf_under)(light_pos).reshape(k, n_tiles, tp)
-    present = jnp.any(leaf[..., None] == jnp.arange(n_leaves)[None, None, None, :], axis=(0, 2)).T  # (L, T)
+        return kdtree.traverse(_tree(params), object_id, None, column=value)
+
+    leaf = jax.vmap(leaf_under)(light_pos)  # (K, H, W)
+    seen = leaf.reshape(k, th, tile, tw, tile)[..., None] == jnp.arange(n_leaves)[None, None, None, None, None, :]
+    present = jnp.any(seen, axis=(0, 2, 4)).reshape(n_tiles, n_leaves).T  # (L, T)
     rank = jnp.cumsum(present.astype(jnp.int32), axis=1)  # (L, T): 1 + the item's rank in its leaf's list
     count = rank[:, -1]
     padded = (count + chunk - 1) // chunk * chunk
@@ -634,6 +644,10 @@ def _predict_tiles(params, shared, light_pos, light_rgb, object_id, *, light_col
     # the r-th present tile of leaf l: leaf l's ranks offset by l (T + 1) are one increasing list
     keys = (rank + (jnp.arange(n_leaves) * (n_tiles + 1))[:, None]).reshape(-1)
 
+    def tiles_of(a, y0, x0):  # the tiles at (y0, x0) of an (H, W, ...) array: (chunk, tile, tile, ...)
+        size = (tile, tile) + a.shape[2:]
+        return jax.vmap(lambda y, x: jax.lax.dynamic_slice(a, (y, x) + (0,) * (a.ndim - 2), size))(y0, x0)
+
     def chunk_body(c, out):  # chunk c: its leaf's network on its tiles' pixels, added into out
         slot = c * chunk + jnp.arange(chunk)
         lf = jnp.clip(jnp.searchsorted(end, c * chunk, side="right", method="compare_all"), 0, n_leaves - 1)
@@ -641,9 +655,11 @@ def _predict_tiles(params, shared, light_pos, light_rgb, object_id, *, light_col
         live = r < count[lf]
         tl = jnp.searchsorted(keys, lf * (n_tiles + 1) + r + 1, side="left", method="scan_unrolled") - lf * n_tiles
         tl = jnp.where(live, jnp.clip(tl, 0, n_tiles - 1), 0)
-        mine = (leaf[:, tl, :] == lf) & live[None, :, None]  # (K, chunk, tp)
+        y0, x0 = tl // tw * tile, tl % tw * tile
+        mine = jax.vmap(lambda lk: tiles_of(lk, y0, x0))(leaf).reshape(k, chunk * tp)
+        mine = (mine == lf) & jnp.repeat(live, tp)[None, :]
         s = jax.tree_util.tree_map(lambda a: a[lf], leaves["scaling"])
-        z = xs[tl].reshape(chunk * tp, ds).T  # (Ds, N): features x pixels
+        z = jnp.concatenate([tiles_of(q, y0, x0) for q in parts], axis=-1).reshape(chunk * tp, ds).T  # (Ds, N)
         zl = light_pos  # (K, 3)
         if clamp:
             z = jnp.clip(z, _in_min(s)[rest][:, None], _in_max(s)[rest][:, None])
@@ -653,23 +669,28 @@ def _predict_tiles(params, shared, light_pos, light_rgb, object_id, *, light_col
         w0 = layers[0]["w"][lf]
         h0 = w0[rest].T @ z  # (H1, N): the light-free part, once for all lights
         bias = zl @ w0[lc] + layers[0]["b"][lf][None, :]  # (K, H1)
-        y_sum = jnp.zeros((n_out, chunk * tp), h0.dtype)
-        for kk in range(k):  # Eq. 9's sum
+        def light_term(kk, y_sum):  # light kk's term of Eq. 9 on the chunk's pixels of this leaf
             h = _tanh(h0 + bias[kk][:, None])
             for i, layer in enumerate(layers[1:], start=1):
                 h = layer["w"][lf].T @ h + layer["b"][lf][:, None]
                 h = _tanh(h) if i < len(layers) - 1 else h
             y = h * s["out_halfrange"][:, None] + s["out_center"][:, None]
             y = jnp.maximum(y, 0.0) if nonnegative else y
-            y_sum = y_sum + jnp.where(mine[kk].reshape(1, -1), y * light_rgb[kk][:, None], 0.0)
-        y_sum = y_sum.T.reshape(chunk, tp, n_out)
+            return y_sum + jnp.where(mine[kk][None, :], y * light_rgb[kk][:, None], 0.0)
+
+        y_sum = jnp.zeros((n_out, chunk * tp), h0.dtype)
+        for kk in range(k):  # Eq. 9's sum; the trees split on the light too: skip lights not in this leaf
+            y_sum = light_term(kk, y_sum) if k == 1 else jax.lax.cond(
+                jnp.any(mine[kk]), functools.partial(light_term, kk), lambda v: v, y_sum)
+        y_sum = y_sum.T.reshape(chunk, tile, tile, n_out)
         for i in range(chunk):  # into each item's tile (padding items add zeros to tile 0)
-            out = jax.lax.dynamic_update_index_in_dim(out, out[tl[i]] + y_sum[i], tl[i], 0)
+            cur = jax.lax.dynamic_slice(out, (y0[i], x0[i], 0), (tile, tile, n_out))
+            out = jax.lax.dynamic_update_slice(out, cur + y_sum[i], (y0[i], x0[i], 0))
         return out
 
-    out = jax.lax.fori_loop(0, end[-1] // chunk, chunk_body, jnp.zeros((n_tiles, tp, n_out), light_rgb.dtype))
-    out = jnp.swapaxes(out.reshape(th, tw, tile, tile, n_out), 1, 2)
-    return out.reshape(th * tile, tw * tile, n_out)[:hh, :ww]
+    out = jnp.zeros((th * tile, tw * tile, n_out), light_rgb.dtype)
+    out = jax.lax.fori_loop(0, end[-1] // chunk, chunk_body, out)
+    return out[:hh, :ww]
 
 
 def light_box(params) -> tuple[np.ndarray, np.ndarray]:
@@ -700,17 +721,15 @@ def _render(params, gb: dict, light_pos, light_rgb, edit, *, attributes: str, ma
     h, w = gb["object_id"].shape
     if clamp:
         light_pos = jnp.clip(light_pos, params["light_lo"][None, :], params["light_hi"][None, :])
-    brdf = brdf_vector(gb["diffuse_albedo"], gb["specular_albedo"], gb["roughness"]).reshape(-1, 7)
-    p = h * w
-    e = None if not material else jnp.broadcast_to(edit, (p, 2))
-    # light position set to NaN marks its columns; every other column is the pixel's own
-    x = features(attributes, gb["position"].reshape(-1, 3), gb["view"].reshape(-1, 3),
-                 jnp.full((p, 3), jnp.nan), gb["normal"].reshape(-1, 3), brdf, e)
+    parts = {"position": gb["position"], "normal": gb["normal"],
+             "view": jnp.broadcast_to(edit, (h, w, 2)) if material else gb["view"],
+             "brdf": brdf_vector(gb["diffuse_albedo"], gb["specular_albedo"], gb["roughness"])}
     names = ATTRIBUTE_SETS[attributes]
     widths = dict(_WIDTHS, view=2 if material else 3)
     start = sum(widths[n] for n in names[:names.index("light")])
     light_cols = (start, start + 1, start + 2)
-    shared = jnp.delete(x, jnp.asarray(light_cols), axis=1, assume_unique_indices=True).reshape(h, w, -1)
+    # x of ``features`` without its light columns, as (H, W, c) parts: every pixel's own inputs
+    shared = [jnp.asarray(parts[n], jnp.float32) for n in names if n != "light"]
     obj = jnp.where(gb["valid"], gb["object_id"], -1)
     return _predict_tiles(params, shared, light_pos, light_rgb, obj, light_cols=light_cols, tile=int(render["tile"]),
                           chunk=int(render["chunk"]), clamp=bool(render["clamp_inputs"]),
