@@ -208,7 +208,8 @@ def four_lights(run) -> dict:
     flops = rrf.frame_flops(run.result.params, run.method_config, run.state["timing_gbuffer"], host)
     roof = jeval.roofline(fast, gb, lights, frame_ms=ms, flops=flops, peak_gflops=run.summary["matmul_peak_gflops"])
     s, g = run.summary, run.state["gbuffer_ms"]
-    out = {"frame_ms_4lights": ms, "frame_ms_4lights_min": timed["min_ms"], "frame_ms_4lights_over_1light": ms / s["frame_ms"],
+    out = {"frame_ms_4lights": ms, "frame_ms_4lights_min": timed["min_ms"],
+           "frame_ms_4lights_over_1light": ms / s["frame_ms"],
            "frame_flops_4lights": flops, "flops_fraction_of_peak_4lights": roof["flops_fraction_of_peak"],
            "gbuffer_ms": g}
     if s.get("pathtrace_ms_equal_error"):

@@ -812,7 +812,8 @@ def frame_flops(params, config: dict | None, inputs, lights) -> float:
     pixels = int(np.sum(np.asarray(gb.valid, bool) & (obj >= 0) & (obj < n_obj) & has_tree))
     k = int(np.asarray(lights.position).reshape(-1, 3).shape[0])
     shared = 2 * (sizes[0] - 3) * sizes[1]
-    per_light = 2 * 3 * sizes[1] + 2 * sizes[1] + sum(2 * a * b + b for a, b in zip(sizes[1:-1], sizes[2:])) + 2 * sizes[-1]
+    later = sum(2 * a * b + b for a, b in zip(sizes[1:-1], sizes[2:]))
+    per_light = 2 * 3 * sizes[1] + 2 * sizes[1] + later + 2 * sizes[-1]
     return float(pixels * (shared + k * per_light))
 
 
