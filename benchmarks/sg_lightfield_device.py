@@ -67,8 +67,8 @@ def _time(fn, *args, repeats: int = 10) -> float:
 
 def measure(path: str, out: str | None = None, *, lobes=(4, 8, 16, 32, 64)) -> dict:
     import jax
-    import jax.numpy as jnp
 
+    from jprt.eval import matmul_peak_gflops, xla_flops
     from jprt.inputs import GBuffer, LightScale
     from jprt.methods.sg_lightfield import model as M
 
@@ -79,10 +79,7 @@ def measure(path: str, out: str | None = None, *, lobes=(4, 8, 16, 32, 64)) -> d
     result = {"device": str(jax.devices()[0]), "device_kind": jax.devices()[0].device_kind, "jax": jax.__version__,
               "frame_ms": {}, "flops": {}, "frame_ms_by_lobes_1080p": {}}
     n = 8192 if jax.devices()[0].platform == "gpu" else 2048
-    a = jax.random.normal(jax.random.PRNGKey(0), (n, n), jnp.float32)
-    mm = jax.jit(lambda x: x @ x)
-    ms = _time(mm, a, repeats=10)
-    result["matmul_f32_tflops"] = 2 * n**3 / (ms * 1e-3) / 1e12
+    result["matmul_f32_tflops"] = matmul_peak_gflops(n=n, repeats=10) / 1e3
     evaluate = jax.jit(M.evaluator(params))
     for h, w in ((128, 128), (256, 256), (512, 512), (1080, 1920)):
         g = jax.device_put(_resample(g512, h, w))
@@ -90,9 +87,7 @@ def measure(path: str, out: str | None = None, *, lobes=(4, 8, 16, 32, 64)) -> d
         result["frame_ms"][key] = _time(evaluate, g, one)
         # XLA counts a loop body once: count the FLOPs of the same program with the whole frame as one tile
         whole = jax.jit(M.evaluator(params, tile=h * w))
-        cost = whole.lower(g, one).compile().cost_analysis()
-        cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-        result["flops"][key] = float(cost.get("flops", float("nan"))) if cost else None
+        result["flops"][key] = xla_flops(whole, g, one)
         print(key, result["frame_ms"][key], "ms", flush=True)
     rng = np.random.default_rng(0)
     g = jax.device_put(_resample(g512, 1080, 1920))

@@ -425,7 +425,8 @@ def _tilted_quadrature(t: int, normals: np.ndarray, radiance: np.ndarray, k: int
 def frame_times(run) -> dict:
     """Frame time of the run time (§7.3 steps 1-5, ``runtime.feedback`` bounces in the reduced
     spaces with the level's ``feedback_operators``, texels out) by
-    block count, T_b->r build times, XLA's FLOP count, and the f32 matmul rate of this process."""
+    block count, T_b->r build times, XLA's FLOP count, and the f32 matmul rate of this process
+    (``jprt.eval.xla_flops``, ``jprt.eval.matmul_peak_gflops``)."""
     cfg = run.method_config
     dic = model.dictionary(cfg)
     reps = int(run.config["eval"]["timing_repeats"])
@@ -445,21 +446,15 @@ def frame_times(run) -> dict:
         fn = jax.jit(lambda a, d, al: model.lightmap(a, d, al, feedback=fb))
         by[str(nb)] = jeval.time_call(fn, arrays, direct, albedo, repeats=reps)["median_ms"]
         tbr[str(nb)] = float(ops["tbr_build_s"])
-        cost = fn.lower(arrays, direct, albedo).compile().cost_analysis()
-        cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-        flops[str(nb)] = float(cost.get("flops", float("nan"))) if cost else None
+        flops[str(nb)] = jeval.xla_flops(fn, arrays, direct, albedo)
     xs = np.log([int(k) for k in by])
     ys = np.log([by[k] for k in by])
     slope = float(np.polyfit(xs, ys, 1)[0]) if len(by) > 1 else None
-    n = 1024
-    a = jax.device_put(jnp.asarray(rng.random((n, n)), jnp.float32))
-    mm = jax.jit(lambda x: x @ x)
-    ms = jeval.time_call(mm, a, repeats=reps)["median_ms"]
+    peak = jeval.matmul_peak_gflops(repeats=reps)
     run.say(f"frame ms by blocks {by} (log-log slope {slope})")
     return {"frame_ms_by_blocks": by, "frame_ms_slope": slope, "tbr_build_s_by_blocks": tbr,
-            "tbr_build_s": max(tbr.values()), "flops_by_blocks": flops, "matmul_f32_gflops": 2 * n ** 3 / (ms * 1e-3) / 1e9,
-            "flops_fraction_of_peak": {k: (flops[k] / (by[k] * 1e-3)) / (2 * n ** 3 / (ms * 1e-3))
-                                       for k in by if flops[k]},
+            "tbr_build_s": max(tbr.values()), "flops_by_blocks": flops, "matmul_f32_gflops": peak,
+            "flops_fraction_of_peak": {k: flops[k] / (by[k] * 1e-3) / 1e9 / peak for k in by if flops[k]},
             "precompute_s": float(dic["info_precompute_s"]),
             "model_bytes_per_block_type": _bytes_per_type(dic)}
 

@@ -450,11 +450,17 @@ def _leaf_problem(xn, object_id, is_train, obj, lo, hi, expand):
     return kdtree.Problem(train, kdtree.cell_members(xn, lo, hi, idx[~is_train[idx]]))
 
 
+def _unit(x, lo, hi, xp=np):
+    """x mapped to the box [lo, hi] -> [0, 1] (§4, Fig. 4 c-d); a constant feature maps to x - lo.
+    The one rule of the fit (NumPy) and the renderer (``xp=jnp``)."""
+    span = hi - lo
+    return (x - lo) / xp.where(span > 1e-8, span, 1.0)
+
+
 def _normalise(x, object_id, obj_lo, obj_hi) -> np.ndarray:
-    """Inputs mapped to each object's unit box (§4, Fig. 4 c-d); constant features map to 0."""
+    """Inputs mapped to each object's unit box (``_unit``)."""
     safe = np.maximum(object_id, 0)
-    span = np.asarray(obj_hi)[safe] - np.asarray(obj_lo)[safe]
-    return (x - np.asarray(obj_lo)[safe]) / np.where(span > 1e-8, span, 1.0)
+    return _unit(x, np.asarray(obj_lo)[safe], np.asarray(obj_hi)[safe])
 
 
 def _pack(tree: kdtree.KDTree, obj_lo, obj_hi, payloads) -> dict:
@@ -506,40 +512,22 @@ def _tanh(x):
     return x * p / q
 
 
-def _in_min(s):
-    """The smallest training input of each feature of a leaf's scaling ``s`` (models fitted
-    before the bounds were stored: the scaled range [-1, 1])."""
-    return s["in_min"] if "in_min" in s else s["in_center"] - s["in_halfrange"]
-
-
-def _in_max(s):
-    """The largest training input of each feature (see ``_in_min``)."""
-    return s["in_max"] if "in_max" in s else s["in_center"] + s["in_halfrange"]
-
-
 def _leaf_apply(leaves, leaf, x, *, clamp: bool):
-    """Phi_N of Eq. 8 for rows ``x`` (B, R, D), the network of leaf ``leaf[b]`` on row block b:
-    with ``clamp`` the inputs clipped to the range of the leaf's training samples (a tanh network
-    is not extrapolated; a feature constant in training stays at its constant), Appendix A's
-    input scaling, the tanh layers, the output scaling."""
-    s = jax.tree_util.tree_map(lambda a: a[leaf], leaves["scaling"])
+    """Phi_N of Eq. 8 (``jprt.nn.mlp`` apply) for rows ``x`` (B, R, D), the network of leaf
+    ``leaf[b]`` on row block b; with ``clamp`` the inputs first clipped to the range of the leaf's
+    training samples (a tanh network is not extrapolated; a feature constant in training stays at
+    its constant)."""
+    per_block = jax.tree_util.tree_map(lambda a: a[leaf], leaves)
     if clamp:
-        x = jnp.clip(x, _in_min(s)[:, None, :], _in_max(s)[:, None, :])
-    h = (x - s["in_center"][:, None, :]) / s["in_halfrange"][:, None, :]
-    layers = leaves["layers"]
-    for i, layer in enumerate(layers):
-        h = jnp.einsum("brd,bdh->brh", h, layer["w"][leaf]) + layer["b"][leaf][:, None, :]
-        h = jnp.tanh(h) if i < len(layers) - 1 else h
-    return h * s["out_halfrange"][:, None, :] + s["out_center"][:, None, :]
+        x = jnp.clip(x, per_block["scaling"]["in_min"][:, None, :], per_block["scaling"]["in_max"][:, None, :])
+    return jax.vmap(_network(_sizes(leaves["layers"])).apply)(per_block, x)
 
 
 def _leaf_of(params, x, object_id):
     """kd-tree leaf of each sample x (..., D) of objects ``object_id`` (...,); -1 for objects
     without a tree (or object_id < 0)."""
     obj = jnp.clip(object_id, 0, params["obj_lo"].shape[0] - 1)
-    lo, hi = params["obj_lo"][obj], params["obj_hi"][obj]
-    xn = (x - lo) / jnp.where(hi - lo > 1e-8, hi - lo, 1.0)
-    return kdtree.traverse(_tree(params), object_id, xn)
+    return kdtree.traverse(_tree(params), object_id, _unit(x, params["obj_lo"][obj], params["obj_hi"][obj], jnp))
 
 
 def _predict_sorted(params, x, object_id, block: int = 512, clamp: bool = True):
@@ -623,8 +611,7 @@ def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols
         normalised = {}
         for a in split_axes:
             raw = lp[a - int(lc[0])] if a in light_cols else column(int(np.flatnonzero(rest == a)[0]))
-            lo, hi = params["obj_lo"][:, a][safe_obj], params["obj_hi"][:, a][safe_obj]
-            normalised[a] = (raw - lo) / jnp.where(hi - lo > 1e-8, hi - lo, 1.0)
+            normalised[a] = _unit(raw, params["obj_lo"][:, a][safe_obj], params["obj_hi"][:, a][safe_obj], jnp)
 
         def value(axis):
             out = jnp.zeros(axis.shape, jnp.float32)
@@ -663,8 +650,8 @@ def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols
         z = jnp.concatenate([tiles_of(q, y0, x0) for q in parts], axis=-1).reshape(chunk * tp, ds).T  # (Ds, N)
         zl = light_pos  # (K, 3)
         if clamp:
-            z = jnp.clip(z, _in_min(s)[rest][:, None], _in_max(s)[rest][:, None])
-            zl = jnp.clip(zl, _in_min(s)[lc][None, :], _in_max(s)[lc][None, :])
+            z = jnp.clip(z, s["in_min"][rest][:, None], s["in_max"][rest][:, None])
+            zl = jnp.clip(zl, s["in_min"][lc][None, :], s["in_max"][lc][None, :])
         z = (z - s["in_center"][rest][:, None]) / s["in_halfrange"][rest][:, None]
         zl = (zl - s["in_center"][lc][None, :]) / s["in_halfrange"][lc][None, :]
         w0 = layers[0]["w"][lf]
