@@ -48,9 +48,16 @@ EVAL_DEFAULTS = {
     "ks": [32, 64, 128],
     "gt_check": {"width": 16, "height": 16, "spp": 16384, "max_depth": 8, "ks": [32, 64, 128, 300]},
     "timing_resolutions": [[128, 128], [256, 256], [512, 512]],
-    "timing_repeats": 3,
+    "timing_repeats": 5,
     "equal_error_spp": [1, 2, 4, 8, 16, 32, 64, 128, 256, 512],
     "ablation_steps": 250,
+    # the speed-accuracy front (issue 17): each model (overrides of model / train) trained at the
+    # full step count and evaluated at every K ({} is the default model, its training reused)
+    "front": {"ks": [16, 32, 64],
+              "models": [{}, {"model": {"hidden": 64}}, {"model": {"hidden": 32}},
+                         {"model": {"hidden": 64, "features_per_level": 1}},
+                         {"model": {"hidden": 32, "features_per_level": 1}},
+                         {"model": {"hidden": 32}, "train": {"steps": 3000}}]},
     # model.<key> values; "spatial": named model overrides (the multiresolution hash grid against one
     # single-resolution grid, the paper's "learned neural texture" alternative of §4, and against
     # per-vertex features on the subdivided scene mesh, Table 6)
@@ -85,7 +92,9 @@ PRESETS = {
         **REGISTRY["wavelet_prt"].presets["test"],  # the method's own smoke-test sizes
         "eval": {"ks": [8, 16], "gt_check": {"width": 6, "height": 6, "spp": 64, "max_depth": 4, "ks": [8, 32]},
                  "timing_resolutions": [[16, 16]], "timing_repeats": 1, "equal_error_spp": [1, 4],
-                 "ablation_steps": 10, "ablations": {"log2_table_size": [6], "reflection": ["none"],
+                 "ablation_steps": 10,
+                 "front": {"ks": [8], "models": [{}, {"model": {"hidden": 8}}]},
+                 "ablations": {"log2_table_size": [6], "reflection": ["none"],
                                                      "spatial": {"single_resolution": {"base_resolution": 4},
                                                                  "per_vertex": {"vertex_edge": 0.5}}}},
     },
@@ -383,5 +392,88 @@ def gt_transport_check(run) -> dict:
     return summary
 
 
+def _pathtrace_point(run, rmse: float) -> dict:
+    """Mitsuba at equal error with a held-out RMSE: the smallest spp of ``eval.equal_error_spp``
+    whose RMSE on the far views is at most ``rmse`` and its frame time, from the runner's curve
+    (``extra.pathtrace_curve``), extended with renders at larger spp when the curve stops short."""
+    curve = run.state.setdefault("pathtrace_curve", list(run.summary["extra"].get("pathtrace_curve") or []))
+    for c in sorted(curve, key=lambda c: c["spp"]):
+        if c["rmse"] <= rmse:
+            return {"spp": c["spp"], "ms": c["ms"], "reached": True}
+    held = run.state["held_out"]
+    done = {c["spp"] for c in curve}
+    for spp in sorted(int(v) for v in run.config["eval"]["equal_error_spp"]):
+        if spp in done or (curve and spp < max(done)):
+            continue
+        pt = run.state.setdefault("pathtracer", pathtracer(run))
+        c = {"spp": spp, "rmse": jeval.set_rmse(pt.render_at(spp), held.references, held.valid),
+             "ms": float(pt.time_at(spp))}
+        curve.append(c)
+        done.add(spp)
+        run.say(f"path tracing at {spp} spp: RMSE {c['rmse']:.5f}, {c['ms']:.0f} ms")
+        if c["rmse"] <= rmse:
+            return {"spp": spp, "ms": c["ms"], "reached": True}
+    last = max(curve, key=lambda c: c["spp"])  # not reached: the largest spp tried (a lower bound)
+    return {"spp": last["spp"], "ms": last["ms"], "reached": False}
+
+
+def front(run) -> dict:
+    """The speed-accuracy front over MLP width, feature count M (the rank of Eq. 7, which sets
+    the run-time cost; L only costs in training, as U folds into f's first layer) and K: each
+    model of ``eval.front.models`` trained at the full step count (checkpoints reused), the far
+    views' PSNR, its frame time at the timing resolution with its FLOP count, and Mitsuba's time
+    at equal error (``front.png``)."""
+    e, data = run.config["eval"], run.dataset
+    fc = e["front"]
+    inputs, lighting = jax.device_put(frame(run))
+    peak = jeval.matmul_peak_gflops()
+    rows = []
+    for overrides in fc["models"]:
+        cfg = run.with_config({"model": overrides.get("model", {}), "train": overrides.get("train", {})})
+        mc, tc = cfg["model"], cfg["train"]
+        label = (f"2 x {mc['hidden']}, M {mc['n_levels'] * mc['features_per_level']}, L {mc['n_features']}"
+                 f", {tc['steps']} steps")
+        is_default = wp.run_key(cfg) == wp.run_key(run.method_config)
+        if is_default:
+            result = run.result
+        else:
+            result = _train(run, cfg, data, f"front {label}", progress=False)
+        train_s = _logged_train_s(result.info["log_path"]) if "log_path" in result.info else None
+        for k in fc["ks"]:
+            kcfg = dict(cfg, render=dict(cfg["render"], k=int(k)))
+            evaluate = wp.evaluator(result.params, kcfg)
+            preds = _predict(evaluate, data, "far")
+            sc = _scores(preds, data.tests["far"], e["exposure"])
+            rmse = jeval.set_rmse(preds, data.tests["far"]["indirect"], data.tests["far"]["valid"])
+            ms = jeval.time_call(evaluate, inputs, lighting, repeats=int(e["timing_repeats"]), warmup=1)["median_ms"]
+            flops = wp.frame_flops(result.params, kcfg, inputs, lighting)
+            pt = _pathtrace_point(run, rmse)
+            rows.append({"label": label, "default": is_default, "width": int(mc["hidden"]), "layers": int(mc["layers"]),
+                         "features": int(mc["n_levels"] * mc["features_per_level"]), "n_features": int(mc["n_features"]),
+                         "steps": int(tc["steps"]), "K": int(k), "psnr_indirect_far": sc["psnr_indirect"],
+                         "rmse_indirect_far": rmse, "frame_ms": ms, "frame_flops": flops,
+                         "flops_fraction_of_peak": flops / (ms * 1e-3) / 1e9 / peak,
+                         "equal_error_spp": pt["spp"] if pt["reached"] else None,
+                         "pathtrace_ms_equal_error": pt["ms"], "speedup_equal_error": pt["ms"] / ms,
+                         "equal_error_reached": pt["reached"], "model_bytes": wp.model_bytes(result.params),
+                         "train_s": train_s})
+            run.say(f"front {label}, K={k}: PSNR {sc['psnr_indirect']:.2f} dB, {ms:.0f} ms "
+                    f"({100 * rows[-1]['flops_fraction_of_peak']:.0f} % of peak), speedup {rows[-1]['speedup_equal_error']:.1f}x")
+    k_default = int(run.method_config["render"]["k"])
+    default = next((r["psnr_indirect_far"] for r in rows if r["default"] and r["K"] == k_default), None)
+    series = {}
+    for r in rows:
+        xs, ys = series.setdefault(r["label"], ([], []))
+        xs.append(r["speedup_equal_error"])
+        ys.append(r["psnr_indirect_far"])
+    jeval.plot_series(os.path.join(run.out, "front.png"), series, xlabel="speedup over Mitsuba at equal error",
+                      ylabel="PSNR indirect, far views (dB)", title=f"speed-accuracy front (K = {fc['ks']})",
+                      logx=True, hlines={} if default is None else {"default model - 1 dB": default - 1.0})
+    ok = [r for r in rows if default is not None and r["speedup_equal_error"] >= 20
+          and r["psnr_indirect_far"] >= default - 1.0]
+    return {"front": rows, "front_matmul_peak_gflops": peak, "front_default_psnr": default,
+            "front_best_within_1db": max(ok, key=lambda r: r["speedup_equal_error"]) if ok else None}
+
+
 #: The stages of the neural-wavelet PRT report, in order.
-STAGES = [dataset_stats, gt_transport_check, table1, k_sweep, frame_times, ablations]
+STAGES = [dataset_stats, gt_transport_check, table1, k_sweep, frame_times, front, ablations]

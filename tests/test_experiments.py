@@ -95,7 +95,14 @@ def test_wavelet_prt_test_preset(mi, tmp_path, monkeypatch):
     assert e["gt_transport_parseval_err"] < 1e-4
     assert set(e["frame_ms_by_resolution"]["16x16"]) == {"8", "16"}
     assert set(e["ablations"]) == {"log2_table_size", "reflection", "spatial"}
-    for name in ("loss.png", "gt_transport_error_vs_k.png", "equal_error.png", "side_by_side_baseline.png"):
+    front = e["front"]  # two models (the default's training reused) x one K
+    assert [(r["width"], r["K"], r["default"]) for r in front] == [(16, 8, True), (8, 8, False)]
+    for r in front:
+        assert r["frame_ms"] > 0 and r["frame_flops"] > 0 and np.isfinite(r["psnr_indirect_far"])
+        assert r["speedup_equal_error"] == pytest.approx(r["pathtrace_ms_equal_error"] / r["frame_ms"])
+    assert front[0]["frame_flops"] > front[1]["frame_flops"]
+    for name in ("loss.png", "gt_transport_error_vs_k.png", "equal_error.png", "side_by_side_baseline.png",
+                 "front.png"):
         assert os.path.isfile(os.path.join(folder, name)), name
 
 

@@ -26,13 +26,17 @@ __all__ = ["FactorField", "factor_field"]
 
 
 class FactorField(NamedTuple):
-    """``init(key)``, ``apply(params, x (B, 3), k (K,)) -> (B, K, L)``."""
+    """``init(key)``, ``apply(params, x (B, 3), k (K,)) -> (B, K, L)``, and ``parts(params, x, k)
+    -> (S[x] (B, M), W[k] (K, M))``: the two factors before the contraction with U, for callers
+    that fold U into what follows (h_k(x) A = (S[x] * W[k]) (U A) costs 2 M width per (x, k)
+    instead of 2 M L + 2 L width)."""
 
     init: Callable
     apply: Callable
     n_components: int
     n_features: int
     face_size: int
+    parts: Callable
 
 
 def factor_field(*, face_size: int = 64, n_features: int = 64, n_levels: int = 32, features_per_level: int = 2,
@@ -54,9 +58,11 @@ def factor_field(*, face_size: int = 64, n_features: int = 64, n_levels: int = 3
             "U": jax.random.uniform(ku, (m, n_features), dtype, -limit, limit),
         }
 
+    def parts(params, x, k):
+        return grid.apply(params["S"], x), params["W"][jnp.asarray(k, jnp.int32)]  # (B, M), (K, M)
+
     def contract(params, x, k):
-        s = grid.apply(params["S"], x)  # (B, M)
-        w = params["W"][k]  # (K, M)
+        s, w = parts(params, x, k)
         return jnp.einsum("bm,km,ml->bkl", s, w, params["U"])
 
     def apply(params, x, k):
@@ -71,4 +77,4 @@ def factor_field(*, face_size: int = 64, n_features: int = 64, n_levels: int = 3
         out = jax.lax.map(lambda xc: contract(params, xc, k), xs)
         return out.reshape((-1,) + out.shape[2:])[: x.shape[0]]
 
-    return FactorField(init, apply, m, n_features, face_size)
+    return FactorField(init, apply, m, n_features, face_size, parts)

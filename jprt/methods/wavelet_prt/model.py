@@ -80,6 +80,7 @@ __all__ = [
     "run_key",
     "fit",
     "evaluator",
+    "frame_flops",
     "example",
     "indirect_baseline_scale",
     "model_bytes",
@@ -126,7 +127,9 @@ DEFAULT_CONFIG = {
         "seed": 0, "checkpoint_every": 250, "log_every": 50,
         "mu": 10.0,  # mu-law constant (eps = 1)
     },
-    "render": {"k": 64, "chunk": 2048},
+    # chunk: pixels per step of the render loop; 0 -> 8192 // K, about 8192 (pixel, wavelet) rows
+    # per product, which keeps a 2 x 128 MLP's activations in cache (measured fastest on 2 CPU cores)
+    "render": {"k": 64, "chunk": 0},
 }
 
 #: G-buffer arrays the model reads, with their trailing shapes.
@@ -400,6 +403,8 @@ class Model(NamedTuple):
     transport: Callable
     face_size: int
     fields: tuple
+    prepare: Callable
+    head: Callable
 
 
 def model(config: dict | None = None, *, n_vertices: int | None = None) -> Model:
@@ -435,29 +440,43 @@ def model(config: dict | None = None, *, n_vertices: int | None = None) -> Model
                                                     -1e-4, 1e-4)}
         return {"field": fp, "f": f.init(km), "bbox": jnp.asarray(bbox, jnp.float32)}
 
-    def features(params, g, k):
+    def factors(params, g, k):
+        """S[x] (P, M) and W[k] (K, M) of Eq. 7 (h_k(x) = (S[x] * W[k]) U)."""
         if spatial == "hashgrid":
             bbox = jax.lax.stop_gradient(params["bbox"])
             x = jnp.clip((jnp.asarray(g["position"]) - bbox[0][None, :]) / (bbox[1] - bbox[0])[None, :], 0.0, 1.0)
-            return field.apply(params["field"], x, k)  # (P, K, L)
+            return field.parts(params["field"], x, k)
         fv = params["field"]["S"]["vertex"][jnp.asarray(g["vertex_index"])]  # (P, 4, M)
         s = jax.nn.softplus(jnp.einsum("pv,pvm->pm", jnp.asarray(g["vertex_weight"]), fv))
-        return jnp.einsum("pm,km,ml->pkl", s, params["field"]["W"][k], params["field"]["U"])
+        return s, params["field"]["W"][jnp.asarray(k, jnp.int32)]
 
-    def transport(params, g, k):
-        h = features(params, g, k)  # (P, K, L)
-        pix = pixel_features(g, reflection)  # (P, D)
+    def prepare(params, g):
+        """The per-pixel part of f (P pixels): S[x] (P, M) of Eq. 7 and the pixel inputs' share
+        of the first layer (P, hidden), computed once per pixel whatever K is."""
+        s, _ = factors(params, g, jnp.zeros((1,), jnp.int32))
         layers = params["f"]["layers"]
-        w0 = layers[0]["w"]
-        n_h = h.shape[-1]
-        # first layer on concat(h_k, pix) split in two, so the pixel part is computed once per pixel
-        z = jnp.einsum("pkl,lo->pko", h, w0[:n_h]) + (pix @ w0[n_h:] + layers[0]["b"][None, :])[:, None, :]
-        z = jax.nn.relu(z)
+        n_h = params["field"]["U"].shape[-1]
+        pix = pixel_features(g, reflection)  # (P, D)
+        return {"s": s, "z0": pix @ layers[0]["w"][n_h:] + layers[0]["b"][None, :]}
+
+    def head(params, pre, k):
+        """T_k for prepared pixels (``prepare``) and wavelets k (K,) -> (P, K, 3)."""
+        layers = params["f"]["layers"]
+        n_h = params["field"]["U"].shape[-1]
+        w = params["field"]["W"][jnp.asarray(k, jnp.int32)]  # (K, M)
+        # The first layer on concat(h_k, pix) split in two: the pixel part once per pixel
+        # (``prepare``), and h_k(x) W0_h = (S[x] * W[k]) (U W0_h) with U folded into the layer
+        # (Eq. 7 is linear in U): 2 M hidden FLOPs per (pixel, wavelet) instead of 2 (M + hidden) L.
+        v = params["field"]["U"] @ layers[0]["w"][:n_h]  # (M, hidden)
+        z = jax.nn.relu((pre["s"][:, None, :] * w[None, :, :]) @ v + pre["z0"][:, None, :])
         for layer in layers[1:-1]:
             z = jax.nn.relu(z @ layer["w"] + layer["b"][None, None, :])
         return (z @ layers[-1]["w"] + layers[-1]["b"][None, None, :]) * out_scale
 
-    return Model(init, transport, n, fields)
+    def transport(params, g, k):
+        return head(params, prepare(params, g), k)
+
+    return Model(init, transport, n, fields, prepare, head)
 
 
 def model_bytes(params) -> int:
@@ -491,17 +510,29 @@ def select_wavelets(light_coeffs, k: int):
     return haar.top_k(light_coeffs, int(k), area_weighted=True)
 
 
-def render_pixels(transport_fn: Callable, g: dict, light_coeffs, k: int, *, chunk: int = 2048):
+def render_pixels(transport_fn: Callable, g: dict, light_coeffs, k: int, *, chunk: int = 2048, valid=None):
     """B = sum_{k in K} L_k T_k for P pixels (Algorithm 1, lines 3-10), in chunks of ``chunk``
     pixels so memory stays O(chunk x K x width) (``jax.lax.map``). ``g`` is a dict of (P, ...)
-    arrays, ``transport_fn(g_chunk, idx) -> (chunk, K, 3)``. Returns (P, 3)."""
+    arrays, ``transport_fn(g_chunk, idx) -> (chunk, K, 3)``. With ``valid`` (P,) a chunk with no
+    valid pixel is skipped (its pixels are 0). Returns (P, 3)."""
     idx, vals = select_wavelets(light_coeffs, k)
     p = jax.tree_util.tree_leaves(g)[0].shape[0]
     c = max(1, min(int(chunk), p))
     pad = (-p) % c
-    gp = jax.tree_util.tree_map(lambda a: jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1), mode="edge")
-                                .reshape((-1, c) + a.shape[1:]), g)
-    out = jax.lax.map(lambda gc: jnp.einsum("pkc,kc->pc", transport_fn(gc, idx), vals), gp)
+
+    def chunks(a):
+        return jnp.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1), mode="edge").reshape((-1, c) + a.shape[1:])
+
+    def one(gc):
+        return jnp.einsum("pkc,kc->pc", transport_fn(gc, idx), vals)
+
+    gp = jax.tree_util.tree_map(chunks, g)
+    if valid is None:
+        out = jax.lax.map(one, gp)
+    else:
+        live = jnp.any(chunks(jnp.asarray(valid) > 0), axis=1)
+        out = jax.lax.map(lambda a: jax.lax.cond(a[1], one, lambda gc: jnp.zeros((c, 3), vals.dtype), a[0]),
+                          (gp, live))
     return out.reshape(-1, 3)[:p]
 
 
@@ -654,6 +685,9 @@ def evaluator(params, config: dict | None = None):
     k, chunk = int(cfg["render"]["k"]), int(cfg["render"]["chunk"])
     if not 1 <= k <= 6 * m.face_size**2:
         raise ValueError(f"render.k must be in [1, {6 * m.face_size ** 2}], got {k}")
+    if chunk < 0:
+        raise ValueError(f"render.chunk must be >= 0 (0: automatic), got {chunk}")
+    chunk = chunk or max(1, 8192 // k)
 
     @jax.jit
     def evaluate(inputs, lighting):
@@ -661,10 +695,34 @@ def evaluator(params, config: dict | None = None):
         flat = {f: jnp.asarray(inputs[f]).reshape((-1,) + jnp.asarray(inputs[f]).shape[len(shape):])
                 for f in m.fields}
         light = haar.forward(jnp.asarray(lighting.radiance))
-        b = render_pixels(lambda gc, idx: m.transport(params, gc, idx), flat, light, k, chunk=chunk)
+        b = render_pixels(lambda pc, idx: m.head(params, pc, idx), m.prepare(params, flat), light, k, chunk=chunk,
+                          valid=flat["valid"])
         return jnp.where(flat["valid"][:, None] > 0, b, 0.0).reshape(shape + (3,))
 
     return evaluate
+
+
+def frame_flops(params, config: dict | None, inputs, lighting) -> float:
+    """FLOPs one ``evaluator`` call needs (``Method.frame_flops``; 2 per multiply-add, 1 per add
+    or product): per valid pixel the pixel inputs' share of the first layer and the hash grid's
+    trilinear weights (8 corners x M); per (valid pixel, wavelet) S[x] * W[k], the folded first
+    layer (2 M hidden), the other layers with their biases and ReLUs, the output layer and the
+    dot product with L_k. Encodings, the Haar transform and the top-K selection are not counted
+    (XLA's cost analysis counts a loop body once, so the method counts for itself)."""
+    cfg = _cfg(config)
+    mc = cfg["model"]
+    k = int(cfg["render"]["k"])
+    layers = params["f"]["layers"]
+    sizes = [int(np.shape(layers[0]["w"])[0])] + [int(np.shape(layer["w"])[1]) for layer in layers]
+    m = int(np.shape(params["field"]["U"])[0])
+    n_h = int(np.shape(params["field"]["U"])[1])
+    hidden = sizes[1]
+    pixels = int(np.sum(np.asarray(inputs["valid"]) > 0))
+    per_pixel = 2 * (sizes[0] - n_h) * hidden + hidden + (2 * 8 * m if mc["spatial"] == "hashgrid" else 0)
+    per_pair = m + 2 * m * hidden + 2 * hidden  # S * W, folded first layer, + pixel part, ReLU
+    per_pair += sum(2 * a * b + 2 * b for a, b in zip(sizes[1:-2], sizes[2:-1]))  # hidden layers, bias, ReLU
+    per_pair += 2 * sizes[-2] * sizes[-1] + 2 * sizes[-1] + 2 * sizes[-1]  # output, bias, scale; dot with L_k
+    return float(pixels * (per_pixel + k * per_pair))
 
 
 def example(data: WaveletData, config: dict | None = None):
