@@ -1,6 +1,6 @@
 """Neural-wavelet PRT (Raghavan et al. 2023) on a glossy Cornell box relit by environment maps.
 
-    jprt run experiments/wavelet_prt_cornell.py                   # `small`: trains in ~15 min on 2 CPU cores
+    jprt run experiments/wavelet_prt_cornell.py                   # `small`: trains in ~7 min on 2 CPU cores
     jprt run experiments/wavelet_prt_cornell.py --preset paper    # the paper's sizes (needs an accelerator)
     jprt run experiments/wavelet_prt_cornell.py --preset test     # smoke test (procedural maps)
 
@@ -15,7 +15,8 @@ environment maps and their 120 / 240 degree rotations; two maps are held out):
      and direct + indirect (Table 1 layout), against the baseline indirect = c * direct with the
      best RGB c from the training data; the K sweep;
   5. frame time by resolution and K (Table 2 layout), model size; equal-error spp of Mitsuba and
-     the speedup at equal error;
+     the speedup at equal error; the speed-accuracy front over MLP width, rank M and K
+     (``eval.front``: each model trained at the full step count; front.png);
   6. ablations (shorter runs, all at the same step count): hash-table size (Table 3) and the
      reflection encoding (Table 4);
   7. images (reference / ours / baseline / error), loss curve, error-vs-K plot.
