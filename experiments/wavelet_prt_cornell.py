@@ -39,6 +39,7 @@ from jprt.inputs import CubeMap
 from jprt.methods.base import FitResult
 from jprt.methods.wavelet_prt import data as wp_data
 from jprt.methods.wavelet_prt import model as wp
+from jprt.sphere import haar
 from jprt.methods import REGISTRY
 from jprt.runner import HeldOut, PathTracer
 
@@ -52,6 +53,13 @@ EVAL_DEFAULTS = {
     "timing_repeats": 5,
     "equal_error_spp": [1, 2, 4, 8, 16, 32, 64, 128, 256, 512],
     "ablation_steps": 250,
+    # what each of issue 18's changes does (full-step runs, each one change from the default):
+    # [name, overrides of the method config] pairs (a list: a preset replaces it whole)
+    "generalisation": [["paper objective", {"train": {"objective": "paper"}}],
+                       ["shared lighting (maps x 5 rotations)", {"envmaps": {"lighting": "shared",
+                                                                             "rotations_deg": [0, 72, 144, 216, 288]}}],
+                       ["no exposure / white-balance jitter", {"train": {"exposure_stops": 0.0, "white_balance": 0.0}}],
+                       ["no procedural skies, no mirroring", {"envmaps": {"procedural_fraction": 0.0, "mirror": False}}]],
     # the speed-accuracy front (issue 17): each model (overrides of model / train) trained at the
     # full step count and evaluated at every K ({} is the default model, its training reused)
     "front": {"ks": [16, 32, 64],
@@ -95,6 +103,7 @@ PRESETS = {
                  "timing_resolutions": [[16, 16]], "timing_repeats": 1, "equal_error_spp": [1, 4],
                  "ablation_steps": 10,
                  "front": {"ks": [8], "models": [{}, {"model": {"hidden": 8}}]},
+                 "generalisation": [["paper objective", {"train": {"objective": "paper"}}]],
                  "ablations": {"log2_table_size": [6], "reflection": ["none"],
                                                      "spatial": {"single_resolution": {"base_resolution": 4},
                                                                  "per_vertex": {"vertex_edge": 0.5}}}},
@@ -260,6 +269,49 @@ def dataset_stats(run) -> dict:
             "train_resumed_from": info["resumed_from"]}
 
 
+def by_map(run) -> dict:
+    """The held-out protocol by map: every far view under every held-out map (``data.test_pairs
+    = "all"``), PSNR per map and category, the worst map against the baseline's worst, the mean
+    on the original pair of held-out maps, and per map the smallest mean and the smallest pixel
+    of the predicted indirect (negative radiance would show there)."""
+    data, e = run.dataset, run.config["eval"]
+    t = data.tests["far"]
+    preds = run.state["far"]
+    c = wp.indirect_baseline_scale(data.train["direct"], data.train["indirect"], data.train["valid"])
+    cats = {stem: cat for stem, cat in run.method_config["envmaps"]["categories"]}
+    out = {"psnr_indirect_far_by_map": {}, "psnr_indirect_far_baseline_by_map": {}, "min_mean_indirect_by_map": {},
+           "min_pixel_indirect_by_map": {}, "held_out_categories": {}}
+    for j, name in enumerate(data.test_env_names):
+        views = [i for i in range(len(preds)) if int(t["env"][i]) == j]
+        if not views:
+            continue
+        sub = {k: [t[k][i] for i in views] for k in ("indirect", "direct", "valid")}
+        ours = [float(metrics.tonemapped(metrics.psnr, preds[i], t["indirect"][i], e["exposure"])) for i in views]
+        base = [float(metrics.tonemapped(metrics.psnr, c[None, None, :] * d, r, e["exposure"]))
+                for d, r in zip(sub["direct"], sub["indirect"])]
+        out["psnr_indirect_far_by_map"][name] = float(np.mean(ours))
+        out["psnr_indirect_far_baseline_by_map"][name] = float(np.mean(base))
+        out["min_mean_indirect_by_map"][name] = float(min(np.asarray(preds[i])[np.asarray(t["valid"][i], bool)].mean()
+                                                          for i in views))
+        out["min_pixel_indirect_by_map"][name] = float(min(np.asarray(preds[i]).min() for i in views))
+        out["held_out_categories"][name] = cats.get(name, "uncategorised")
+        run.say(f"held-out map {name} ({out['held_out_categories'][name]}): PSNR indirect {np.mean(ours):.2f} dB "
+                f"(baseline {np.mean(base):.2f}), smallest mean {out['min_mean_indirect_by_map'][name]:.4f}")
+    by = out["psnr_indirect_far_by_map"]
+    if by:
+        worst = min(by, key=by.get)
+        out.update(psnr_indirect_far_worst=by[worst], psnr_indirect_far_worst_map=worst,
+                   psnr_indirect_far_baseline_worst=min(out["psnr_indirect_far_baseline_by_map"].values()))
+        pair = [m for m in ("st_fagans_interior_1k", "venice_sunset_1k") if m in by]
+        if pair:
+            out["psnr_indirect_far_original_pair"] = float(np.mean([by[m] for m in pair]))
+        by_cat = {}
+        for name, v in by.items():
+            by_cat.setdefault(out["held_out_categories"][name], []).append(v)
+        out["psnr_indirect_far_by_category"] = {k: float(np.mean(v)) for k, v in by_cat.items()}
+    return out
+
+
 def table1(run) -> dict:
     """Table 1: near / far views on held-out maps against the baseline indirect = c * direct
     (the best RGB c on the training data); images with the baseline (side_by_side_baseline.png)."""
@@ -366,9 +418,24 @@ def gt_transport_check(run) -> dict:
     ks = [min(int(k), 6 * n * n) for k in gc["ks"]]
     res = wp.transport_check(transport, cube, ks)
     rel = lambda a, b: float(np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-30))  # noqa: E731
+    # the learned T_k against Mitsuba's transport of wavelet k (Haar coefficients of the texel
+    # transport, the T_k that B = sum_k L_k T_k asks for) on the same pixels, over the top-K
+    # wavelets of this held-out map
+    g = wp_data.gbuffer_fields(handle, cam)
+    m = wp.model(run.method_config)
+    flat = {f: jax.numpy.asarray(g[f].reshape((-1,) + g[f].shape[2:])) for f in m.fields}
+    t_true = np.asarray(jax.numpy.moveaxis(haar.forward(jax.numpy.moveaxis(jax.numpy.asarray(transport), 0, 3)), 3, 0))
+    t_true = t_true.reshape(t_true.shape[0], -1, 3)
+    t_learned = np.asarray(m.transport(run.result.params, flat, jax.numpy.arange(6 * n * n, dtype=jax.numpy.int32)))
+    valid = g["valid"].reshape(-1) > 0
+    learned_by_k = {}
+    for k in ks:
+        idx = np.asarray(wp.select_wavelets(haar.forward(jax.numpy.asarray(cube)), k)[0])
+        learned_by_k[str(k)] = rel(t_learned[valid][:, idx], t_true[valid][:, idx])
     summary = {
         "gt_transport_rel_err_by_k": {str(k): rel(res["by_k"][k], ref) for k in ks},
         "gt_transport_rel_err_all": rel(res["wavelet_all"], ref),
+        "transport_rel_err_learned_by_k": learned_by_k,
         "gt_transport_truncation_by_k": {str(k): rel(res["by_k"][k], res["full"]) for k in ks},
         "gt_transport_parseval_err": rel(res["wavelet_all"], res["full"]),
         "gt_transport_noise_floor": rel(ref2, ref),
@@ -389,7 +456,8 @@ def gt_transport_check(run) -> dict:
     run.say("transport check: rel. error vs Mitsuba " + ", ".join(
         f"K={k}: {v:.3f}" for k, v in summary["gt_transport_rel_err_by_k"].items())
         + f"; all wavelets {summary['gt_transport_rel_err_all']:.3f}; noise floor "
-        f"{summary['gt_transport_noise_floor']:.3f}")
+        f"{summary['gt_transport_noise_floor']:.3f}; learned T_k vs Mitsuba's, top K: " + ", ".join(
+            f"K={k}: {v:.3f}" for k, v in learned_by_k.items()))
     return summary
 
 
@@ -476,5 +544,40 @@ def front(run) -> dict:
             "front_best_within_1db": max(ok, key=lambda r: r["speedup_equal_error"]) if ok else None}
 
 
+def _map_scores(evaluate, data, exposure: float) -> dict:
+    """Far-view PSNR per held-out map, their mean, the worst, the original pair's mean."""
+    t = data.tests["far"]
+    preds = _predict(evaluate, data, "far")
+    by = {}
+    for j, name in enumerate(data.test_env_names):
+        views = [i for i in range(len(preds)) if int(t["env"][i]) == j]
+        if views:
+            by[name] = float(np.mean([metrics.tonemapped(metrics.psnr, preds[i], t["indirect"][i], exposure)
+                                      for i in views]))
+    pair = [m for m in ("st_fagans_interior_1k", "venice_sunset_1k") if m in by]
+    return {"psnr_indirect_far": float(np.mean(list(by.values()))), "psnr_indirect_far_worst": min(by.values()),
+            "psnr_indirect_far_original_pair": float(np.mean([by[m] for m in pair])) if pair else None,
+            "psnr_indirect_far_by_map": by}
+
+
+def generalisation(run) -> dict:
+    """Issue 18's ablation: the default against one change at a time (``eval.generalisation``),
+    each trained at the full step count on its own data (same cameras and render budget), all
+    scored on the same held-out maps and views."""
+    e = run.config["eval"]
+    rows = {"default": _map_scores(run.evaluate, run.dataset, e["exposure"])}
+    for name, overrides in e["generalisation"]:
+        cfg = run.with_config(overrides)
+        data = run.dataset
+        if any(cfg[k] != run.method_config[k] for k in ("envmaps", "cameras", "data")):
+            data = REGISTRY[METHOD].make_dataset(run.config["scene"], cfg)
+        r = _train(run, cfg, data, f"generalisation: {name}", progress=False)
+        rows[name] = _map_scores(wp.evaluator(r.params, cfg), data, e["exposure"])
+        run.say(f"generalisation {name}: PSNR indirect far {rows[name]['psnr_indirect_far']:.2f} dB, worst "
+                f"{rows[name]['psnr_indirect_far_worst']:.2f} (default {rows['default']['psnr_indirect_far']:.2f} / "
+                f"{rows['default']['psnr_indirect_far_worst']:.2f})")
+    return {"generalisation": rows}
+
+
 #: The stages of the neural-wavelet PRT report, in order.
-STAGES = [dataset_stats, gt_transport_check, table1, k_sweep, frame_times, front, ablations]
+STAGES = [dataset_stats, gt_transport_check, table1, by_map, k_sweep, frame_times, front, generalisation, ablations]

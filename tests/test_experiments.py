@@ -95,6 +95,11 @@ def test_wavelet_prt_test_preset(mi, tmp_path, monkeypatch):
     assert e["gt_transport_parseval_err"] < 1e-4
     assert set(e["frame_ms_by_resolution"]["16x16"]) == {"8", "16"}
     assert set(e["ablations"]) == {"log2_table_size", "reflection", "spatial"}
+    assert set(e["psnr_indirect_far_by_map"]) == {"synthetic_held_out"} and np.isfinite(e["psnr_indirect_far_worst"])
+    assert all(v >= 0 for v in e["min_pixel_indirect_by_map"].values())  # model.nonnegative
+    assert set(e["transport_rel_err_learned_by_k"]) == {"8", "32"}
+    assert set(e["generalisation"]) == {"default", "paper objective"}
+    assert e["generalisation"]["default"]["psnr_indirect_far"] == pytest.approx(e["psnr_indirect_far"])
     front = e["front"]  # two models (the default's training reused) x one K
     assert [(r["width"], r["K"], r["default"]) for r in front] == [(16, 8, True), (8, 8, False)]
     for r in front:

@@ -132,8 +132,8 @@ def test_frame_flops_is_xla_count_of_one_chunk(overrides):
     """The method's own FLOP count (XLA counts a loop body once) against XLA's cost analysis of
     a render done in one chunk: within 1 % (XLA also counts the encodings and the Haar transform)."""
     cfg = {"model": {"hidden": 128, **overrides.get("model", {})},
-           "render": {"k": 64, "chunk": 16 * 16, **overrides.get("render", {})}}
-    data = _fake_data(h=16, w=16, n=16)
+           "render": {"k": 64, "chunk": 8 * 8, **overrides.get("render", {})}}
+    data = _fake_data(h=8, w=8, n=16)
     m = wp.model(cfg)
     params = m.init(jax.random.PRNGKey(0), np.array([[-1, -1, -1], [1, 1, 1]], np.float32))
     g = {f: jnp.asarray(data.train[f][0, 0]) for f in wp.GBUFFER_FIELDS}
@@ -144,7 +144,7 @@ def test_frame_flops_is_xla_count_of_one_chunk(overrides):
     xla = jeval.xla_flops(wp.evaluator(params, cfg), g, lighting)
     ours = wp.frame_flops(params, cfg, g, lighting)
     assert xla is not None and abs(ours / xla - 1) < 0.01, (ours, xla)
-    half = dict(g, valid=g["valid"].at[:8].set(False))
+    half = dict(g, valid=g["valid"].at[:4].set(False))
     assert wp.frame_flops(params, cfg, half, lighting) == pytest.approx(ours / 2)  # valid pixels only
 
 
@@ -155,14 +155,50 @@ def test_training_wavelets_half_largest_half_uniform():
     top = set(np.argsort(mag)[::-1][:10].tolist())
     seen = set()
     for s in range(30):
-        idx, vals = wp.training_wavelets(jax.random.PRNGKey(s), c, 20)
+        idx, vals, w = wp.training_wavelets(jax.random.PRNGKey(s), c, 20)
         idx = np.asarray(idx)
         assert len(set(idx.tolist())) == 20
         assert set(idx[:10].tolist()) == top
         assert not (set(idx[10:].tolist()) & top)
         np.testing.assert_array_equal(np.asarray(vals), np.asarray(c)[idx])
+        np.testing.assert_array_equal(np.asarray(w), 1.0)  # the paper's objective: no weights
         seen |= set(idx[10:].tolist())
     assert len(seen) > 60  # the uniform half reaches most of the other 86 wavelets
+
+
+def test_unbiased_training_wavelets_estimate_the_full_sum():
+    """sum_k w_k L_k T_k over the drawn wavelets is an unbiased estimate of the sum over all of
+    them (train.objective = "unbiased"); the paper's unweighted sum misses the others' share."""
+    rng = np.random.default_rng(8)
+    n_all, n = 96, 20
+    c = jnp.asarray(rng.normal(size=(n_all, 3)).astype(np.float32))
+    t = rng.uniform(0.5, 1.5, (n_all, 3))  # a positive "transport" per wavelet and channel
+    full = np.sum(np.asarray(c) * t, axis=0)
+    draws, plain = [], []
+    for s in range(2000):
+        idx, vals, w = wp.training_wavelets(jax.random.PRNGKey(s), c, n, unbiased=True)
+        idx, vals, w = np.asarray(idx), np.asarray(vals), np.asarray(w)
+        np.testing.assert_allclose(w[10:], (n_all - 10) / 10)
+        draws.append(np.sum(w[:, None] * vals * t[idx], axis=0))
+        plain.append(np.sum(vals * t[idx], axis=0))
+    draws = np.asarray(draws)
+    se = draws.std(axis=0) / np.sqrt(len(draws))
+    assert np.all(np.abs(draws.mean(axis=0) - full) < 4 * se)
+    assert np.any(np.abs(np.mean(plain, axis=0) - full) > 10 * se)
+
+
+def test_indirect_loss_sees_the_clipped_image_and_pushes_negatives_up():
+    target = jnp.array([[0.2, 0.1, 0.0], [0.5, 0.5, 0.5]])
+    pos = jnp.array([[0.3, 0.0, 0.1], [0.4, 0.6, 0.5]])
+    assert float(wp.indirect_loss(pos, target, 10.0)) == pytest.approx(float(losses.mu_law_l2(pos, target, 10.0)))
+    neg = pos.at[0, 0].set(-0.3)
+    shown = wp.indirect_output(neg)
+    assert float(shown[0, 0]) == 0.0 and bool(jnp.all(shown >= 0))
+    # the clipped image's loss plus the hidden negative part's, so the gradient stays
+    g = jax.grad(lambda p: wp.indirect_loss(p, target, 10.0))(neg)
+    assert float(g[0, 0]) < 0  # raising the negative prediction lowers the loss
+    assert float(wp.indirect_loss(neg, target, 10.0)) > float(losses.mu_law_l2(shown, target, 10.0))
+    np.testing.assert_array_equal(np.asarray(wp.indirect_output(neg, False)), np.asarray(neg))
 
 
 # -- loss --------------------------------------------------------------------------------------

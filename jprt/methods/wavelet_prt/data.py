@@ -13,7 +13,7 @@ import numpy as np
 
 from jprt import cache
 from jprt.methods.base import resolve
-from jprt.methods.wavelet_prt.model import (DEFAULT_CONFIG, GBUFFER_FIELDS, WaveletData, camera_sets, haar,
+from jprt.methods.wavelet_prt.model import (DEFAULT_CONFIG, GBUFFER_FIELDS, WaveletData, camera_sets, cubemap, haar,
                                             importance_maps, prepare_environment, render_equirect, rotate_equirect,
                                             synthetic_environments)
 
@@ -25,7 +25,18 @@ SHARED_ENVMAPS = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "
                                               "envmaps"))
 
 
-def _environment_sets(ecfg: dict, seed: int):
+def _map_folder(ecfg: dict) -> str:
+    return ecfg["folder"] or SHARED_ENVMAPS
+
+
+def _environment_sets(ecfg: dict, seed: int, n_images: int):
+    """Training lightings (E, 6, n, n, 3) with names, held-out lightings with names.
+
+    ``envmaps.lighting = "shared"``: every training map at every rotation of ``rotations_deg``
+    (§5), each lighting ``n_images / E`` images. ``"per_image"``: ``n_images`` lightings, one per
+    image: a training map turned about +Y by a uniform angle, mirrored left-right with
+    probability 1/2 when ``mirror``, or (with probability ``procedural_fraction``) a seeded
+    procedural sky with sun-like lobes (``synthetic_environments``)."""
     n = int(ecfg["face_size"])
     haar.check_face_size(n)
     rotations = [float(r) for r in ecfg["rotations_deg"]] or [0.0]
@@ -33,8 +44,11 @@ def _environment_sets(ecfg: dict, seed: int):
         maps = synthetic_environments(int(ecfg["synthetic"]) + 1, n, seed)
         train = [maps[i] for i in range(len(maps) - 1)]
         names = [f"synthetic_{i}" for i in range(len(train))]
+        if ecfg["lighting"] == "per_image":
+            pick = np.random.default_rng([seed, 11]).integers(0, len(train), n_images)
+            return np.stack([train[i] for i in pick]), [names[i] for i in pick], maps[-1:], ["synthetic_held_out"]
         return np.stack(train), names, maps[-1:], ["synthetic_held_out"]
-    folder = ecfg["folder"] or SHARED_ENVMAPS
+    folder = _map_folder(ecfg)
     stems = sorted(os.path.splitext(f)[0] for f in os.listdir(folder) if f.lower().endswith((".hdr", ".exr"))) \
         if os.path.isdir(folder) else []
     held = list(ecfg["held_out"])
@@ -42,9 +56,49 @@ def _environment_sets(ecfg: dict, seed: int):
     overlap = set(train_stems) & set(held)
     if overlap:
         raise ValueError(f"maps {sorted(overlap)} are both training and held-out maps")
-    envs, names = load_environments(train_stems, rotations, n, normalise=bool(ecfg["normalise"]), folder=folder)
-    tests, _ = load_environments(held, [0.0], n, normalise=bool(ecfg["normalise"]), folder=folder)
-    return envs, names, tests, held
+    normalise = bool(ecfg["normalise"])
+    tests, _ = load_environments(held, [0.0], n, normalise=normalise, folder=folder)
+    if ecfg["lighting"] == "shared":
+        envs, names = load_environments(train_stems, rotations, n, normalise=normalise, folder=folder)
+        return envs, names, tests, held
+    if ecfg["lighting"] != "per_image":
+        raise ValueError(f"unknown envmaps.lighting {ecfg['lighting']!r}: use 'shared' or 'per_image'")
+    from jprt.render.lights import EnvMap
+
+    if not train_stems:
+        raise ValueError("envmaps.lighting='per_image' needs at least one training map")
+    radiance = {s: EnvMap.from_file(_map_file(folder, s)).radiance for s in train_stems}
+    rng = np.random.default_rng([seed, 11])
+    frac = float(ecfg["procedural_fraction"])
+    procedural = rng.uniform(size=n_images) < frac
+    synth = iter(synthetic_environments(int(procedural.sum()), n, seed + 1))
+    envs, names = [], []
+    for i in range(n_images):
+        if procedural[i]:
+            envs.append(next(synth))
+            names.append(f"procedural_{i}")
+            continue
+        stem = train_stems[int(rng.integers(len(train_stems)))]
+        deg = float(rng.uniform(0.0, 360.0))
+        flip = bool(ecfg["mirror"]) and bool(rng.uniform() < 0.5)
+        e = radiance[stem][:, ::-1] if flip else radiance[stem]
+        envs.append(prepare_environment(rotate_equirect(e, deg), n, normalise=normalise))
+        names.append(f"{stem}@{deg:.1f}{' mirrored' if flip else ''}")
+    if frac > 0:  # procedural maps at the mean radiance of the files' (normalised: 1)
+        envs = [e if not p else e / max(_mean_radiance(e), 1e-12) for e, p in zip(envs, procedural)]
+    return np.stack(envs).astype(np.float32), names, tests, held
+
+
+def _mean_radiance(cube) -> float:
+    omega = np.asarray(cubemap.texel_solid_angles(np.asarray(cube).shape[1]))
+    return float(np.sum(np.asarray(cube).mean(axis=-1) * omega) / (4.0 * np.pi))
+
+
+def _map_file(folder: str, stem: str) -> str:
+    for f in os.listdir(folder):
+        if os.path.splitext(f)[0] == stem:
+            return os.path.join(folder, f)
+    raise FileNotFoundError(f"environment map {stem!r} not in {folder}")
 
 
 def load_environments(stems, rotations, face_size: int, *, normalise: bool = True,
@@ -126,10 +180,11 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
     ecfg, ccfg, dcfg = cfg["envmaps"], cfg["cameras"], cfg["data"]
     seed = int(dcfg["seed"])
     t0 = time.perf_counter()
-    envs, names, test_envs, test_names = _environment_sets(ecfg, seed)
     train_o, near_o, far_o = camera_sets(ccfg, seed)
-    n_env, per_view = len(envs), int(dcfg["envs_per_view"])
+    per_view = int(dcfg["envs_per_view"])
     n_img = len(train_o) * per_view
+    envs, names, test_envs, test_names = _environment_sets(ecfg, seed, n_img)
+    n_env = len(envs)
     if n_img % n_env:
         raise ValueError(f"{len(train_o)} training cameras x {per_view} environments each = {n_img} images do not "
                          f"split evenly over {n_env} environments: change cameras.sphere.n / cameras.helix.n")
@@ -141,7 +196,10 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
     handle = SceneHandle(desc)
     spp, max_depth = int(dcfg["spp"]), int(dcfg["max_depth"])
     groups: list[list[dict]] = [[] for _ in range(n_env)]
-    bar = tqdm(total=n_img + len(near_o) + len(far_o), desc="wavelet PRT images", disable=not progress)
+    if dcfg["test_pairs"] not in ("cycle", "all"):
+        raise ValueError(f"unknown data.test_pairs {dcfg['test_pairs']!r}: use 'cycle' or 'all'")
+    n_test = (len(near_o) + len(far_o)) * (len(test_envs) if dcfg["test_pairs"] == "all" else 1)
+    bar = tqdm(total=n_img + n_test, desc="wavelet PRT images", disable=not progress)
     for c, origin in enumerate(train_o):
         cam = look_at(origin, target, **cam_kw)
         g = gbuffer_fields(handle, cam)
@@ -152,20 +210,33 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
             bar.update(1)
     train = {k: np.stack([np.stack([img[k] for img in grp]) for grp in groups])
              for k in list(GBUFFER_FIELDS) + ["direct", "indirect"]}
-    importance = np.stack([importance_maps(train["indirect"][e], train["position"][e], train["valid"][e],
-                                           train["specular_albedo"][e], train["roughness"][e],
-                                           mu=float(cfg["train"]["mu"])) for e in range(n_env)])
+    mu = float(cfg["train"]["mu"])
+    if train["valid"].shape[1] > 1:  # each lighting lights several views: §5's per-lighting maps
+        importance = np.stack([importance_maps(train["indirect"][e], train["position"][e], train["valid"][e],
+                                               train["specular_albedo"][e], train["roughness"][e], mu=mu)
+                               for e in range(n_env)])
+    else:  # one view per lighting: the view variance is taken over all images, then split per image
+        flat = {k: train[k][:, 0] for k in ("indirect", "position", "valid", "specular_albedo", "roughness")}
+        imp = importance_maps(flat["indirect"], flat["position"], flat["valid"], flat["specular_albedo"],
+                              flat["roughness"], mu=mu).reshape(4, n_env, -1).transpose(1, 0, 2)
+        imp = imp.astype(np.float64)
+        imp = np.where(imp.sum(-1, keepdims=True) > 0, imp, flat["valid"].reshape(n_env, 1, -1))
+        importance = (imp / np.maximum(imp.sum(-1, keepdims=True), 1e-30)).astype(np.float32)
     t_train = time.perf_counter() - t0
     tests = {}
     for name, origins in (("near", near_o), ("far", far_o)):
         views = []
         for i, origin in enumerate(origins):
             cam = look_at(origin, target, **cam_kw)
-            e = i % max(len(test_envs), 1)
-            direct, indirect = _render_view(handle, cam, test_envs[e], int(dcfg["test_spp"]),
-                                            seed * 7 + 1000003 + i + (0 if name == "near" else 5003), max_depth)
-            views.append(dict(gbuffer_fields(handle, cam), direct=direct, indirect=indirect, env=np.int32(e)))
-            bar.update(1)
+            g = gbuffer_fields(handle, cam)
+            # "cycle": view i under held-out map i mod count; "all": every view under every held-out map
+            lightings = range(len(test_envs)) if dcfg["test_pairs"] == "all" else [i % max(len(test_envs), 1)]
+            for e in lightings:
+                direct, indirect = _render_view(handle, cam, test_envs[e], int(dcfg["test_spp"]),
+                                                seed * 7 + 1000003 + i + (0 if name == "near" else 5003)
+                                                + 100 * e * (dcfg["test_pairs"] == "all"), max_depth)
+                views.append(dict(g, direct=direct, indirect=indirect, env=np.int32(e)))
+                bar.update(1)
         tests[name] = {k: np.stack([v[k] for v in views]) for k in views[0]} if views else {}
     bar.close()
     arrays = {f"train_{k}": v for k, v in train.items()}
