@@ -13,11 +13,13 @@ environment maps and their 120 / 240 degree rotations; two maps are held out):
   3. Adam training of the CP feature field + MLP (resumable; checkpoint under $JPRT_CACHE);
   4. held-out maps on views near and far from the training trajectories: PSNR / SSIM of indirect
      and direct + indirect (Table 1 layout), against the baseline indirect = c * direct with the
-     best RGB c from the training data; the K sweep;
+     best RGB c from the training data; PSNR per held-out map and category, the worst map, the
+     smallest mean prediction (stage by_map); the K sweep;
   5. frame time by resolution and K (Table 2 layout), model size; equal-error spp of Mitsuba and
      the speedup at equal error; the speed-accuracy front over MLP width, rank M and K
      (``eval.front``: each model trained at the full step count; front.png);
-  6. ablations (shorter runs, all at the same step count): hash-table size (Table 3) and the
+  6. what each of the generalisation changes does (``eval.generalisation``, full-step runs);
+     ablations (shorter runs, all at the same step count): hash-table size (Table 3) and the
      reflection encoding (Table 4);
   7. images (reference / ours / baseline / error), loss curve, error-vs-K plot.
 The report goes to results/wavelet_prt_cornell/<config hash>/ (``jprt.runner``: the common
@@ -229,12 +231,14 @@ def pathtracer(run) -> PathTracer:
     t = data.tests["far"]
     far_cams = [_camera(config, o, config["cameras"]["width"], config["cameras"]["height"])
                 for o in data.cameras["far"]]
+    # far image i shows view i // maps under every held-out map ("all"), or view i ("cycle")
+    per_view = len(data.test_envs) if run.method_config["data"]["test_pairs"] == "all" else 1
 
     def render_at(spp):
         out = []
-        for i, cam in enumerate(far_cams):
+        for i in range(len(t["valid"])):
             handle = _handle(run, data.test_envs[int(t["env"][i])])
-            out.append(mimages.direct_indirect(handle, cam, spp=spp, seed=4242 + i).indirect)
+            out.append(mimages.direct_indirect(handle, far_cams[i // per_view], spp=spp, seed=4242 + i).indirect)
         return out
 
     def time_at(spp):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -100,23 +102,23 @@ def test_relighting_error_falls_with_k():
     assert errs[2] < errs[0]
 
 
-def test_render_pixels_chunking_is_exact():
-    rng = np.random.default_rng(5)
-    t_hat = jnp.asarray(rng.normal(size=(23, 6, 2, 2, 3)).astype(np.float32))
+def _exact_pixels(seed, p=23):
+    """(transport_fn, g, light) of p pixels with random exact transport on 2^2 cube faces."""
+    rng = np.random.default_rng(seed)
+    t_hat = jnp.asarray(rng.normal(size=(p, 6, 2, 2, 3)).astype(np.float32))
     light = jnp.asarray(rng.normal(size=(6, 2, 2, 3)).astype(np.float32))
-    g = {"pixel": jnp.arange(23, dtype=jnp.int32)}
-    fn = wp.exact_transport_fn(t_hat)
+    return wp.exact_transport_fn(t_hat), {"pixel": jnp.arange(p, dtype=jnp.int32)}, light
+
+
+def test_render_pixels_chunking_is_exact():
+    fn, g, light = _exact_pixels(5)
     a = wp.render_pixels(fn, g, light, 10, chunk=23)
     b = wp.render_pixels(fn, g, light, 10, chunk=4)  # padded last chunk
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
 
 
 def test_render_pixels_skips_chunks_without_valid_pixels():
-    rng = np.random.default_rng(7)
-    t_hat = jnp.asarray(rng.normal(size=(23, 6, 2, 2, 3)).astype(np.float32))
-    light = jnp.asarray(rng.normal(size=(6, 2, 2, 3)).astype(np.float32))
-    g = {"pixel": jnp.arange(23, dtype=jnp.int32)}
-    fn = wp.exact_transport_fn(t_hat)
+    fn, g, light = _exact_pixels(7)
     valid = np.ones(23, bool)
     valid[4:12] = False  # chunks 1 and 2 of 4 pixels hold no valid pixel; chunk 3 a partial one
     valid[12:15] = False
@@ -378,3 +380,19 @@ def test_per_vertex_variant_trains_and_renders():
     g = {f: data.train[f][0, 0] for f in list(wp.GBUFFER_FIELDS) + list(wp.VERTEX_FIELDS)}
     out = np.asarray(wp.evaluator(res.params, cfg)(g, CubeMap(data.envs[0])))
     assert out.shape == g["valid"].shape + (3,) and np.all(np.isfinite(out))
+
+
+@pytest.mark.mitsuba
+@pytest.mark.parametrize("fraction", [0.0, 0.5])
+def test_per_image_lightings_never_use_a_held_out_map(mi, assets, fraction):
+    from jprt.methods.wavelet_prt import data as wp_data
+
+    ecfg = dict(wp.DEFAULT_CONFIG["envmaps"], folder=os.path.join(assets, "envmaps"), face_size=4,
+                procedural_fraction=fraction)
+    envs, names, tests, held = wp_data._environment_sets(ecfg, 0, 12)
+    assert envs.shape == (12, 6, 4, 4, 3) and len(names) == 12 and np.all(envs >= 0)
+    assert tests.shape[0] == len(held) == 6
+    assert not any(name.split("@")[0] in held for name in names)
+    n_proc = sum(name.startswith("procedural") for name in names)
+    assert (n_proc == 0) == (fraction == 0.0)
+    assert len(set(names)) == 12  # twelve distinct lightings (uniform angles), not maps x 3 rotations

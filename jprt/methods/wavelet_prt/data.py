@@ -25,10 +25,6 @@ SHARED_ENVMAPS = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "
                                               "envmaps"))
 
 
-def _map_folder(ecfg: dict) -> str:
-    return ecfg["folder"] or SHARED_ENVMAPS
-
-
 def _environment_sets(ecfg: dict, seed: int, n_images: int):
     """Training lightings (E, 6, n, n, 3) with names, held-out lightings with names.
 
@@ -48,7 +44,7 @@ def _environment_sets(ecfg: dict, seed: int, n_images: int):
             pick = np.random.default_rng([seed, 11]).integers(0, len(train), n_images)
             return np.stack([train[i] for i in pick]), [names[i] for i in pick], maps[-1:], ["synthetic_held_out"]
         return np.stack(train), names, maps[-1:], ["synthetic_held_out"]
-    folder = _map_folder(ecfg)
+    folder = ecfg["folder"] or SHARED_ENVMAPS
     stems = sorted(os.path.splitext(f)[0] for f in os.listdir(folder) if f.lower().endswith((".hdr", ".exr"))) \
         if os.path.isdir(folder) else []
     held = list(ecfg["held_out"])
@@ -71,7 +67,8 @@ def _environment_sets(ecfg: dict, seed: int, n_images: int):
     rng = np.random.default_rng([seed, 11])
     frac = float(ecfg["procedural_fraction"])
     procedural = rng.uniform(size=n_images) < frac
-    synth = iter(synthetic_environments(int(procedural.sum()), n, seed + 1))
+    n_synth = int(procedural.sum())
+    synth = iter(synthetic_environments(n_synth, n, seed + 1) if n_synth else ())
     envs, names = [], []
     for i in range(n_images):
         if procedural[i]:
