@@ -129,7 +129,8 @@ def test_render_pixels_skips_chunks_without_valid_pixels():
     np.testing.assert_array_equal(out[:4], full[:4])
 
 
-@pytest.mark.parametrize("overrides", [{}, {"model": {"layers": 3, "hidden": 64}, "render": {"k": 32}}])
+@pytest.mark.parametrize("overrides", [{}, pytest.param({"model": {"layers": 3, "hidden": 64}, "render": {"k": 32}},
+                                                     marks=pytest.mark.slow)])  # the second for the suite's budget
 def test_frame_flops_is_xla_count_of_one_chunk(overrides):
     """The method's own FLOP count (XLA counts a loop body once) against XLA's cost analysis of
     a render done in one chunk: within 1 % (XLA also counts the encodings and the Haar transform)."""
