@@ -61,7 +61,10 @@ EVAL_DEFAULTS = {
                        ["shared lighting (maps x 5 rotations)", {"envmaps": {"lighting": "shared",
                                                                              "rotations_deg": [0, 72, 144, 216, 288]}}],
                        ["no exposure / white-balance jitter", {"train": {"exposure_stops": 0.0, "white_balance": 0.0}}],
-                       ["no procedural skies, no mirroring", {"envmaps": {"procedural_fraction": 0.0, "mirror": False}}]],
+                       ["no procedural skies, no mirroring", {"envmaps": {"procedural_fraction": 0.0, "mirror": False}}],
+                       ["exact objective (every wavelet, fewer pixels)", {"train": {"objective": "exact"}}],
+                       ["procedural suns (40 %, one-texel sun)", {"envmaps": {"procedural": "sun",
+                                                                              "procedural_fraction": 0.4}}]],
     # the speed-accuracy front (issue 17): each model (overrides of model / train) trained at the
     # full step count and evaluated at every K ({} is the default model, its training reused)
     "front": {"ks": [16, 32, 64],

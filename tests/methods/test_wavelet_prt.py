@@ -348,6 +348,30 @@ def test_training_resumes_bit_identically(tmp_path):
     np.testing.assert_array_equal(full.info["losses"][5:], rest.info["losses"])
 
 
+def test_exact_objective_trains_on_every_wavelet_and_unknown_objectives_raise():
+    data = _fake_data(n=4)
+    cfg = dict(TINY, train=dict(TINY["train"], steps=3, objective="exact"))
+    res = wp.fit(data, cfg, progress=False)
+    assert len(res.info["losses"]) == 3 and np.all(np.isfinite(res.info["losses"]))
+    with pytest.raises(ValueError, match="unknown train.objective 'all'"):
+        wp.fit(data, dict(TINY, train=dict(TINY["train"], objective="all")), progress=False)
+
+
+def test_sun_skies_hold_a_sun_in_one_texel():
+    """Mean radiance 1; the brightest texel (above the horizon) holds 20-80 % of the energy; seeded."""
+    from jprt.sphere import cubemap
+
+    maps = wp.sun_skies(6, 8, seed=3)
+    omega = np.asarray(cubemap.texel_solid_angles(8))
+    d = np.asarray(cubemap.texel_directions(8))
+    for m in maps:
+        energy = m.mean(-1) * omega
+        assert energy.sum() / (4 * np.pi) == pytest.approx(1.0, rel=1e-5)
+        sun = np.unravel_index(np.argmax(energy), energy.shape)
+        assert 0.2 <= energy[sun] / energy.sum() <= 0.81 and d[sun][1] >= -0.2  # 0.8 + the sky in that texel
+    np.testing.assert_array_equal(maps, wp.sun_skies(6, 8, seed=3))
+
+
 def test_fit_rejects_mismatched_face_size():
     with pytest.raises(ValueError, match="face size"):
         wp.fit(_fake_data(n=4), {"envmaps": {"face_size": 8}}, progress=False)

@@ -15,7 +15,7 @@ from jprt import cache
 from jprt.methods.base import resolve
 from jprt.methods.wavelet_prt.model import (DEFAULT_CONFIG, GBUFFER_FIELDS, WaveletData, camera_sets, cubemap, haar,
                                             importance_maps, prepare_environment, render_equirect, rotate_equirect,
-                                            synthetic_environments)
+                                            sun_skies, synthetic_environments)
 
 __all__ = ["make_dataset", "add_vertex_interpolation", "gbuffer_fields", "load_environments", "SHARED_ENVMAPS", "TASK_LIGHTINGS",
            "task_inputs", "task_lighting"]
@@ -32,7 +32,8 @@ def _environment_sets(ecfg: dict, seed: int, n_images: int):
     (§5), each lighting ``n_images / E`` images. ``"per_image"``: ``n_images`` lightings, one per
     image: a training map turned about +Y by a uniform angle, mirrored left-right with
     probability 1/2 when ``mirror``, or (with probability ``procedural_fraction``) a seeded
-    procedural sky with sun-like lobes (``synthetic_environments``)."""
+    procedural sky (``envmaps.procedural``: broad lobes, ``synthetic_environments``, or a clear
+    sky with a one-texel sun, ``sun_skies``)."""
     n = int(ecfg["face_size"])
     haar.check_face_size(n)
     rotations = [float(r) for r in ecfg["rotations_deg"]] or [0.0]
@@ -68,7 +69,10 @@ def _environment_sets(ecfg: dict, seed: int, n_images: int):
     frac = float(ecfg["procedural_fraction"])
     procedural = rng.uniform(size=n_images) < frac
     n_synth = int(procedural.sum())
-    synth = iter(synthetic_environments(n_synth, n, seed + 1) if n_synth else ())
+    kinds = {"lobes": synthetic_environments, "sun": sun_skies}
+    if ecfg["procedural"] not in kinds:
+        raise ValueError(f"unknown envmaps.procedural {ecfg['procedural']!r}: use one of {sorted(kinds)}")
+    synth = iter(kinds[ecfg["procedural"]](n_synth, n, seed + 1) if n_synth else ())
     envs, names = [], []
     for i in range(n_images):
         if procedural[i]:

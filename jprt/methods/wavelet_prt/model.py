@@ -70,6 +70,7 @@ __all__ = [
     "WaveletData",
     "prepare_environment",
     "synthetic_environments",
+    "sun_skies",
     "rotate_equirect",
     "render_equirect",
     "trajectory",
@@ -116,6 +117,9 @@ DEFAULT_CONFIG = {
         # "per_image": every training image its own lighting (a training map at a uniform rotation,
         # mirrored half the time, or a procedural sky); "shared": maps x rotations_deg (§5)
         "lighting": "per_image", "mirror": True, "procedural_fraction": 0.2,
+        # the procedural lightings: "lobes" (synthetic_environments: a sky and one or two broad lobes)
+        # or "sun" (sun_skies: a clear sky whose sun holds 20-80 % of the energy in one texel)
+        "procedural": "lobes",
         "rotations_deg": [0.0, 120.0, 240.0],  # "shared": §5's each map and its 120 / 240 degree rotations
         "synthetic": 0,  # > 0: that many seeded procedural maps instead of files (tests)
         "face_size": 16,  # cube-map face size n (paper: 64)
@@ -155,7 +159,9 @@ DEFAULT_CONFIG = {
         "mu": 10.0,  # mu-law constant (eps = 1)
         # "unbiased": the uniformly drawn half of the wavelets weighted by (N - n/2) / (n - n/2), so the
         # step's sum is an unbiased estimate of sum over all N wavelets and T_k is not rewarded for
-        # carrying the share of wavelets it was not shown; "paper": every selected wavelet weight 1 (§5)
+        # carrying the share of wavelets it was not shown; "paper": every selected wavelet weight 1 (§5);
+        # "exact": every wavelet of the lighting (B itself, no estimate), on pixels * wavelets / N
+        # pixels per step (the same number of (pixel, wavelet) products; at least 4)
         "objective": "unbiased",
         # per-step lighting jitter, exact by linearity (lighting and target scaled per channel alike):
         # exposure 2^U(-s, s) and a white balance exp(N(0, wb^2)) per channel (mean log 0)
@@ -235,6 +241,37 @@ def synthetic_environments(n_maps: int, face_size: int, seed: int = 0) -> np.nda
             lobe = np.exp(sharp * (d @ axis - 1.0))[..., None] * rng.uniform(0.5, 1.0, 3)
             sky = sky + rng.uniform(2.0, 8.0) * lobe
         out.append(sky)
+    return np.stack(out).astype(np.float32)
+
+
+def sun_skies(n_maps: int, face_size: int, seed: int = 0) -> np.ndarray:
+    """``n_maps`` seeded clear skies with a sun (E, 6, n, n, 3), mean radiance 1: a sky gradient
+    (bluer towards the zenith), a dim ground, and a sun holding a fraction U(0.2, 0.8) of the
+    map's energy (real clear skies: 20-70 %) in the one texel that contains its direction, which
+    is uniform on the upper hemisphere. A sun this small puts large coefficients on the finest
+    Haar wavelets at its position, whose transport W[k] is otherwise only trained by the few
+    training maps with a sun there (issue 18: the sun of a held-out sky landed on wavelets that
+    had kept their random initialisation)."""
+    rng = np.random.default_rng(seed)
+    d = np.asarray(cubemap.texel_directions(face_size))
+    omega = np.asarray(cubemap.texel_solid_angles(face_size))
+    out = []
+    for _ in range(n_maps):
+        up = np.clip(d[..., 1:2], 0.0, 1.0)
+        zenith, horizon = rng.uniform([0.15, 0.3, 0.6], [0.4, 0.6, 1.0]), rng.uniform(0.6, 1.0, 3)
+        sky = np.where(d[..., 1:2] >= 0, horizon + (zenith - horizon) * up ** 0.5,
+                       rng.uniform(0.05, 0.3) * rng.uniform([0.6, 0.5, 0.3], [1.0, 0.8, 0.6]))
+        sky = sky / (np.sum(sky.mean(-1) * omega) / (4 * np.pi))
+        y = rng.uniform(0.0, 1.0)  # uniform on the hemisphere: the height is uniform
+        phi = rng.uniform(0.0, 2 * np.pi)
+        axis = np.array([np.sqrt(1 - y * y) * np.cos(phi), y, np.sqrt(1 - y * y) * np.sin(phi)])
+        texel = np.unravel_index(np.argmax(d @ axis), d.shape[:3])
+        frac = rng.uniform(0.2, 0.8)
+        colour = rng.uniform([1.0, 0.85, 0.6], [1.0, 1.0, 1.0])
+        sun = np.zeros_like(sky)
+        # sky: 1 - frac of the energy, the sun frac: 4 pi frac / (1 - frac) over the texel's solid angle
+        sun[texel] = colour / colour.mean() * 4 * np.pi * frac / (1 - frac) / omega[texel]
+        out.append((sky + sun) * (1 - frac))
     return np.stack(out).astype(np.float32)
 
 
@@ -686,9 +723,12 @@ def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str |
     if n_pix % 4:
         raise ValueError(f"train.pixels must be a multiple of 4 (four sampling strategies), got {n_pix}")
     mu = float(tc["mu"])
-    if tc["objective"] not in ("unbiased", "paper"):
-        raise ValueError(f"unknown train.objective {tc['objective']!r}: use 'unbiased' or 'paper'")
-    unbiased = tc["objective"] == "unbiased"
+    if tc["objective"] not in ("unbiased", "paper", "exact"):
+        raise ValueError(f"unknown train.objective {tc['objective']!r}: use 'unbiased', 'paper' or 'exact'")
+    unbiased, exact = tc["objective"] == "unbiased", tc["objective"] == "exact"
+    if exact:  # all N wavelets per pixel: as many (pixel, wavelet) products per step as n_wav wavelets
+        n_wav = 6 * m.face_size**2
+        n_pix = max(4, 4 * round(n_pix * min(int(tc["wavelets"]), n_wav) / n_wav / 4))
     nonneg = bool(cfg["model"]["nonnegative"])
     stops, wb = float(tc["exposure_stops"]), float(tc["white_balance"])
     if stops < 0 or wb < 0:
@@ -701,7 +741,10 @@ def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str |
     def sampler(k, step, d):
         ke, kw, kp, kj, kb = jax.random.split(k, 5)
         e = jax.random.randint(ke, (), 0, n_env)
-        idx, vals, weights = training_wavelets(kw, d["coeffs"][e], n_wav, unbiased=unbiased)
+        if exact:
+            idx, vals, weights = jnp.arange(n_wav, dtype=jnp.int32), d["coeffs"][e], jnp.ones(n_wav)
+        else:
+            idx, vals, weights = training_wavelets(kw, d["coeffs"][e], n_wav, unbiased=unbiased)
         logits = d["log_importance"][e]  # (4, V H W)
         pix = jax.vmap(lambda kk, lg: jax.random.categorical(kk, lg, shape=(n_pix // 4,)))(
             jax.random.split(kp, 4), logits).reshape(-1)
