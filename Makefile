@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.jprt-installed
 
-.PHONY: setup llvm test test-slow demo bench bench-rrf bench-datadriven bench-wavelet bench-sg bench-mrt bench-atlas clean
+.PHONY: setup llvm test test-slow view-deps view demo bench bench-rrf bench-datadriven bench-wavelet bench-sg bench-mrt bench-atlas clean
 
 setup: llvm $(STAMP)
 
@@ -23,14 +23,25 @@ llvm:
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e ".[test,ray,metrics]"
+	$(PY) -m pip install -q -e ".[test,ray,metrics,view]"
 	touch $(STAMP)
 
 test: setup
 	$(PY) -m pytest -q tests
 
-test-slow: setup
+test-slow: setup view-deps
 	$(PY) -m pytest -q -m slow tests
+
+# the viewer's browser test: Debian's Chromium (driven through Playwright, no browser download)
+view-deps: setup
+	@command -v chromium >/dev/null 2>&1 || { \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium; }
+	$(PY) -m pip install -q -e ".[view-test]"
+
+# make view RUN=results/<experiment>/<config hash>
+view: setup
+	$(VENV)/bin/jprt view $(RUN)
 
 demo: setup
 	$(PY) -m jprt.cli run experiments/rrf_cornell.py --preset demo

@@ -162,6 +162,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="CPUs one point needs on Ray (default: the config's resources.cpus, else 1)")
     p.add_argument("--gpus", type=float, default=None,
                    help="GPUs one point needs on Ray (default: the config's resources.gpus, else 0)")
+    p = sub.add_parser("view", help="relight a trained model of a run folder interactively in the browser")
+    p.add_argument("folder", help="a run folder written by `jprt run` (config.json, summary.json, model.npz)")
+    p.add_argument("--host", default="127.0.0.1", help="address to bind (default: localhost only)")
+    p.add_argument("--port", type=int, default=8080)
+    p.add_argument("--size", type=int, default=128, help="resolution of the refined frame (square)")
+    p.add_argument("--preview", type=int, default=48, help="resolution while the view or lighting changes")
     args = parser.parse_args(argv)
 
     from jprt.config import ConfigError
@@ -172,6 +178,12 @@ def main(argv: list[str] | None = None) -> int:
             return _info()
         if args.command == "sweep":
             return _sweep(args)
+        if args.command == "view":
+            from jprt.view import check_run_folder, serve
+
+            check_run_folder(args.folder)  # one clear line before anything heavy is imported
+            serve(args.folder, host=args.host, port=args.port, size=args.size, preview=args.preview)
+            return 0
         module = load_experiment(args.experiment)
         config = resolve_config(module, args.overrides, args.preset, args.config_file)
         if args.command == "render":

@@ -43,8 +43,8 @@ from jprt.config import config_hash, merge, save_resolved
 from jprt.methods import REGISTRY
 from jprt.methods.base import FitResult, Method, model_bytes
 
-__all__ = ["SUMMARY_SCHEMA", "Run", "HeldOut", "PathTracer", "run", "run_file", "flat_summary", "method_config",
-           "common_summary"]
+__all__ = ["SUMMARY_SCHEMA", "Run", "HeldOut", "PathTracer", "run", "run_file", "save_fit", "flat_summary",
+           "method_config", "common_summary"]
 
 #: Every key of the common summary, with its meaning.
 SUMMARY_SCHEMA: dict[str, str] = {
@@ -298,6 +298,20 @@ def run(experiment: ModuleType, config: dict) -> dict:
     io.write_json(os.path.join(out, "summary.json"), s)
     print(f"{r.label} report (summary.json, side_by_side.png, plots, EXRs) written to {out}")
     return s
+
+
+def save_fit(out: str, method: str, config: dict, params) -> str:
+    """A run folder (config.json, model.npz, summary.json with the method, scene and config hash)
+    for a fit made outside ``run``: what ``jprt view`` and the viewer's tests load. ``config``
+    holds the method's sections (an experiment config, or the method config itself)."""
+    out = os.path.abspath(out)
+    os.makedirs(out, exist_ok=True)
+    save_resolved(config, out)
+    digest = config_hash(config)
+    io.save_checkpoint(os.path.join(out, "model.npz"), params, meta={"config_hash": digest})
+    io.write_json(os.path.join(out, "summary.json"), {"method": method, "scene": config.get("scene"),
+                                                      "config_hash": digest, "output": out})
+    return out
 
 
 def run_file(path: str, preset: str | None = None, overrides: Sequence[str] = ()) -> dict:

@@ -1,0 +1,234 @@
+"""``jprt view``: the run-folder check, the params loader, the viewer's session against the
+evaluator (default suite), and the page itself driven from headless Chromium for every registered
+method (slow: ``make test-slow`` installs Chromium and Playwright first)."""
+
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import jax
+import numpy as np
+import pytest
+
+from jprt import io
+from jprt.cli import main
+from jprt.methods import REGISTRY
+from jprt.runner import save_fit
+from jprt.view import NotARunFolder, Session, check_run_folder, image_stats, load_params
+
+#: Where the page screenshots go: $JPRT_SCREENSHOTS (the README's is
+#: ``JPRT_SCREENSHOTS=docs/images pytest -m slow tests/test_view.py -k rrf``), else the test's tmp dir.
+SCREENSHOTS = os.environ.get("JPRT_SCREENSHOTS")
+
+
+def _run_folder(tmp_path_factory, name):
+    m = REGISTRY[name]
+    config = m.resolve(m.presets["test"])
+    dataset = m.make_dataset(config["scene"], config)
+    result = m.fit(dataset, config)
+    return save_fit(str(tmp_path_factory.mktemp(name)), name, config, result.params), m, config, result
+
+
+@pytest.fixture(scope="module")
+def rrf_run(tmp_path_factory):
+    return _run_folder(tmp_path_factory, "rrf")
+
+
+def test_a_folder_that_is_not_a_run_is_refused_in_one_line(tmp_path, capsys):
+    with pytest.raises(NotARunFolder, match="not a jprt run folder .*model.npz"):
+        check_run_folder(str(tmp_path))
+    (tmp_path / "config.json").write_text("{}")
+    (tmp_path / "model.npz").write_bytes(b"")
+    (tmp_path / "summary.json").write_text('{"method": "nerf"}')
+    with pytest.raises(NotARunFolder, match="names method 'nerf'"):
+        check_run_folder(str(tmp_path))
+    assert main(["view", str(tmp_path / "missing")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("jprt: error:") and "is not a folder" in err and "\n" not in err
+
+
+def test_load_params_rebuilds_the_saved_tree(tmp_path):
+    tree = {"layers": [{"w": np.ones((2, 3), np.float32), "b": np.zeros(3, np.float16)}, {"w": np.arange(4)}],
+            "tree": {"axis": np.array([0, -1], np.int32)}, "scale": np.float32(2.0)}
+    io.save_checkpoint(str(tmp_path / "m.npz"), tree)
+    got = load_params(str(tmp_path / "m.npz"))
+    assert jax.tree_util.tree_structure(got) == jax.tree_util.tree_structure(tree)
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(tree)):
+        assert np.asarray(a).dtype == np.asarray(b).dtype
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.mitsuba
+def test_session_frames_are_the_evaluators_output(mi, rrf_run):
+    """The viewer's indirect frame equals the evaluator on the adapter's inputs and lighting for
+    the same camera and light; moving the light changes it; the display follows the mode."""
+    folder, m, config, result = rrf_run
+    s = Session(folder)
+    assert s.kind == "point"
+    first = s.render(16)
+    s.set(light=tuple(np.asarray(s.state["light"]) + [0.2, -0.1, 0.1]), mode="indirect")
+    frame = s.render(16)
+    assert not np.allclose(frame["indirect"], first["indirect"])
+    from jprt.inputs import PointLights
+    from jprt.methods.rrf import data as adapter
+
+    lights = PointLights.create([s.state["light"]], [np.asarray(s.state["colour"]) * s.state["power"]])
+    want = np.asarray(m.evaluator(result.params, config)(adapter.task_inputs(s.handle, s.dataset, s.camera(16)),
+                                                         lights))
+    np.testing.assert_allclose(frame["indirect"], want, rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(frame["image"], frame["indirect"])
+    assert frame["stats"] == image_stats(want)
+    with pytest.raises(KeyError, match="unknown view settings"):
+        s.set(lights=(0, 0, 0))
+    with pytest.raises(ValueError, match="mode must be one of"):
+        s.set(mode="albedo")
+
+
+# --------------------------------------------------------------------------------------------
+# The page, from headless Chromium
+
+
+def _chromium() -> str | None:
+    return shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+_STATS = re.compile(r"stats \(indirect, \d+x(\d+), generation (\d+)\): mean=([-\d.e+,]+) max=([-\d.e+,]+) "
+                    r"sum_mean=([-\d.e+]+)")
+
+
+def _stats(page):
+    text = page.get_by_text("stats (indirect").inner_text()
+    match = _STATS.search(text)
+    return None if match is None else (int(match[1]), int(match[2]), [float(v) for v in match[3].split(",")])
+
+
+def _state(page) -> dict:
+    """The view settings the page's last frame was rendered with (its ``state:`` line)."""
+    text = page.get_by_text("state:").inner_text()
+    out = {key: value for key, value in re.findall(r"\b(env)=(\S+)", text)}
+    for key, value in re.findall(r"\b(\w+)=([-\d.e+,]+)(?:\s|$)", text):
+        v = tuple(float(x) for x in value.split(","))
+        out[key] = v if len(v) == 3 else int(v[0]) if key == "knob" else v[0]
+    return out
+
+
+def _wait_ready(page, after_generation=-1, timeout_s=120.0):
+    t0 = time.time()
+    while time.time() - t0 < timeout_s:
+        status = page.get_by_text("status:").inner_text()
+        got = _stats(page)
+        if "error" in status:
+            raise AssertionError(status)
+        ready = re.match(r"status: ready \(generation (\d+)\)", status)
+        # ready: the refined frame of that generation is shown (previews are never "ready")
+        if ready and got and got[1] == int(ready[1]) > after_generation:
+            return got
+        page.wait_for_timeout(200)
+    raise AssertionError(f"the page finished no frame in {timeout_s} s: {page.get_by_text('status:').inner_text()}")
+
+
+def _frame_time(page, generation, timeout_s=60.0) -> float:
+    """The evaluator time the page shows for ``generation`` or a later one (it times once the
+    browser has drawn the frame)."""
+    t0 = time.time()
+    while time.time() - t0 < timeout_s:
+        match = re.search(r"evaluator ([-\d.e+]+) ms at \S+ \(generation (\d+)", page.get_by_text("frame:").inner_text())
+        if match and int(match[2]) >= generation:
+            return float(match[1])
+        page.wait_for_timeout(200)
+    raise AssertionError(f"no frame time for generation {generation}: {page.get_by_text('frame:').inner_text()}")
+
+
+@pytest.mark.slow
+@pytest.mark.mitsuba
+@pytest.mark.parametrize("name", sorted(REGISTRY))
+def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
+    """``jprt view`` on a test-preset run folder: the page loads, the light is moved (or the map
+    turned, or the bake rescaled) through the page's own inputs, the frame changes and its
+    statistics equal the evaluator's for that lighting; the frame time on the page is within 20 %
+    of the evaluator's measured here; a screenshot is written; Ctrl-C stops the server."""
+    playwright = pytest.importorskip("playwright.sync_api", reason="`make view-deps` installs Playwright")
+    pytest.importorskip("viser", reason="`pip install -e .[view]` installs viser")
+    if _chromium() is None:
+        pytest.skip("no Chromium (`make view-deps` installs Debian's chromium)")
+    folder, m, config, result = _run_folder(tmp_path_factory, name)
+    port, size = _free_port(), 160  # frames of a millisecond or more: timing, not dispatch noise
+    server = subprocess.Popen([sys.executable, "-m", "jprt.cli", "view", folder, "--port", str(port), "--size",
+                               str(size), "--preview", "16"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True)
+    try:
+        line = ""
+        t0 = time.time()
+        while "http://127.0.0.1" not in line and time.time() - t0 < 120:
+            line = server.stdout.readline()
+            assert line or server.poll() is None, f"jprt view exited: {server.returncode}"
+        with playwright.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=_chromium(), args=["--no-sandbox"])
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.goto(f"http://127.0.0.1:{port}")
+            _, generation, before = _wait_ready(page)
+            _frame_time(page, generation)
+            # the test's own session, compiled before the page is asked for anything: its work must
+            # not overlap the page's timing (two processes on two cores)
+            session = Session(folder)
+            session.indirect(size)
+            if session.kind == "point":
+                x = float(page.get_by_label("light x").input_value()) + 0.15
+                page.get_by_label("light x").fill(f"{x:.4f}")
+                page.get_by_label("light x").press("Enter")
+            elif session.kind == "environment":
+                page.get_by_label("map rotation").fill("90")
+                page.get_by_label("map rotation").press("Enter")
+            else:
+                page.get_by_label("scale r").fill("2.5")
+                page.get_by_label("scale r").press("Enter")
+            _, generation_now, after = _wait_ready(page, generation)
+            shown = _frame_time(page, generation_now)
+            state = _state(page)
+            # the page's input reached the frame, and the evaluator here sees what the page rendered
+            changed = {"point": ("light", lambda v: abs(v[0] - x) < 1e-9), "environment": ("env_rotation",
+                       lambda v: v == 90.0), "scale": ("scale", lambda v: v == (2.5, 1.0, 1.0))}[session.kind]
+            assert changed[1](state[changed[0]]), state
+            session.set(**state, mode="indirect")
+            assert not np.allclose(after, before, rtol=1e-6, atol=0), "the frame did not change"
+            want = image_stats(session.indirect(size))["mean"]
+            np.testing.assert_allclose(after, want, rtol=2e-6, atol=1e-9)
+            measured = session.frame_ms(size)
+            assert abs(shown - measured) <= 0.2 * measured, (shown, measured)
+            if session.kind != "scale":  # compare: Mitsuba of the same view and lighting beside the model
+                page.get_by_label("Mitsuba spp").fill("8")
+                page.get_by_label("Mitsuba spp").press("Enter")
+                page.get_by_label("compare with Mitsuba").check()
+                t0 = time.time()
+                while "RMSE" not in page.get_by_text("stats (indirect").inner_text() and time.time() - t0 < 120:
+                    page.wait_for_timeout(200)
+                _wait_ready(page)
+                rmse = re.search(r"indirect RMSE=([-\d.e+]+)", page.get_by_text("stats (indirect").inner_text())
+                assert rmse is not None and 0 < float(rmse[1]) < 10 * max(want), page.get_by_text("stats").inner_text()
+            notice = page.get_by_text("Software WebGL rendering detected")  # headless Chromium has no GPU
+            if notice.count():
+                notice.locator("xpath=ancestor::div[.//button][1]//button").first.click()
+                page.wait_for_timeout(500)
+            folder_png = SCREENSHOTS or str(tmp_path_factory.mktemp("screenshots"))
+            os.makedirs(folder_png, exist_ok=True)
+            page.screenshot(path=os.path.join(folder_png, f"view_{name}.png"))
+            assert os.path.getsize(os.path.join(folder_png, f"view_{name}.png")) > 10_000
+            browser.close()
+        server.send_signal(signal.SIGINT)  # Ctrl-C
+        out, _ = server.communicate(timeout=30)
+        assert server.returncode == 0 and "jprt view: stopped" in out, out[-2000:]
+    finally:
+        if server.poll() is None:
+            server.kill()
+            server.wait()
