@@ -78,10 +78,35 @@ def _safe_norm(v):
     return jnp.sqrt(jnp.maximum(jnp.sum(v * v, axis=-1), _TINY))
 
 
+#: Below this |x|, (1 - exp(-2 x)) / x and its derivative come from their Taylor series: the
+#: quotient rule's (2 x exp(-2 x) + expm1(-2 x)) / x^2 cancels catastrophically in float32 (its
+#: derivative was 4.5 % off at 1e-6, ten times off at 1e-8, NaN at 0); the series through x^5
+#: is below float32 rounding here (the first dropped term is 0.044 x^6).
+_SERIES_BELOW = 0.1
+
+
+@jax.custom_jvp
 def _one_minus_exp_neg2_over(x):
-    """(1 - exp(-2 x)) / x, stable for x -> 0 (limit 2) and x large."""
-    x = jnp.maximum(x, _TINY)
-    return -jnp.expm1(-2.0 * x) / x
+    """(1 - exp(-2 x)) / x, stable for x -> 0 (limit 2) and x large, with a derivative that is
+    too (sum_n (-1)^n 2^(n+1) x^n / (n+1)!, and its term-wise derivative, for |x| < 0.1)."""
+    x = jnp.asarray(x)
+    small = jnp.abs(x) < _SERIES_BELOW
+    xs = jnp.where(small, x, 0.0)
+    series = 2.0 + xs * (-2.0 + xs * (4.0 / 3.0 + xs * (-2.0 / 3.0 + xs * (4.0 / 15.0 + xs * (-4.0 / 45.0)))))
+    xl = jnp.where(small, 1.0, x)
+    return jnp.where(small, series, -jnp.expm1(-2.0 * xl) / xl)
+
+
+@_one_minus_exp_neg2_over.defjvp
+def _one_minus_exp_neg2_over_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    x = jnp.asarray(x)
+    small = jnp.abs(x) < _SERIES_BELOW
+    xs = jnp.where(small, x, 0.0)
+    series = -2.0 + xs * (8.0 / 3.0 + xs * (-2.0 + xs * (16.0 / 15.0 + xs * (-4.0 / 9.0 + xs * (16.0 / 105.0)))))
+    xl = jnp.where(small, 1.0, x)
+    exact = (2.0 * xl * jnp.exp(-2.0 * xl) + jnp.expm1(-2.0 * xl)) / (xl * xl)
+    return _one_minus_exp_neg2_over(x), jnp.where(small, series, exact) * dx
 
 
 def evaluate(v, axis, sharpness, amplitude):
