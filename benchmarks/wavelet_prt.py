@@ -4,7 +4,7 @@ Runs experiments/wavelet_prt_cornell.py with the ``small`` preset and writes the
 issue asks for, with its targets and whether they were met, to benchmarks/results/wavelet_prt.json.
 Every value is read from the run's summary.json (its folder is recorded).
 
-    python benchmarks/wavelet_prt.py                 # ~80 min on a 2-core CPU (renders, training, front, generalisation, ablations)
+    python benchmarks/wavelet_prt.py                 # ~100 min on a 2-core CPU (renders, training, front, generalisation, ablations)
 """
 
 from __future__ import annotations

@@ -64,7 +64,8 @@ EVAL_DEFAULTS = {
                        ["no procedural skies, no mirroring", {"envmaps": {"procedural_fraction": 0.0, "mirror": False}}],
                        ["exact objective (every wavelet, fewer pixels)", {"train": {"objective": "exact"}}],
                        ["procedural suns (40 %, one-texel sun)", {"envmaps": {"procedural": "sun",
-                                                                              "procedural_fraction": 0.4}}]],
+                                                                              "procedural_fraction": 0.4}}],
+                       ["W initialised N(0, 0.01^2)", {"model": {"w_init": 0.01}}]],
     # the speed-accuracy front (issue 17): each model (overrides of model / train) trained at the
     # full step count and evaluated at every K ({} is the default model, its training reused)
     "front": {"ks": [16, 32, 64],

@@ -122,10 +122,10 @@ class Session:
         self.method = REGISTRY[self.summary["method"]]
         self.method_config = method_config(self.method, self.config)
         self.params = jax.tree_util.tree_map(jax.numpy.asarray, load_params(os.path.join(folder, "model.npz")))
-        try:
-            self.dataset = self.method.make_dataset(self.method_config["scene"], self.method_config, progress=progress)
-        except TypeError:  # make_dataset without a progress argument
-            self.dataset = self.method.make_dataset(self.method_config["scene"], self.method_config)
+        import inspect
+
+        kw = {"progress": progress} if "progress" in inspect.signature(self.method.make_dataset).parameters else {}
+        self.dataset = self.method.make_dataset(self.method_config["scene"], self.method_config, **kw)
         self.adapter = self._adapter()
         kinds = getattr(self.adapter, "TASK_LIGHTINGS", ())
         self.kind = "point" if "point" in kinds else "environment" if "environment" in kinds else "scale"
@@ -141,7 +141,7 @@ class Session:
         if isinstance(held, dict) and len(np.asarray(held.get("intensity", []))):  # its colour and power
             i = np.asarray(held["intensity"], np.float64).reshape(-1, 3)[0]
             self.state.update(power=float(i.max()), colour=tuple(float(v) for v in i / max(i.max(), 1e-12)))
-        self.state.update(self._default_camera())
+        self.state.update(self._default_camera(self.state["light"]))
         self._inputs_key, self._inputs = None, None
 
     # -- what the run folder holds -------------------------------------------------------------
@@ -151,12 +151,13 @@ class Session:
         return importlib.import_module(f"jprt.methods.{self.method.name}.data")
 
     def _environments(self) -> dict:
-        """{name: (6, n, n, 3) cube map}: the run's held-out maps first, then its training maps."""
+        """{name: (6, n, n, 3) cube map}: the run's held-out maps, then its training maps that
+        appear unrotated ("stem@0"; per-image lightings are turned by random angles)."""
         names = list(getattr(self.dataset, "test_env_names", []))
         cubes = list(np.asarray(getattr(self.dataset, "test_envs", np.zeros((0,)))))
         for name, cube in zip(getattr(self.dataset, "env_names", []), np.asarray(getattr(self.dataset, "envs", []))):
             stem = name.split("@")[0]
-            if "@0" in name and stem not in names and len(names) < 12:
+            if re.fullmatch(r"[^@]+@0(\.0)?", name) and stem not in names:
                 names.append(stem)
                 cubes.append(cube)
         if not names:
@@ -175,7 +176,7 @@ class Session:
         c = (lo + hi) / 2
         return (float(c[0]), float(c[1] + 0.3 * (hi[1] - lo[1])), float(c[2]))
 
-    def _default_camera(self) -> dict:
+    def _default_camera(self, light) -> dict:
         if self.handle.description["name"] in ("cornell_box", "glossy_cornell", "xml"):
             cam = self.handle.default_camera(64, 64)
             return {"origin": tuple(cam.origin), "target": tuple(cam.target), "up": tuple(cam.up), "fov": cam.fov,
@@ -184,17 +185,17 @@ class Session:
         # the middle of the scene, wide
         box = self.handle.scene.bbox()
         c = (np.asarray(box.min, np.float64) + np.asarray(box.max, np.float64)) / 2
-        origin = np.asarray(self.state["light"], np.float64) if hasattr(self, "state") else c + 1.0
+        origin = np.asarray(light, np.float64)
         if np.linalg.norm(origin - c) < 1e-3:
             c = c + np.array([0.0, 0.0, -1.0])
         return {"origin": tuple(origin), "target": tuple(c), "up": (0.0, 1.0, 0.0), "fov": 80.0, "aspect": 1.0}
 
     # -- state ---------------------------------------------------------------------------------
     def set(self, **changes) -> None:
-        """Change the state: origin / target / up / fov / aspect (camera; frames are ``size`` high
-        and ``size * aspect`` wide), light / colour / power (point
-        light), env / env_rotation (degrees), scale (RGB), mode, knob, exposure. Raises on an
-        unknown key or value."""
+        """Change the state: origin / target / up / fov / aspect (the camera; frames are ``size``
+        high and ``size * aspect`` wide), light / colour / power (the point light), env /
+        env_rotation (degrees), scale (RGB), mode, knob, exposure. Raises on an unknown key or
+        value."""
         unknown = sorted(set(changes) - set(self.state))
         if unknown:
             raise KeyError(f"unknown view settings {unknown}; known: {sorted(self.state)}")
@@ -288,15 +289,26 @@ class Session:
         cost; each frame's lighting is scaled by 1 + 1e-30 x the last frame's mean, a dependency
         XLA cannot drop, at the cost of one reduction per frame."""
         evaluate, inputs, lighting = self.evaluator(), self.inputs(size), self.method_lighting()
-        jax.block_until_ready(evaluate(inputs, lighting))
-        t0 = time.perf_counter()
-        jax.block_until_ready(evaluate(inputs, lighting))
-        n = max(1, int(np.ceil(block_ms / max(1e3 * (time.perf_counter() - t0), 1e-3))))
-        key = ("loop", self.state["knob"], n)
-        if key not in self._evaluators:
-            self._evaluators[key] = _frame_loop(evaluate, n)
-        loop = self._evaluators[key]
-        jax.block_until_ready(loop(inputs, lighting))  # compile
+        key = ("loop", self.state["knob"], size, self.state["aspect"], float(block_ms))
+        if key not in self._evaluators:  # n frames a block, fixed per frame shape (one compile)
+            jax.block_until_ready(evaluate(inputs, lighting))
+            t0 = time.perf_counter()
+            jax.block_until_ready(evaluate(inputs, lighting))
+            n = max(1, int(np.ceil(block_ms / max(1e3 * (time.perf_counter() - t0), 1e-3))))
+            loop = _frame_loop(evaluate, n)
+            jax.block_until_ready(loop(inputs, lighting))
+            t0 = time.perf_counter()
+            jax.block_until_ready(loop(inputs, lighting))
+            block = 1e3 * (time.perf_counter() - t0)
+            if block < 0.5 * block_ms:  # a call was mostly dispatch: size the block by the loop itself
+                n = int(np.ceil(n * block_ms / max(block, 1e-3)))
+                loop = _frame_loop(evaluate, n)
+            self._evaluators[key] = (loop, n)
+        loop, n = self._evaluators[key]
+        # warm-up of about 0.3 s: measured here, the first 0.6 s of a freshly compiled loop ran
+        # 1.8x slower than the rest
+        for _ in range(max(2, int(np.ceil(300.0 / block_ms)))):
+            jax.block_until_ready(loop(inputs, lighting))
         times = []
         for _ in range(max(1, int(repeats))):
             t0 = time.perf_counter()
@@ -306,7 +318,7 @@ class Session:
 
     def direct(self, size: int, spp: int = 4) -> np.ndarray:
         """Direct light: Mitsuba (``max_depth = 2``) at ``spp``, the source every method here uses
-        for its direct term; the SG texture atlas has none (its texels store the full light field)."""
+        for its direct term; zero for the SG texture atlas (no camera view to render it from)."""
         from jprt.render import images
 
         if self.kind == "scale":
@@ -388,7 +400,7 @@ def serve(folder: str, *, host: str = "127.0.0.1", port: int = 8080, preview: in
     gui = server.gui
     gui.add_markdown(f"**{m.name}** — {m.paper}\n\nrun `{os.path.basename(os.path.abspath(folder))}`; "
                      + ("direct light: Mitsuba at low spp (the source the method uses)" if session.kind != "scale"
-                        else "the texture atlas as baked (no separate direct term)"))
+                        else "the texture atlas seen head-on: indirect only (no camera view to render direct light from)"))
     status = gui.add_markdown("status: loading")
     stats_md = gui.add_markdown("stats: -")
     view_md = gui.add_markdown("state: -")
@@ -401,8 +413,8 @@ def serve(folder: str, *, host: str = "127.0.0.1", port: int = 8080, preview: in
     if session.kind == "point":
         for i, axis in enumerate("xyz"):
             controls[f"light {axis}"] = gui.add_number(f"light {axis}", round(session.state["light"][i], 4), step=0.05)
-        controls["colour"] = gui.add_rgb("light colour", (255, 255, 255))
-        controls["power"] = gui.add_number("light power", 1.0, min=0.0, step=0.1)
+        controls["colour"] = gui.add_rgb("light colour", tuple(int(round(255 * c)) for c in session.state["colour"]))
+        controls["power"] = gui.add_number("light power", round(session.state["power"], 4), min=0.0, step=0.1)
     elif session.kind == "environment":
         controls["env"] = gui.add_dropdown("environment", list(session.environments), initial_value=session.state["env"])
         controls["rotation"] = gui.add_number("map rotation", 0.0, step=15.0)
@@ -516,10 +528,12 @@ def serve(folder: str, *, host: str = "127.0.0.1", port: int = 8080, preview: in
                 with lock:
                     if request["generation"] != generation or stop.is_set():
                         continue
-                ms = session.frame_ms(size)
-                timing.content = (f"frame: evaluator {ms:.4g} ms at {frame['indirect'].shape[1]}x{size} (generation {generation}; fastest of "
-                                  f"15 jitted loops of >= 40 ms; the method's lighting transform and direct light not "
-                                  f"included)")
+                # three measurements, the fastest: this VM has transient slow spells (one whole
+                # measurement came out 2x slower than the others)
+                ms = min(session.frame_ms(size) for _ in range(3))
+                timing.content = (f"frame: evaluator {ms:.4g} ms at {frame['indirect'].shape[1]}x{size} (generation "
+                                  f"{generation}; fastest of 3 x 15 jitted loops of >= 40 ms; the method's lighting "
+                                  f"transform and direct light not included)")
             except Exception as e:  # keep serving: show the error on the page
                 status.content = f"status: error: {type(e).__name__}: {e}"
                 request["done"] = generation

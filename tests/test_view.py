@@ -35,8 +35,9 @@ def _run_folder(tmp_path_factory, name):
 
 
 @pytest.fixture(scope="module")
-def rrf_run(tmp_path_factory):
-    return _run_folder(tmp_path_factory, "rrf")
+def sh_run(tmp_path_factory):
+    """SH-PRT's test preset: a point-lit method that fits in well under a second."""
+    return _run_folder(tmp_path_factory, "sh_prt")
 
 
 def test_a_folder_that_is_not_a_run_is_refused_in_one_line(tmp_path, capsys):
@@ -64,10 +65,10 @@ def test_load_params_rebuilds_the_saved_tree(tmp_path):
 
 
 @pytest.mark.mitsuba
-def test_session_frames_are_the_evaluators_output(mi, rrf_run):
+def test_session_frames_are_the_evaluators_output(mi, sh_run):
     """The viewer's indirect frame equals the evaluator on the adapter's inputs and lighting for
     the same camera and light; moving the light changes it; the display follows the mode."""
-    folder, m, config, result = rrf_run
+    folder, m, config, result = sh_run
     s = Session(folder)
     assert s.kind == "point"
     first = s.render(16)
@@ -75,11 +76,12 @@ def test_session_frames_are_the_evaluators_output(mi, rrf_run):
     frame = s.render(16)
     assert not np.allclose(frame["indirect"], first["indirect"])
     from jprt.inputs import PointLights
-    from jprt.methods.rrf import data as adapter
+    from jprt.methods.sh_prt import data as adapter
 
     lights = PointLights.create([s.state["light"]], [np.asarray(s.state["colour"]) * s.state["power"]])
-    want = np.asarray(m.evaluator(result.params, config)(adapter.task_inputs(s.handle, s.dataset, s.camera(16)),
-                                                         lights))
+    inputs = adapter.task_inputs(s.handle, s.dataset, s.camera(16))
+    want = np.asarray(m.evaluator(result.params, config)(
+        inputs, adapter.task_lighting(s.handle, s.dataset, result.params, config, lights)))
     np.testing.assert_allclose(frame["indirect"], want, rtol=1e-5, atol=1e-7)
     np.testing.assert_array_equal(frame["image"], frame["indirect"])
     assert frame["stats"] == image_stats(want)
@@ -138,6 +140,22 @@ def _wait_ready(page, after_generation=-1, timeout_s=120.0):
     raise AssertionError(f"the page finished no frame in {timeout_s} s: {page.get_by_text('status:').inner_text()}")
 
 
+def _settled(page, after_generation=-1, quiet_s=2.0, timeout_s=120.0):
+    """(stats, frame time) once the page is ready, has timed that frame, and has started no new
+    frame for ``quiet_s`` (a resized panel moves viser's camera, which renders anew: a frame
+    timed here while the page renders would not measure the same machine)."""
+    t0 = time.time()
+    while time.time() - t0 < timeout_s:
+        got = _wait_ready(page, after_generation, timeout_s)
+        ms = _frame_time(page, got[1])
+        page.wait_for_timeout(int(1e3 * quiet_s))
+        again = _stats(page)
+        if again and again[1] == got[1] and page.get_by_text("status:").inner_text().startswith("status: ready"):
+            return got, ms
+        after_generation = got[1]
+    raise AssertionError(f"the page did not settle in {timeout_s} s")
+
+
 def _frame_time(page, generation, timeout_s=60.0) -> float:
     """The evaluator time the page shows for ``generation`` or a later one (it times once the
     browser has drawn the frame)."""
@@ -177,8 +195,7 @@ def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
             browser = p.chromium.launch(executable_path=_chromium(), args=["--no-sandbox"])
             page = browser.new_page(viewport={"width": 1280, "height": 800})
             page.goto(f"http://127.0.0.1:{port}")
-            _, generation, before = _wait_ready(page)
-            _frame_time(page, generation)
+            (_, generation, before), _ = _settled(page)
             # the test's own session, compiled before the page is asked for anything: its work must
             # not overlap the page's timing (two processes on two cores)
             session = Session(folder)
@@ -193,8 +210,7 @@ def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
             else:
                 page.get_by_label("scale r").fill("2.5")
                 page.get_by_label("scale r").press("Enter")
-            _, generation_now, after = _wait_ready(page, generation)
-            shown = _frame_time(page, generation_now)
+            (_, generation_now, after), shown = _settled(page, generation)
             state = _state(page)
             # the page's input reached the frame, and the evaluator here sees what the page rendered
             changed = {"point": ("light", lambda v: abs(v[0] - x) < 1e-9), "environment": ("env_rotation",
@@ -204,7 +220,16 @@ def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
             assert not np.allclose(after, before, rtol=1e-6, atol=0), "the frame did not change"
             want = image_stats(session.indirect(size))["mean"]
             np.testing.assert_allclose(after, want, rtol=2e-6, atol=1e-9)
-            measured = session.frame_ms(size)
+            # the fastest of three measurements (each the fastest of 15 blocks), as the page does; a
+            # measurement the page's own work overlapped (it started another frame meanwhile: a
+            # resized panel moves viser's camera) is taken again once the page is quiet
+            for _ in range(3):
+                measured = min(session.frame_ms(size) for _ in range(3))
+                quiet = _stats(page)[1] == generation_now and "ready" in page.get_by_text("status:").inner_text()
+                if quiet:
+                    break
+                (_, generation_now, _), shown = _settled(page, generation_now)
+            assert quiet, "the page never stayed quiet for a measurement"
             assert abs(shown - measured) <= 0.2 * measured, (shown, measured)
             if session.kind != "scale":  # compare: Mitsuba of the same view and lighting beside the model
                 page.get_by_label("Mitsuba spp").fill("8")

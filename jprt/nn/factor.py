@@ -41,9 +41,10 @@ class FactorField(NamedTuple):
 
 def factor_field(*, face_size: int = 64, n_features: int = 64, n_levels: int = 32, features_per_level: int = 2,
                  log2_table_size: int = 19, base_resolution: int = 16, per_level_scale: float = 1.3,
-                 chunk: int | None = None, dtype=jnp.float32) -> FactorField:
+                 chunk: int | None = None, w_init: float = 1.0, dtype=jnp.float32) -> FactorField:
     """Factored field with S = hash grid (n_levels x features_per_level = M components), W over a
-    6 x face_size^2 cube map, U (M x n_features). Defaults are the paper's (§5)."""
+    6 x face_size^2 cube map (initialised N(0, w_init^2)), U (M x n_features). Defaults are the
+    paper's (§5)."""
     grid = hashgrid(n_levels=n_levels, n_features=features_per_level, log2_table_size=log2_table_size,
                     base_resolution=base_resolution, per_level_scale=per_level_scale, dtype=dtype)
     m = grid.n_outputs
@@ -54,7 +55,7 @@ def factor_field(*, face_size: int = 64, n_features: int = 64, n_levels: int = 3
         limit = (6.0 / (m + n_features)) ** 0.5
         return {
             "S": grid.init(ks),
-            "W": jax.random.normal(kw, (n_wavelets, m), dtype),
+            "W": w_init * jax.random.normal(kw, (n_wavelets, m), dtype),
             "U": jax.random.uniform(ku, (m, n_features), dtype, -limit, limit),
         }
 

@@ -66,6 +66,10 @@ def test_factor_field_is_equation_7_and_chunking_is_exact():
     np.testing.assert_allclose(out, expected, rtol=1e-4, atol=1e-6)
     chunked = factor_field(**kw, chunk=4)
     np.testing.assert_allclose(np.asarray(chunked.apply(params, x, k)), out, rtol=1e-6, atol=1e-7)
+    small = factor_field(**kw, w_init=0.01).init(jax.random.PRNGKey(0))  # W ~ N(0, w_init^2), the rest as before
+    np.testing.assert_allclose(np.asarray(small["W"]), 0.01 * np.asarray(field.init(jax.random.PRNGKey(0))["W"]),
+                               rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(small["U"]), np.asarray(field.init(jax.random.PRNGKey(0))["U"]))
 
 
 def test_encodings():
