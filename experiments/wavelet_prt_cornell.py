@@ -325,8 +325,9 @@ def by_map(run) -> dict:
         worst = min(by, key=by.get)
         out.update(psnr_indirect_far_worst=by[worst], psnr_indirect_far_worst_map=worst,
                    psnr_indirect_far_baseline_worst=min(base.values()))
-        if _pair_mean(by) is not None:
-            out["psnr_indirect_far_original_pair"] = _pair_mean(by)
+        pair = _pair_mean(by)
+        if pair is not None:
+            out["psnr_indirect_far_original_pair"] = pair
         by_cat = {}
         for name, v in by.items():
             by_cat.setdefault(out["held_out_categories"][name], []).append(v)

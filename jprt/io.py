@@ -24,6 +24,7 @@ __all__ = [
     "read_exr",
     "exr_channels",
     "write_png",
+    "preview_pixels",
     "save_checkpoint",
     "load_checkpoint",
 ]
@@ -148,13 +149,10 @@ def read_exr(path: str, channels: str | Sequence[str] | None = "RGB", dtype=np.f
 # PNG previews
 
 
-def write_png(path: str, image, *, exposure: float = 0.0, mode: str = "srgb", tonemapped: bool = False) -> None:
-    """Write an 8-bit PNG preview of a linear HDR image (or of [0, 1] values if ``tonemapped``)."""
-    from PIL import Image
-
+def preview_pixels(image, *, exposure: float = 0.0, mode: str = "srgb", tonemapped: bool = False) -> np.ndarray:
+    """The 8-bit display pixels of a linear HDR image (``jprt.metrics.tonemap``; NaN / inf shown
+    black), or of [0, 1] values if ``tonemapped``: PNG previews and ``jprt view``'s frames."""
     image = np.asarray(image)
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[..., 0]
     if tonemapped:
         display = np.clip(image, 0.0, 1.0)
     else:
@@ -162,7 +160,17 @@ def write_png(path: str, image, *, exposure: float = 0.0, mode: str = "srgb", to
 
         finite = np.nan_to_num(np.asarray(image, np.float32), nan=0.0, posinf=0.0, neginf=0.0)  # NaN / inf -> black
         display = np.asarray(tonemap(finite, exposure, mode))
-    pixels = np.round(display * 255.0).astype(np.uint8)
+    return np.round(display * 255.0).astype(np.uint8)
+
+
+def write_png(path: str, image, *, exposure: float = 0.0, mode: str = "srgb", tonemapped: bool = False) -> None:
+    """Write an 8-bit PNG preview of a linear HDR image (or of [0, 1] values if ``tonemapped``)."""
+    from PIL import Image
+
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
+    pixels = preview_pixels(image, exposure=exposure, mode=mode, tonemapped=tonemapped)
     buf = _io.BytesIO()
     Image.fromarray(pixels).save(buf, format="PNG")
     atomic_write_bytes(path, buf.getvalue())

@@ -306,8 +306,7 @@ def save_fit(out: str, method: str, config: dict, params) -> str:
     holds the method's sections (an experiment config, or the method config itself)."""
     out = os.path.abspath(out)
     os.makedirs(out, exist_ok=True)
-    save_resolved(config, out)
-    digest = config_hash(config)
+    digest = save_resolved(config, out)
     io.save_checkpoint(os.path.join(out, "model.npz"), params, meta={"config_hash": digest})
     io.write_json(os.path.join(out, "summary.json"), {"method": method, "scene": config.get("scene"),
                                                       "config_hash": digest, "output": out})

@@ -30,6 +30,8 @@ from typing import Any
 import jax
 import numpy as np
 
+from jprt import io
+
 __all__ = ["NotARunFolder", "RUN_FILES", "KNOBS", "check_run_folder", "load_params", "Session", "serve"]
 
 #: What makes a folder a run folder (``jprt.runner.run`` writes all three).
@@ -97,13 +99,6 @@ def load_params(path: str):
     return lists(root)
 
 
-def _display(image, exposure: float = 0.0) -> np.ndarray:
-    from jprt.metrics import tonemap
-
-    finite = np.nan_to_num(np.asarray(image, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    return np.round(np.asarray(tonemap(finite, exposure)) * 255.0).astype(np.uint8)
-
-
 class Session:
     """A trained model of a run folder and what the page can change: the camera, the lighting,
     the display mode and the run-time knob (``set``); ``render`` / ``reference`` make frames.
@@ -133,16 +128,13 @@ class Session:
         self.knob = KNOBS.get(self.method.name)
         self._evaluators: dict = {}
         self.environments = self._environments() if self.kind == "environment" else {}
-        self.state = {"mode": "direct + indirect", "exposure": 0.0, "colour": (1.0, 1.0, 1.0), "power": 1.0,
-                      "env": next(iter(self.environments), None), "env_rotation": 0.0, "scale": (1.0, 1.0, 1.0),
+        self.state = {"mode": "direct + indirect", "exposure": 0.0, "env": next(iter(self.environments), None),
+                      "env_rotation": 0.0, "scale": (1.0, 1.0, 1.0),
                       "knob": (int(self.method_config[self.knob[0]][self.knob[1]]) if self.knob else None),
-                      "light": self._default_light(), "aspect": 1.0}
-        held = getattr(self.dataset, "lights_test", None)
-        if isinstance(held, dict) and len(np.asarray(held.get("intensity", []))):  # its colour and power
-            i = np.asarray(held["intensity"], np.float64).reshape(-1, 3)[0]
-            self.state.update(power=float(i.max()), colour=tuple(float(v) for v in i / max(i.max(), 1e-12)))
+                      **self._default_light()}
         self.state.update(self._default_camera(self.state["light"]))
         self._inputs_key, self._inputs = None, None
+        self._lighting_key, self._lighting = None, None
 
     # -- what the run folder holds -------------------------------------------------------------
     def _adapter(self):
@@ -164,17 +156,24 @@ class Session:
             raise ValueError(f"{self.folder}: the run's dataset has no environment maps to relight with")
         return dict(zip(names, cubes))
 
-    def _default_light(self) -> tuple:
+    def _default_light(self) -> dict:
+        """{"light", "colour", "power"}: RRF's the middle of its trained light box (white, 1); else
+        the run's first held-out light (its position, colour and power); else above the middle of
+        the scene (white, 1)."""
+        white = {"colour": (1.0, 1.0, 1.0), "power": 1.0}
         meta = getattr(self.dataset, "meta", None)
-        if isinstance(meta, dict) and "light_lo" in meta:  # RRF: the middle of the trained light box
-            return tuple(float(v) for v in (np.asarray(meta["light_lo"]) + np.asarray(meta["light_hi"])) / 2)
+        if isinstance(meta, dict) and "light_lo" in meta:
+            return dict(white, light=tuple(float(v) for v in (np.asarray(meta["light_lo"])
+                                                              + np.asarray(meta["light_hi"])) / 2))
         held = getattr(self.dataset, "lights_test", None)
-        if isinstance(held, dict) and len(np.asarray(held.get("position", []))):  # the run's first held-out light
-            return tuple(float(v) for v in np.asarray(held["position"]).reshape(-1, 3)[0])
+        if isinstance(held, dict) and len(np.asarray(held.get("position", []))):
+            i = np.asarray(held["intensity"], np.float64).reshape(-1, 3)[0]
+            return {"light": tuple(float(v) for v in np.asarray(held["position"]).reshape(-1, 3)[0]),
+                    "power": float(i.max()), "colour": tuple(float(v) for v in i / max(i.max(), 1e-12))}
         box = self.handle.scene.bbox()
         lo, hi = np.asarray(box.min, np.float64), np.asarray(box.max, np.float64)
         c = (lo + hi) / 2
-        return (float(c[0]), float(c[1] + 0.3 * (hi[1] - lo[1])), float(c[2]))
+        return dict(white, light=(float(c[0]), float(c[1] + 0.3 * (hi[1] - lo[1])), float(c[2])))
 
     def _default_camera(self, light) -> dict:
         if self.handle.description["name"] in ("cornell_box", "glossy_cornell", "xml"):
@@ -214,42 +213,44 @@ class Session:
         return look_at(s["origin"], s["target"], s["up"], fov=float(s["fov"]),
                        width=max(1, round(size * float(s["aspect"]))), height=size)
 
-    def scene_lighting(self):
-        """The lighting Mitsuba renders with (``jprt.inputs``), or None for the scene's own emitters."""
-        from jprt.inputs import PointLights
+    def _lightings(self):
+        """(Mitsuba's lighting or None, the evaluator's lighting) of the current state, made once
+        per lighting state (the map's rotation resamples it; data-driven PRT and MRT measure
+        direct light with Mitsuba in their task adapter)."""
+        from jprt.inputs import CubeMap, LightScale, PointLights
+        from jprt.methods.wavelet_prt.model import prepare_environment, render_equirect, rotate_equirect
         from jprt.render.lights import EnvMap
 
         s = self.state
-        if self.kind == "point":
-            return PointLights.create([s["light"]], [np.asarray(s["colour"], np.float32) * float(s["power"])])
-        if self.kind == "environment":
-            return EnvMap.create(self._equirect())
-        return None
+        key = {"point": ("light", "colour", "power"), "environment": ("env", "env_rotation"),
+               "scale": ("scale",)}[self.kind]
+        key = tuple(s[k] for k in key)
+        if key == self._lighting_key:
+            return self._lighting
+        if self.kind == "scale":
+            scene, task = None, LightScale(np.asarray(s["scale"], np.float32))
+        else:
+            if self.kind == "point":
+                scene = task = PointLights.create([s["light"]], [np.asarray(s["colour"], np.float32) * float(s["power"])])
+            else:  # the chosen map turned about +Y (through its equirect, back at the face size)
+                cube = np.asarray(self.environments[s["env"]], np.float32)
+                if float(s["env_rotation"]) % 360.0 != 0.0:
+                    e = rotate_equirect(render_equirect(cube), float(s["env_rotation"]))
+                    cube = prepare_environment(e, int(cube.shape[1]), normalise=False)
+                scene = EnvMap.create(render_equirect(cube))
+                task = CubeMap(cube)
+            self.handle.set_lighting(scene)
+            task = self.adapter.task_lighting(self.handle, self.dataset, self.params, self.method_config, task)
+        self._lighting_key, self._lighting = key, (scene, task)
+        return self._lighting
 
-    def _cube(self) -> np.ndarray:
-        """The chosen map turned about +Y by ``env_rotation`` (through its equirect, at the face size)."""
-        from jprt.methods.wavelet_prt.model import prepare_environment, render_equirect, rotate_equirect
-
-        cube = self.environments[self.state["env"]]
-        if float(self.state["env_rotation"]) % 360.0 == 0.0:
-            return np.asarray(cube, np.float32)
-        e = rotate_equirect(render_equirect(cube), float(self.state["env_rotation"]))
-        return prepare_environment(e, int(np.shape(cube)[1]), normalise=False)
-
-    def _equirect(self) -> np.ndarray:
-        from jprt.methods.wavelet_prt.model import render_equirect
-
-        return render_equirect(self._cube())
+    def scene_lighting(self):
+        """The lighting Mitsuba renders with (``jprt.inputs``), or None for the scene's own emitters."""
+        return self._lightings()[0]
 
     def method_lighting(self):
         """The lighting the evaluator takes, from the state (the method's task adapter)."""
-        from jprt.inputs import CubeMap, LightScale
-
-        if self.kind == "scale":
-            return LightScale(np.asarray(self.state["scale"], np.float32))
-        task = self.scene_lighting() if self.kind == "point" else CubeMap(self._cube())
-        self.handle.set_lighting(self.scene_lighting())
-        return self.adapter.task_lighting(self.handle, self.dataset, self.params, self.method_config, task)
+        return self._lightings()[1]
 
     def inputs(self, size: int):
         """The evaluator's inputs for the camera at ``size`` x ``size`` (cached per camera)."""
@@ -357,7 +358,7 @@ class Session:
         direct = self.direct(size, direct_spp) if mode != "indirect" else np.zeros_like(indirect)
         image = {"indirect": indirect, "direct": direct, "direct + indirect": direct + indirect}[mode]
         return {"indirect": indirect, "direct": direct, "image": image, "eval_ms": eval_ms, "frame_ms": frame_ms,
-                "display": _display(image, float(self.state["exposure"])), "stats": image_stats(indirect)}
+                "display": io.preview_pixels(image, exposure=float(self.state["exposure"])), "stats": image_stats(indirect)}
 
 
 def _frame_loop(evaluate, n: int):
@@ -512,8 +513,8 @@ def serve(folder: str, *, host: str = "127.0.0.1", port: int = 8080, preview: in
                     diff = frame["indirect"] - ref
                     rmse = float(np.sqrt(np.mean(np.square(diff))))
                     exposure_now = float(session.state["exposure"])
-                    frame["panels"] = np.concatenate([frame["display"], _display(ref + frame["direct"], exposure_now),
-                                                      _display(np.abs(diff) * 4.0, exposure_now)], axis=1)
+                    frame["panels"] = np.concatenate([frame["display"], io.preview_pixels(ref + frame["direct"], exposure=exposure_now),
+                                                      io.preview_pixels(np.abs(diff) * 4.0, exposure=exposure_now)], axis=1)
                     note = f" | compare: model / Mitsuba {int(spp.value)} spp / 4x |difference|; indirect RMSE={rmse:.6g}"
                 with lock:
                     if request["generation"] != generation:

@@ -125,19 +125,29 @@ def _state(page) -> dict:
     return out
 
 
-def _wait_ready(page, after_generation=-1, timeout_s=120.0):
+def _until(page, probe, timeout_s: float, what: str):
+    """``probe()``'s first value that is not None, polled every 0.2 s; AssertionError naming
+    ``what`` and the page's status after ``timeout_s``."""
     t0 = time.time()
     while time.time() - t0 < timeout_s:
-        status = page.get_by_text("status:").inner_text()
-        got = _stats(page)
-        if "error" in status:
-            raise AssertionError(status)
-        ready = re.match(r"status: ready \(generation (\d+)\)", status)
-        # ready: the refined frame of that generation is shown (previews are never "ready")
-        if ready and got and got[1] == int(ready[1]) > after_generation:
+        got = probe()
+        if got is not None:
             return got
         page.wait_for_timeout(200)
-    raise AssertionError(f"the page finished no frame in {timeout_s} s: {page.get_by_text('status:').inner_text()}")
+    raise AssertionError(f"{what} within {timeout_s} s: {page.get_by_text('status:').inner_text()}")
+
+
+def _wait_ready(page, after_generation=-1, timeout_s=120.0):
+    def probe():
+        status = page.get_by_text("status:").inner_text()
+        if "error" in status:
+            raise AssertionError(status)
+        got = _stats(page)
+        ready = re.match(r"status: ready \(generation (\d+)\)", status)
+        # ready: the refined frame of that generation is shown (previews are never "ready")
+        return got if ready and got and got[1] == int(ready[1]) > after_generation else None
+
+    return _until(page, probe, timeout_s, "the page finished no frame")
 
 
 def _settled(page, after_generation=-1, quiet_s=2.0, timeout_s=120.0):
@@ -159,13 +169,11 @@ def _settled(page, after_generation=-1, quiet_s=2.0, timeout_s=120.0):
 def _frame_time(page, generation, timeout_s=60.0) -> float:
     """The evaluator time the page shows for ``generation`` or a later one (it times once the
     browser has drawn the frame)."""
-    t0 = time.time()
-    while time.time() - t0 < timeout_s:
+    def probe():
         match = re.search(r"evaluator ([-\d.e+]+) ms at \S+ \(generation (\d+)", page.get_by_text("frame:").inner_text())
-        if match and int(match[2]) >= generation:
-            return float(match[1])
-        page.wait_for_timeout(200)
-    raise AssertionError(f"no frame time for generation {generation}: {page.get_by_text('frame:').inner_text()}")
+        return float(match[1]) if match and int(match[2]) >= generation else None
+
+    return _until(page, probe, timeout_s, f"no frame time for generation {generation}")
 
 
 @pytest.mark.slow
@@ -235,9 +243,8 @@ def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
                 page.get_by_label("Mitsuba spp").fill("8")
                 page.get_by_label("Mitsuba spp").press("Enter")
                 page.get_by_label("compare with Mitsuba").check()
-                t0 = time.time()
-                while "RMSE" not in page.get_by_text("stats (indirect").inner_text() and time.time() - t0 < 120:
-                    page.wait_for_timeout(200)
+                _until(page, lambda: "RMSE" in page.get_by_text("stats (indirect").inner_text() or None, 120,
+                       "no compare frame")
                 _wait_ready(page)
                 rmse = re.search(r"indirect RMSE=([-\d.e+]+)", page.get_by_text("stats (indirect").inner_text())
                 assert rmse is not None and 0 < float(rmse[1]) < 10 * max(want), page.get_by_text("stats").inner_text()
