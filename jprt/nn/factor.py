@@ -44,7 +44,16 @@ def factor_field(*, face_size: int = 64, n_features: int = 64, n_levels: int = 3
                  chunk: int | None = None, w_init: float = 1.0, dtype=jnp.float32) -> FactorField:
     """Factored field with S = hash grid (n_levels x features_per_level = M components), W over a
     6 x face_size^2 cube map (initialised N(0, w_init^2)), U (M x n_features). Defaults are the
-    paper's (§5)."""
+    paper's (§5).
+
+    Numerics:
+        case: factor_field (face size 4, 8 features, 4 x 2 hash-grid components, as ``init`` draws
+          them, points in [0, 1]^3, every wavelet index; gradients w.r.t. S, W, U)
+        fd: off (the hash grid's trilinear interpolation has kinks on cell faces)
+        float32: value rtol 1e-4 atol 1e-9; grad rtol 1e-4 atol 1e-5
+        (a table entry's gradient sums 96 wavelets x 16 points of both signs: its rounding is
+          ~1e-7 of the sum of |terms|, ~1e2 here)
+    """
     grid = hashgrid(n_levels=n_levels, n_features=features_per_level, log2_table_size=log2_table_size,
                     base_resolution=base_resolution, per_level_scale=per_level_scale, dtype=dtype)
     m = grid.n_outputs

@@ -36,20 +36,29 @@ class HashGrid(NamedTuple):
 
 
 def level_scales(n_levels: int, base_resolution: int, per_level_scale: float) -> list[float]:
-    """scale_l = 2^(l log2 b) N_min - 1 (float32 arithmetic, as tiny-cuda-nn)."""
+    """scale_l = 2^(l log2 b) N_min - 1 (float32 arithmetic, as tiny-cuda-nn).
+
+    Numerics: not differentiable (a configuration table).
+    """
     log2b = np.float32(math.log2(per_level_scale))
     return [float(np.float32(np.exp2(np.float32(l) * log2b) * np.float32(base_resolution) - np.float32(1.0)))
             for l in range(n_levels)]
 
 
 def level_resolutions(n_levels: int, base_resolution: int, per_level_scale: float) -> list[int]:
-    """res_l = ceil(scale_l) + 1."""
+    """res_l = ceil(scale_l) + 1.
+
+    Numerics: not differentiable (a configuration table).
+    """
     return [int(math.ceil(s)) + 1 for s in level_scales(n_levels, base_resolution, per_level_scale)]
 
 
 def level_table_sizes(n_levels: int, log2_table_size: int, base_resolution: int, per_level_scale: float,
                       dims: int = 3) -> list[int]:
-    """Entries per level: min(next_multiple(res^dims, 8), 2^log2_table_size)."""
+    """Entries per level: min(next_multiple(res^dims, 8), 2^log2_table_size).
+
+    Numerics: not differentiable (a configuration table).
+    """
     max_params = (2**32 - 1) // 2
     sizes = []
     for res in level_resolutions(n_levels, base_resolution, per_level_scale):
@@ -61,7 +70,14 @@ def level_table_sizes(n_levels: int, log2_table_size: int, base_resolution: int,
 
 def hashgrid(*, n_levels: int = 16, n_features: int = 2, log2_table_size: int = 19, base_resolution: int = 16,
              per_level_scale: float = 1.5, dtype=jnp.float32) -> HashGrid:
-    """A 3D multiresolution hash encoding (defaults: the instant-ngp configuration)."""
+    """A 3D multiresolution hash encoding (defaults: the instant-ngp configuration).
+
+    Numerics:
+        case: hashgrid (4 levels, tables of 2^8 entries as ``init`` draws them, points in [0, 1]^3;
+          gradients w.r.t. the tables and the points)
+        fd: off (trilinear interpolation has kinks on cell faces, and the domain's ends lie on them)
+        float32: value rtol 1e-5 atol 1e-10; grad rtol 1e-5 atol 1e-6
+    """
     if n_levels < 1 or n_features < 1 or base_resolution < 1 or per_level_scale < 1.0:
         raise ValueError("hash grid needs n_levels, n_features, base_resolution >= 1 and per_level_scale >= 1")
     scales = level_scales(n_levels, base_resolution, per_level_scale)

@@ -57,6 +57,11 @@ def mlp(sizes: Sequence[int], *, activation: str = "tanh", output_activation: st
         distributions on the host (NumPy arrays).
       use_bias: False gives a bias-free network (the matrix U of Raghavan et al. 2023 is a
         one-layer, bias-free, linear MLP).
+
+    Numerics:
+        case: mlp (a tanh network 8-16-16-3 as ``init="rrf"`` draws it, inputs in [-1, 1], the range
+          ``with_scaling`` maps data to; gradients w.r.t. weights, biases and inputs)
+        float32: value rtol 1e-4 atol 1e-5; grad rtol 1e-4 atol 1e-5
     """
     sizes = tuple(int(s) for s in sizes)
     if len(sizes) < 2 or any(s <= 0 for s in sizes):
@@ -137,7 +142,10 @@ def ranges(a, *, eps: float = 1e-5):
     A feature counts as constant when its half-range is at most ``eps`` x max(1, |centre|): a
     coordinate that is constant up to float32 rounding (a wall's z from ray intersections varies
     by ~1e-7) must not be stretched to [-1, 1], or the network fits that noise with weights of
-    1e8 and the rendering is speckled wherever the rounding differs (the RRF's floor blotches)."""
+    1e8 and the rendering is speckled wherever the rounding differs (the RRF's floor blotches).
+
+    Numerics: not differentiable (a data statistic; it sets the fixed, stop-gradient scaling).
+    """
     xp = np if isinstance(a, np.ndarray) else jnp
     a = xp.asarray(a).reshape(-1, a.shape[-1])
     lo, hi = a.min(axis=0), a.max(axis=0)
@@ -148,7 +156,10 @@ def ranges(a, *, eps: float = 1e-5):
 
 def with_scaling(params, x=None, y=None, *, eps: float = 1e-5):
     """Return params whose input/output scaling maps the ranges of ``x`` / ``y`` (samples on the
-    first axes, features last) to [-1, 1] (``ranges``)."""
+    first axes, features last) to [-1, 1] (``ranges``).
+
+    Numerics: not differentiable (sets the fixed, stop-gradient scaling from data).
+    """
     scaling = dict(params["scaling"])
     if x is not None:
         scaling["in_center"], scaling["in_halfrange"] = ranges(jnp.asarray(x), eps=eps)
@@ -158,5 +169,8 @@ def with_scaling(params, x=None, y=None, *, eps: float = 1e-5):
 
 
 def count_parameters(params) -> int:
-    """Number of trainable scalars (the layers; the fixed scaling is not counted)."""
+    """Number of trainable scalars (the layers; the fixed scaling is not counted).
+
+    Numerics: not differentiable (an integer count).
+    """
     return int(sum(leaf.size for leaf in jax.tree_util.tree_leaves(params["layers"])))

@@ -51,7 +51,14 @@ _T_AXIS = np.array([[0, -1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1], [0, -1, 0], [
 
 
 def face_uv_to_direction(face, u, v):
-    """Unit direction (..., 3) of face coordinates u, v in [0, 1] on ``face`` (int array)."""
+    """Unit direction (..., 3) of face coordinates u, v in [0, 1] on ``face`` (int array).
+
+    Numerics:
+        face: (32,) int in [0, 5]
+        u: (32,) in [0, 1]
+        v: (32,) in [0, 1]
+        float32: value rtol 1e-6 atol 1e-7; grad rtol 1e-5 atol 1e-6
+    """
     face = jnp.asarray(face)
     sc = 2.0 * jnp.asarray(u) - 1.0
     tc = 2.0 * jnp.asarray(v) - 1.0
@@ -61,7 +68,13 @@ def face_uv_to_direction(face, u, v):
 
 
 def direction_to_face_uv(d):
-    """(face int32, u, v) of directions (..., 3); d need not be normalised (must be non-zero)."""
+    """(face int32, u, v) of directions (..., 3); d need not be normalised (must be non-zero).
+
+    Numerics:
+        d: (32, 3) unit
+        fd: off (the face changes where two components tie in magnitude, which axis-aligned and diagonal draws hit)
+        float32: value rtol 1e-6 atol 1e-7; grad rtol 1e-5 atol 1e-6
+    """
     d = jnp.asarray(d)
     x, y, z = d[..., 0], d[..., 1], d[..., 2]
     ax, ay, az = jnp.abs(x), jnp.abs(y), jnp.abs(z)
@@ -80,7 +93,10 @@ def direction_to_face_uv(d):
 
 
 def texel_directions(n: int):
-    """Unit directions (6, n, n, 3) of the texel centres of an n x n cube map."""
+    """Unit directions (6, n, n, 3) of the texel centres of an n x n cube map.
+
+    Numerics: not differentiable (a function of the integer face size).
+    """
     c = (jnp.arange(n) + 0.5) / n
     v, u = jnp.meshgrid(c, c, indexing="ij")
     faces = jnp.arange(6)[:, None, None]
@@ -93,7 +109,10 @@ def _area_element(x, y):
 
 
 def texel_solid_angles(n: int):
-    """Exact solid angles (6, n, n) of the texels of an n x n cube map (they sum to 4 pi)."""
+    """Exact solid angles (6, n, n) of the texels of an n x n cube map (they sum to 4 pi).
+
+    Numerics: not differentiable (a function of the integer face size).
+    """
     edges = np.linspace(-1.0, 1.0, n + 1)
     x0, x1 = edges[:-1][None, :], edges[1:][None, :]
     y0, y1 = edges[:-1][:, None], edges[1:][:, None]
@@ -102,7 +121,10 @@ def texel_solid_angles(n: int):
 
 
 def direction_to_texel(d, n: int):
-    """(face, row, column) int32 indices of the texels containing directions d (..., 3)."""
+    """(face, row, column) int32 indices of the texels containing directions d (..., 3).
+
+    Numerics: not differentiable (integer texel indices).
+    """
     face, u, v = direction_to_face_uv(d)
     col = jnp.clip(jnp.floor(u * n), 0, n - 1).astype(jnp.int32)
     row = jnp.clip(jnp.floor(v * n), 0, n - 1).astype(jnp.int32)
@@ -110,7 +132,10 @@ def direction_to_texel(d, n: int):
 
 
 def equirect_directions(height: int, width: int):
-    """Unit directions (H, W, 3) of jprt equirect texel centres (as ``jprt.render.lights``)."""
+    """Unit directions (H, W, 3) of jprt equirect texel centres (as ``jprt.render.lights``).
+
+    Numerics: not differentiable (a function of the integer map size).
+    """
     theta = jnp.pi * (jnp.arange(height) + 0.5) / height
     phi = 2.0 * jnp.pi * (jnp.arange(width) + 0.5) / width
     st, ct = jnp.sin(theta)[:, None], jnp.cos(theta)[:, None]
@@ -118,7 +143,10 @@ def equirect_directions(height: int, width: int):
 
 
 def equirect_solid_angles(height: int, width: int):
-    """Exact solid angles (H, W) of equirect texels: (2 pi / W) (cos theta_i - cos theta_{i+1})."""
+    """Exact solid angles (H, W) of equirect texels: (2 pi / W) (cos theta_i - cos theta_{i+1}).
+
+    Numerics: not differentiable (a function of the integer map size).
+    """
     edges = np.pi * np.arange(height + 1) / height
     band = (np.cos(edges[:-1]) - np.cos(edges[1:])) * 2.0 * np.pi / width
     return jnp.asarray(np.repeat(band[:, None], width, axis=1), jnp.float32)
@@ -134,13 +162,19 @@ def _equirect_texel(d, height: int, width: int):
 
 
 def sample_equirect_nearest(equirect, d):
-    """Value of the equirect texel containing each direction d (..., 3)."""
+    """Value of the equirect texel containing each direction d (..., 3).
+
+    Numerics: not differentiable (a nearest-texel gather: exact in any precision, its gradient a scatter to the chosen texel; within float rounding of a texel boundary float32 and float64 may choose neighbours).
+    """
     row, col = _equirect_texel(d, equirect.shape[0], equirect.shape[1])
     return jnp.asarray(equirect)[row, col]
 
 
 def sample_cubemap_nearest(cubemap, d):
-    """Value of the cube-map texel containing each direction d (..., 3)."""
+    """Value of the cube-map texel containing each direction d (..., 3).
+
+    Numerics: not differentiable (a nearest-texel gather: exact in any precision, its gradient a scatter to the chosen texel; within float rounding of a texel boundary float32 and float64 may choose neighbours).
+    """
     face, row, col = direction_to_texel(d, cubemap.shape[1])
     return jnp.asarray(cubemap)[face, row, col]
 
@@ -223,6 +257,13 @@ def equirect_to_cubemap(equirect, n: int, supersample: int | None = None, iterat
     See ``_overlap_resample``: each cube texel is the overlap-area-weighted average of the
     equirect texels it covers (constant maps stay constant), and the total energy sum(L dω) is
     kept within 1 % on real HDR maps with a sun (tested).
+
+    Numerics:
+        equirect: (8, 16, 3) in [0, 1e5]
+        n: = 4
+        grad: equirect
+        float32: value rtol 1e-5 atol 1e-2; grad rtol 1e-5 atol 1e-6
+        (overlap-weighted averages of texels to 1e5)
     """
     equirect = jnp.asarray(equirect)
     h, w = equirect.shape[:2]
@@ -238,7 +279,16 @@ def equirect_to_cubemap(equirect, n: int, supersample: int | None = None, iterat
 @partial(jax.jit, static_argnames=("height", "width", "supersample", "iterations"))
 def cubemap_to_equirect(cube, height: int, width: int, supersample: int | None = None, iterations: int = 12):
     """Area-weighted, energy-conserving resampling of a (6, n, n, ...) cube map to (H, W, ...)
-    (the inverse direction of ``equirect_to_cubemap``, same method)."""
+    (the inverse direction of ``equirect_to_cubemap``, same method).
+
+    Numerics:
+        cube: (6, 4, 4, 3) in [0, 1e5]
+        height: = 8
+        width: = 16
+        grad: cube
+        float32: value rtol 1e-5 atol 1e-2; grad rtol 1e-5 atol 1e-6
+        (overlap-weighted averages of texels to 1e5)
+    """
     cube = jnp.asarray(cube)
     n = cube.shape[1]
     s = supersample or _auto_supersample((np.pi / 2) / n, np.pi / height)

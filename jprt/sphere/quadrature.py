@@ -6,6 +6,10 @@ import numpy as np
 
 
 def frame(axis):
+    """An orthonormal pair (x, y) perpendicular to unit ``axis`` (NumPy, float64).
+
+    Numerics: not differentiable (a float64 NumPy reference for tests).
+    """
     axis = np.asarray(axis, np.float64)
     helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = np.cross(helper, axis)
@@ -15,7 +19,10 @@ def frame(axis):
 
 def polar_grid(pole, n_theta=1500, n_phi=400):
     """Directions and solid-angle weights of a polar grid around ``pole`` with theta = pi t^2,
-    dense near the pole (where sharp lobes centred there live)."""
+    dense near the pole (where sharp lobes centred there live).
+
+    Numerics: not differentiable (a float64 NumPy reference for tests).
+    """
     t = (np.arange(n_theta) + 0.5) / n_theta
     theta = np.pi * t * t
     dtheta = 2.0 * np.pi * t / n_theta
@@ -28,13 +35,20 @@ def polar_grid(pole, n_theta=1500, n_phi=400):
 
 
 def integrate(f, pole, **grid):
+    """int_S2 f by the polar grid around ``pole`` (``polar_grid``'s keywords), in float64.
+
+    Numerics: not differentiable (a float64 NumPy reference for tests).
+    """
     d, w = polar_grid(pole, **grid)
     return float(np.sum(np.asarray(f(d), np.float64) * w))
 
 
 def scipy_real_sh(d, degree: int) -> np.ndarray:
     """Real SH (jprt's convention: no Condon-Shortley phase, polar axis +Z, index l^2 + l + m)
-    of unit directions d (N, 3), from SciPy's complex spherical harmonics -> (N, (degree + 1)^2)."""
+    of unit directions d (N, 3), from SciPy's complex spherical harmonics -> (N, (degree + 1)^2).
+
+    Numerics: not differentiable (a float64 NumPy/SciPy reference for tests).
+    """
     import scipy.special as ss
 
     d = np.asarray(d, np.float64)

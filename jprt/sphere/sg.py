@@ -109,53 +109,187 @@ def _one_minus_exp_neg2_over_jvp(primals, tangents):
     return _one_minus_exp_neg2_over(x), jnp.where(small, series, exact) * dx
 
 
+def _cos_minus_one(v, u):
+    """v . u - 1 for unit v, u, as -|v - u|^2 / 2: the same number, without the cancellation that
+    leaves float32's v . u - 1 with an absolute error of ~1e-7 (a relative error of lambda x 1e-7
+    in the lobe, 1e-3 at lambda = 1e4, where the difference form stays at rounding)."""
+    v, u = jnp.broadcast_arrays(jnp.asarray(v), jnp.asarray(u))
+    return -0.5 * jnp.sum(jnp.square(v - u), axis=-1)
+
+
+@jax.custom_jvp
+def _lobe_gap(axis1, sharpness1, axis2, sharpness2):
+    """lambda_m - lambda1 - lambda2 (<= 0), lambda_m = |lambda1 u1 + lambda2 u2|, for unit axes.
+
+    The value as -lambda1 lambda2 |u1 - u2|^2 / (lambda_m + lambda1 + lambda2): the printed
+    difference of ~1e4-sized terms cancels for nearly aligned lobes (1e-3 of the amplitude lost
+    in float32). The derivative explicitly, d/dlambda_i = u_i . u_m - 1 and d/du_i = lambda_i u_m,
+    with u_i . u_m - 1 free of cancellation too: autodiff of the quotient cancels two terms of size
+    1 / lambda for nearly opposite lobes (7 % off in float32 at lambda = 0.5 against 243), and
+    1 - u_i . u_m from a rounded u_m lost 0.5 % for lobes 1e-3 rad apart."""
+    gap = jnp.sum(jnp.square(axis1 - axis2), axis=-1)
+    lm = _safe_norm(sharpness1[..., None] * axis1 + sharpness2[..., None] * axis2)
+    return -sharpness1 * sharpness2 * gap / jnp.maximum(lm + sharpness1 + sharpness2, _TINY)
+
+
+@_lobe_gap.defjvp
+def _lobe_gap_jvp(primals, tangents):
+    axis1, s1, axis2, s2 = primals
+    da1, ds1, da2, ds2 = tangents
+    um = s1[..., None] * axis1 + s2[..., None] * axis2
+    lm = _safe_norm(um)
+    axis = um / lm[..., None]
+    gap = jnp.sum(jnp.square(axis1 - axis2), axis=-1)  # 2 (1 - c), c = u1 . u2
+    c, sin2 = 1.0 - 0.5 * gap, 0.5 * gap * (2.0 - 0.5 * gap)  # 1 - c^2 without cancellation
+
+    def one_minus_cos(a, b):
+        # 1 - u_a . u_m = (lm - a - b c) / lm: for a + b c >= 0 as b^2 (1 - c^2) / (lm (lm + a + b c))
+        # (u_m nearly u_a: the difference cancels), otherwise as printed (it is >= 1 there)
+        num = a + b * c
+        stable = b * b * sin2 / (lm * jnp.maximum(lm + num, _TINY))
+        return jnp.where(num >= 0.0, stable, 1.0 - num / lm)
+
+    tangent = (-one_minus_cos(s1, s2) * ds1 - one_minus_cos(s2, s1) * ds2
+               + s1 * jnp.sum(axis * da1, axis=-1) + s2 * jnp.sum(axis * da2, axis=-1))
+    return _lobe_gap(axis1, s1, axis2, s2), tangent
+
+
+def _lobe_pair(axis1, sharpness1, axis2, sharpness2):
+    """(u_m, lambda_m, lambda_m - lambda1 - lambda2) of two lobes, broadcast to a common shape."""
+    axis1, axis2 = jnp.asarray(axis1), jnp.asarray(axis2)
+    sharpness1, sharpness2 = jnp.broadcast_arrays(jnp.asarray(sharpness1), jnp.asarray(sharpness2))
+    axis1, axis2 = jnp.broadcast_arrays(axis1, axis2)
+    shape = jnp.broadcast_shapes(sharpness1.shape, axis1.shape[:-1])
+    sharpness1, sharpness2 = jnp.broadcast_to(sharpness1, shape), jnp.broadcast_to(sharpness2, shape)
+    axis1, axis2 = jnp.broadcast_to(axis1, shape + (3,)), jnp.broadcast_to(axis2, shape + (3,))
+    um = sharpness1[..., None] * axis1 + sharpness2[..., None] * axis2
+    lm = _safe_norm(um)
+    return um / lm[..., None], lm, _lobe_gap(axis1, sharpness1, axis2, sharpness2)
+
+
 def evaluate(v, axis, sharpness, amplitude):
-    """G(v; u, lambda, a) = a exp(lambda (v . u - 1))."""
-    return amplitude * jnp.exp(sharpness * (_dot(v, axis) - 1.0))
+    """G(v; u, lambda, a) = a exp(lambda (v . u - 1)), with v . u - 1 = -|v - u|^2 / 2 (unit v, u).
+
+    Numerics:
+        v: (32, 3) unit
+        axis: (32, 3) unit near v
+        sharpness: (32,) in [0, 1e4]
+        amplitude: (32,) in [0, 1e5]
+        float32: value rtol 1e-5 atol 1e-30; grad rtol 1e-4 atol 1e-25
+    """
+    return amplitude * jnp.exp(sharpness * _cos_minus_one(v, axis))
 
 
 def integral(sharpness, amplitude):
-    """int_S2 G = 2 pi a (1 - exp(-2 lambda)) / lambda (-> 4 pi a as lambda -> 0)."""
+    """int_S2 G = 2 pi a (1 - exp(-2 lambda)) / lambda (-> 4 pi a as lambda -> 0).
+
+    Numerics:
+        sharpness: (32,) in [0, 1e6]
+        amplitude: (32,) in [0, 1e5]
+        float32: value rtol 1e-6 atol 0; grad rtol 1e-5 atol 1e-30
+    """
     return 2.0 * jnp.pi * amplitude * _one_minus_exp_neg2_over(sharpness)
 
 
 def product(axis1, sharpness1, amplitude1, axis2, sharpness2, amplitude2) -> SG:
-    """The SG equal to G1(v) G2(v) (axis undefined, set to axis1, when the lobes cancel exactly)."""
-    sharpness1, sharpness2 = jnp.asarray(sharpness1), jnp.asarray(sharpness2)
-    um = sharpness1[..., None] * axis1 + sharpness2[..., None] * axis2
-    lm = _safe_norm(um)
-    axis = um / lm[..., None]
-    return SG(axis, lm, amplitude1 * amplitude2 * jnp.exp(lm - sharpness1 - sharpness2))
+    """The SG equal to G1(v) G2(v) (axis undefined, the zero vector, when the lobes cancel exactly).
+
+    The amplitude's exponent lambda_m - lambda1 - lambda2 and its derivative are evaluated
+    without cancellation (``_lobe_gap``; the same numbers for unit axes).
+
+    Numerics:
+        case: sg_product (axes unit, aligned and antipodal among them, sharpness in [0, 1e4],
+          amplitude in [0, 1e5]; the axis is compared where lambda_m >= 1e-2 (lambda1 + lambda2):
+          where the lobes cancel it is arbitrary, and the product lobe flat)
+        fd: off (|lambda1 u1 + lambda2 u2| has a kink where opposite lobes of equal sharpness cancel, a point always drawn)
+        float32: value rtol 1e-4 atol 1e-6; grad rtol 1e-4 atol 1e-6
+        (the axis is a unit vector: 1e-6 absolute is a few float32 roundings of its components)
+    """
+    axis, lm, exponent = _lobe_pair(axis1, sharpness1, axis2, sharpness2)
+    return SG(axis, lm, amplitude1 * amplitude2 * jnp.exp(exponent))
 
 
 def inner_product(axis1, sharpness1, amplitude1, axis2, sharpness2, amplitude2):
-    """int_S2 G1 G2 = 4 pi a1 a2 sinh(d) / (d exp(lambda1 + lambda2)), d = |lambda1 u1 + lambda2 u2|."""
-    sharpness1, sharpness2 = jnp.asarray(sharpness1), jnp.asarray(sharpness2)
-    d = _safe_norm(sharpness1[..., None] * axis1 + sharpness2[..., None] * axis2)
+    """int_S2 G1 G2 = 4 pi a1 a2 sinh(d) / (d exp(lambda1 + lambda2)), d = |lambda1 u1 + lambda2 u2|
+    (d - lambda1 - lambda2 as in ``product``, without cancellation).
+
+    Numerics:
+        axis1: (32, 3) unit
+        sharpness1: (32,) in [0, 1e4]
+        amplitude1: (32,) in [0, 1e5]
+        axis2: (32, 3) unit near axis1
+        sharpness2: (32,) in [0, 1e4]
+        amplitude2: (32,) in [0, 1e5]
+        fd: off (d has a kink where opposite lobes of equal sharpness cancel, a point always drawn)
+        float32: value rtol 1e-4 atol 1e-30; grad rtol 1e-4 atol 1e-20
+    """
+    _, d, exponent = _lobe_pair(axis1, sharpness1, axis2, sharpness2)
     # 4 pi sinh(d) exp(-l1 - l2) / d = 2 pi exp(d - l1 - l2) (1 - exp(-2 d)) / d
-    return 2.0 * jnp.pi * amplitude1 * amplitude2 * jnp.exp(d - sharpness1 - sharpness2) * _one_minus_exp_neg2_over(d)
+    return 2.0 * jnp.pi * amplitude1 * amplitude2 * jnp.exp(exponent) * _one_minus_exp_neg2_over(d)
 
 
 def mixture_evaluate(v, axes, sharpness, amplitudes):
-    """Sum of K SGs at directions v (..., 3): axes (K, 3), sharpness (K,), amplitudes (K, C) -> (..., C)."""
-    cos = jnp.tensordot(v, axes, axes=([-1], [-1]))  # (..., K)
-    k = jnp.exp(jnp.broadcast_to(sharpness, cos.shape) * (cos - 1.0))
+    """Sum of K SGs at directions v (..., 3): axes (K, 3), sharpness (K,), amplitudes (K, C) -> (..., C)
+    (v . u - 1 as -|v - u|^2 / 2, see ``evaluate``).
+
+    Numerics:
+        v: (16, 3) unit
+        axes: (4, 3) unit
+        sharpness: (4,) in [0, 1e4]
+        amplitudes: (4, 3) in [0, 1e5]
+        float32: value rtol 1e-5 atol 1e-30; grad rtol 1e-4 atol 1e-25
+    """
+    v, axes = jnp.asarray(v), jnp.asarray(axes)
+    cos = -0.5 * jnp.sum(jnp.square(v[..., None, :] - axes.reshape((1,) * (v.ndim - 1) + axes.shape)), axis=-1)  # v . u - 1
+    k = jnp.exp(jnp.broadcast_to(sharpness, cos.shape) * cos)
     return jnp.tensordot(k, amplitudes, axes=([-1], [0]))
 
 
 def mixture_integral(sharpness, amplitudes):
-    """int_S2 of a mixture: (C,) from sharpness (K,) and amplitudes (K, C)."""
+    """int_S2 of a mixture: (C,) from sharpness (K,) and amplitudes (K, C).
+
+    Numerics:
+        sharpness: (8,) in [0, 1e6]
+        amplitudes: (8, 3) in [0, 1e5]
+        float32: value rtol 1e-5 atol 0; grad rtol 1e-5 atol 1e-30
+    """
     return jnp.sum(integral(jnp.broadcast_to(sharpness[:, None], amplitudes.shape), amplitudes), axis=0)
 
 
 def asg_evaluate(v, asg: ASG):
-    """ASG(v) = c max(v . z, 0) exp(-lx (v . x)^2 - ly (v . y)^2) (Xu et al. 2013, Eq. 4)."""
-    vx, vy, vz = _dot(v, asg.x), _dot(v, asg.y), _dot(v, asg.z)
-    return asg.amplitude * jnp.maximum(vz, 0.0) * jnp.exp(-asg.sharpness_x * vx * vx - asg.sharpness_y * vy * vy)
+    """ASG(v) = c max(v . z, 0) exp(-lx (v . x)^2 - ly (v . y)^2) (Xu et al. 2013, Eq. 4), for unit
+    v and an orthonormal frame.
+
+    Numerics:
+        case: asg (frames from ``orthonormal_basis`` of unit z, sharpness in [0, 1e4], amplitude
+          in [0, 1e5], v unit)
+        fd: off (max(v . z, 0) has a kink at v . z = 0, which axis-aligned draws hit)
+        float32: value rtol 5e-4 atol 2e-2; grad rtol 5e-4 atol 2e-2
+        (the exponent E = lx (v . x)^2 carries 2 sqrt(lx E) x 1.2e-7 of float32's rounding of
+          v . x, 2.3e-4 at lx = 1e4 and E = 87, where exp(-E) reaches float32's smallest normal)
+        (near v . z = 0 the error is absolute: c x float32's ~1.2e-7 in v . z, 1.2e-2 at c = 1e5)
+    """
+    # For unit v and an orthonormal frame, lx (v.x)^2 + ly (v.y)^2 = ly |v x z|^2 + (lx - ly) (v.x)^2:
+    # the frame's x enters only through the anisotropy lx - ly. Nearly isotropic lobes (a view
+    # near the normal in ``warp_ndf_to_asg``) have an x that is poorly defined, and autodiff of the
+    # printed form cancels two terms of size ly / sin(theta) there (16 % off in float32 at
+    # 0.07 degrees); |v x z|^2 keeps the peak's exponent at rounding, where 1 - (v.z)^2 would not.
+    v = jnp.asarray(v)
+    vx, vz = _dot(v, asg.x), _dot(v, asg.z)
+    vxz = jnp.cross(*jnp.broadcast_arrays(v, jnp.asarray(asg.z)))
+    exponent = asg.sharpness_y * jnp.sum(vxz * vxz, axis=-1) + (asg.sharpness_x - asg.sharpness_y) * vx * vx
+    return asg.amplitude * jnp.maximum(vz, 0.0) * jnp.exp(-exponent)
 
 
 def orthonormal_basis(z):
-    """An orthonormal frame (x, y) around unit z, continuous and branch-free (Duff et al. 2017)."""
+    """An orthonormal frame (x, y) around unit z, branch-free (Duff et al. 2017); it flips where
+    z crosses the xy-plane (sign(z_z)), continuous elsewhere.
+
+    Numerics:
+        z: (32, 3) unit
+        fd: off (the frame flips at z_z = 0, which axis-aligned draws hit)
+        float32: value rtol 1e-5 atol 1e-6; grad rtol 1e-4 atol 1e-5
+    """
     sign = jnp.where(z[..., 2] >= 0, 1.0, -1.0)
     a = -1.0 / (sign + z[..., 2])
     b = z[..., 0] * z[..., 1] * a
@@ -166,7 +300,12 @@ def orthonormal_basis(z):
 
 def ggx_ndf_sg(roughness):
     """(sharpness, amplitude) of the SG approximating the NDF (Currius et al. 2020, Eq. 17):
-    exp(-(arccos(h . n) / r)^2) ~= G(h; n, 2 / r^2, 1 / (pi r^2))."""
+    exp(-(arccos(h . n) / r)^2) ~= G(h; n, 2 / r^2, 1 / (pi r^2)).
+
+    Numerics:
+        roughness: (32,) in [1e-4, 1]
+        float32: value rtol 1e-6 atol 0; grad rtol 1e-6 atol 0
+    """
     r2 = jnp.square(roughness)
     return 2.0 / r2, 1.0 / (jnp.pi * r2)
 
@@ -174,22 +313,48 @@ def ggx_ndf_sg(roughness):
 def warp_ndf_to_asg(normal, view, roughness) -> ASG:
     """The NDF SG warped to an ASG about the reflected view direction (Currius et al. 2020,
     Eq. 18, after Pettineo 2016): z = reflect(-view, n), x perpendicular to the plane of
-    incidence, lx = lambda_d / (8 max(n . view, 1e-4)^2), ly = lambda_d / 8, c = a_d."""
+    incidence, lx = lambda_d / (8 max(n . view, 1e-4)^2), ly = lambda_d / 8, c = a_d.
+
+    Numerics:
+        case: warp_asg (the ASG's value at its axis and at unit directions near it, for unit
+          normals, views to 89.9 degrees from them, roughness in [1e-2, 1]; the frame alone is
+          arbitrary at normal incidence, where the lobe is isotropic)
+        fd: off (the frame switches to a fallback at normal incidence, a point always drawn)
+        float32: value rtol 1e-3 atol 1e-6; grad rtol 1e-3 atol 1e-4
+    """
     lam, amp = ggx_ndf_sg(roughness)
     ndotv = _dot(normal, view)
     z = 2.0 * ndotv[..., None] * normal - view
     cross = jnp.cross(normal, z)
-    cross_norm = jnp.sqrt(jnp.sum(cross * cross, axis=-1))
+    cross2 = jnp.sum(cross * cross, axis=-1)
     fallback_x, _ = orthonormal_basis(z)
-    # At normal incidence the plane of incidence is undefined and the lobe is isotropic.
-    x = jnp.where((cross_norm > 1e-6)[..., None], cross / jnp.maximum(cross_norm, 1e-6)[..., None], fallback_x)
+    # At normal incidence the plane of incidence is undefined and the lobe is isotropic. Below
+    # sin(theta) = 1e-3 the lobe's anisotropy (lx / ly - 1 = tan^2 theta) moves its value by less
+    # than 1e-5 of its peak wherever it is above exp(-10) of it, while float32's cross product,
+    # of size sin(theta), has a direction set by rounding (and a derivative of size 1 / sin(theta)):
+    # the fixed frame is used there.
+    # (no square root of the unclamped |cross|^2: its slope at 0 is infinite, and where() passes
+    # inf x 0 = NaN back from the branch it does not take)
+    x = jnp.where((cross2 > 1e-6)[..., None], cross * jax.lax.rsqrt(jnp.maximum(cross2, 1e-6))[..., None], fallback_x)
     y = jnp.cross(z, x)
     c = jnp.maximum(ndotv, 1e-4)
     return ASG(x, y, z, lam / (8.0 * c * c), lam / 8.0 + 0.0 * c, amp + 0.0 * c)
 
 
 def convolve_sg_asg(axis, sharpness, amplitude, asg: ASG):
-    """int_S2 G(v; axis, sharpness, amplitude) ASG(v) dv by Xu et al. 2013, Eq. 12."""
+    """int_S2 G(v; axis, sharpness, amplitude) ASG(v) dv by Xu et al. 2013, Eq. 12.
+
+    Numerics:
+        case: convolve (light lobes with unit axes, sharpness in [0, 1e4], amplitude in [0, 1e5],
+          against ASGs on ``orthonormal_basis`` frames of unit z, sharpnesses in [0, 1e4],
+          amplitude in [0, 1e5])
+        fd: off (the ASG's max(v . z, 0) has a kink that axis-aligned draws hit)
+        float32: value rtol 5e-4 atol 1e-2; grad rtol 1e-3 atol 1e-2
+        (``asg_evaluate``'s rounding, the exponent's 2 sqrt(lx E) x 1.2e-7, and its absolute error
+          near v . z = 0; the gradient's lx (v . x) factor adds v . x's relative rounding; chained through ``warp_ndf_to_asg`` the roughness cancels analytically in
+          c / sqrt(lx ly), which autodiff does not see: a caller differentiating in the roughness
+          writes the scale fused, as ``jprt.methods.sg_lightfield.model.shade`` does)
+    """
     nu = 0.5 * sharpness
     sx = nu * asg.sharpness_x / (nu + asg.sharpness_x)
     sy = nu * asg.sharpness_y / (nu + asg.sharpness_y)
@@ -208,6 +373,8 @@ def peak_axes(directions, values, k: int, min_separation_deg: float = 5.0):
     from the samples above half its peak (ln(peak / value) = lambda (1 - cos theta) for an SG),
     and subtracts the lobe, so a bright lobe's shoulder is not mistaken for another lobe.
     NumPy (not traced): initialisation runs once per image. Returns (k, 3) float32.
+
+    Numerics: not differentiable (a greedy NumPy selection of directions).
     """
     d = np.asarray(directions, np.float64)
     lum = np.asarray(values, np.float64)
@@ -240,8 +407,18 @@ class FitResult(NamedTuple):
 
 def log_l2(pred, target, weights):
     """Weighted mean over samples of the log-L2 loss (Currius et al. §4, Eq. 9) summed over
-    channels: (log(1 + P) - log(1 + T))^2, radiances clamped at 0; weights match pred[..., 0]."""
-    err = jnp.square(jnp.log1p(jnp.maximum(pred, 0.0)) - jnp.log1p(jnp.maximum(target, 0.0)))
+    channels: (log(1 + P) - log(1 + T))^2, radiances clamped at 0; weights match pred[..., 0].
+
+    Numerics:
+        pred: (16, 3) in [-1e5, 1e5]
+        target: (16, 3) in [0, 1e5]
+        weights: (16,) in [0, 1]
+        fd: off (max(P, 0) has a kink at P = 0, an end always drawn)
+        float32: value rtol 1e-5 atol 1e-12; grad rtol 1e-5 atol 1e-12
+    """
+    # clamped by where, not maximum: at P = 0 (every lobe underflowed) maximum passes half the
+    # gradient, where the one-sided slope of a mixture that cannot go below 0 is the whole of it
+    err = jnp.square(jnp.log1p(jnp.where(pred >= 0.0, pred, 0.0)) - jnp.log1p(jnp.maximum(target, 0.0)))
     return jnp.sum(weights[..., None] * err) / jnp.maximum(jnp.sum(weights), 1e-20)
 
 
@@ -256,6 +433,8 @@ def fit_gd(directions, weights, values, init_axes, *, init_sharpness: float = 10
       neighbours: optional (B, M) int indices of each texel's neighbours; with ``align_weight``
         > 0, adds align_weight * mean(1 - u_bk . u_nk) over neighbour pairs and lobes k
         (the axis-alignment regulariser that keeps lobe k coherent across texels).
+
+    Numerics: not differentiable (a fitting loop; its loss, ``log_l2`` of ``mixture_evaluate``, is covered).
     """
     import optax
 
@@ -317,6 +496,8 @@ def fit_em(directions, weights, values, init_axes, *, iterations: int = 100, ini
     SGs with amplitude = energy x mixing weight x kappa / (2 pi (1 - exp(-2 kappa))). Per-channel
     amplitudes are then refitted by weighted least squares with the axes and sharpnesses fixed
     (clipped at 0). directions (N, 3), weights (N,), values (N, C), init_axes (K, 3).
+
+    Numerics: not differentiable (an EM fitting loop).
     """
     directions = jnp.asarray(directions, jnp.float32)
     weights = jnp.asarray(weights, jnp.float32)

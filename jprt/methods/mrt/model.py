@@ -143,7 +143,10 @@ def _cfg(config) -> dict:
 
 
 def block_prior(t: int, missing: tuple[int, ...], grid: int) -> np.ndarray:
-    """L_d (n, m): direct light of the prior's point lights (§4, §7.1) on a block type."""
+    """L_d (n, m): direct light of the prior's point lights (§4, §7.1) on a block type.
+
+    Numerics: not differentiable (a float64 NumPy precomputation).
+    """
     return ops.point_light_direct(t, ops.prior_lights(grid, missing), missing)
 
 
@@ -154,7 +157,10 @@ def _svd(a):
 
 def reduce_transfer(f: np.ndarray, p: np.ndarray, s: np.ndarray, k_b: int) -> dict:
     """Eq. 2-3: M = F P S, its SVD, U_b = U_m Sigma_m, T_d->b = V_m^T S^-1 P^T and
-    L_imp = P S V_m, truncated to k_b modes. Returns the arrays and M's singular values."""
+    L_imp = P S V_m, truncated to k_b modes. Returns the arrays and M's singular values.
+
+    Numerics: not differentiable (a float64 NumPy precomputation).
+    """
     m = f @ (p * s[None])
     um, sm, vmt = _svd(m)
     k = min(int(k_b), int(np.sum(sm > sm[0] * 1e-12)) if sm.size and sm[0] > 0 else 0)
@@ -167,7 +173,10 @@ def reduce_transfer(f: np.ndarray, p: np.ndarray, s: np.ndarray, k_b: int) -> di
 
 def enrich_prior(p: np.ndarray, s: np.ndarray, ub: np.ndarray, mask: np.ndarray, t: int, k_d: int):
     """App. A: [P S, one function constant on each existing face, U_b], each scaled to Frobenius
-    norm 1, concatenated; the new prior is its k_d left singular vectors and singular values."""
+    norm 1, concatenated; the new prior is its k_d left singular vectors and singular values.
+
+    Numerics: not differentiable (a float64 NumPy precomputation).
+    """
     face = layouts.texel_centres(t)[2]
     faces = [np.where((face == f) & mask, 1.0, 0.0) for f in range(6) if np.any((face == f) & mask)]
     parts = [p * s[None], np.stack(faces, 1), ub]
@@ -179,7 +188,10 @@ def enrich_prior(p: np.ndarray, s: np.ndarray, ub: np.ndarray, mask: np.ndarray,
 
 def block_operators(f_closed: np.ndarray, t: int, missing: tuple[int, ...], cfg: dict) -> dict:
     """Every §4 array of one dictionary type (missing faces masked out of F): P, S, U_b,
-    T_d->b, L_imp, and the singular values of L_d and M (Table 2)."""
+    T_d->b, L_imp, and the singular values of L_d and M (Table 2).
+
+    Numerics: not differentiable (a float64 NumPy precomputation).
+    """
     dcfg = cfg["dictionary"]
     mask = ops.face_mask(t, missing)
     f = f_closed * mask[:, None] * mask[None, :]
@@ -207,7 +219,10 @@ def _pad_cols(a: np.ndarray, k: int) -> np.ndarray:
 def interface_operators(blocks: dict, t: int, cfg: dict) -> dict:
     """H_rlf and the reduced interface operators of §5.1 from the dictionary's implicit lights:
     R_b->rlf per type and canonical side (k_rlf, k_b), R_rel for relative sides 1-3
-    (k_rlf, k_rlf), U_r (n, k_r), T_rlf->r (k_r, k_rlf); plus H_lf's singular values."""
+    (k_rlf, k_rlf), U_r (n, k_r), T_rlf->r (k_r, k_rlf); plus H_lf's singular values.
+
+    Numerics: not differentiable (a float64 NumPy precomputation).
+    """
     icfg = cfg["interfaces"]
     sp, dr = int(icfg["spatial"]), int(icfg["directional"])
     rays = ops.lightfield_rays(sp, dr, int(icfg["spatial_ss"]), int(icfg["directional_ss"]))
@@ -265,7 +280,10 @@ def dictionary(config: dict | None = None, *, cache_dir: str | None = None) -> d
     """The precomputed dictionary (§7.1): per type the §4 arrays (canonical, padded to k_b modes)
     and the §5.1 interface operators, stacked as arrays: a flat dict of NumPy arrays, cached by
     ``jprt.cache`` under the ``dictionary``, ``interfaces``, ``vector`` and ``volume`` sections.
-    ``info`` keys (``_info`` prefix) carry the singular values and timings."""
+    ``info`` keys (``_info`` prefix) carry the singular values and timings.
+
+    Numerics: not differentiable (a float64 NumPy precomputation).
+    """
     cfg = _cfg(config)
     spec = {"format": 4, **{k: cfg[k] for k in ("dictionary", "interfaces", "vector", "volume")}}
 
@@ -332,7 +350,10 @@ def layout_operators(dic: dict, layout, config: dict | None = None) -> dict:
     """The per-layout arrays (level initialisation, §6.2-6.3): each block's T_d->b and U_b in
     the layout's frame (the canonical type's, turned), texel masks, and T_b->r block-sparse as
     records (source block, receiving block, receiving side, k_r x k_b matrix). ``tbr_build_s``
-    is the propagation's wall time."""
+    is the propagation's wall time.
+
+    Numerics: not differentiable (a float64 NumPy precomputation).
+    """
     cfg = _cfg(config)
     lay = layouts.layout_from_dict(layout)
     t = int(cfg["dictionary"]["texels"])
@@ -429,7 +450,15 @@ def _records(params: dict, b, n_blocks: int):
 
 def lightmap_parts_texels(params: dict, direct, albedo, *, feedback: int, interfaces: bool = True):
     """``lightmap_parts`` as §7.3 writes it: every bounce expanded to texels, multiplied by the
-    albedo and projected again (the reference the reduced-space feedback is tested against)."""
+    albedo and projected again (the reference the reduced-space feedback is tested against).
+
+    Numerics:
+        case: mrt_texels (2 blocks of 8 texels, k_b = 3, k_r = 2, random operators of norm < 1, one
+          interface record, direct radiance in [0, 1e5], albedo in [0, 1], 2 feedback bounces)
+        float32: value rtol 1e-4 atol 1e-1; grad rtol 1e-4 atol 1e-2
+        (products of operators with both signs over inputs to 1e5: rounding is absolute near zero,
+          ~1e-7 of the sum of |terms|, ~1e4 for the values and ~1e5 for the operators' gradients)
+    """
     mask = params["mask"][..., None]
     tdb, ub = params["T_db"], params["U_b"]
     n_blocks = tdb.shape[0]
@@ -453,7 +482,12 @@ def feedback_operators(params: dict, albedo) -> dict:
     W[b, c] = T_d->b diag(albedo_c) U_b (k_b x k_b) maps a block's b to the b of its reflected
     light, V[b, s, c] = T_d->b diag(albedo_c) U_r (turned to side s) (k_b x k_r) does the same
     for the light arriving through side s. Then b' = W b + sum_s V r_s, and only the final sum
-    of all bounces is expanded to texels (equal to the texel-space loop, tested)."""
+    of all bounces is expanded to texels (equal to the texel-space loop, tested).
+
+    Numerics:
+        case: mrt_feedback (``mrt_texels``'s operators, albedo in [0, 1])
+        float32: value rtol 1e-5 atol 1e-6; grad rtol 1e-5 atol 1e-6
+    """
     xp = jnp if isinstance(params["T_db"], jax.Array) else np
     alb = xp.asarray(albedo, params["T_db"].dtype) * params["mask"][..., None]
     w = xp.einsum("bkn,bnc,bnj->bckj", params["T_db"], alb, params["U_b"])
@@ -463,7 +497,10 @@ def feedback_operators(params: dict, albedo) -> dict:
 
 def level_feedback(params: dict, albedo) -> dict:
     """``feedback_operators`` of a level's params and albedo, computed in float64 and stored as
-    the float32 ``W`` and ``V`` the run time reads (what ``fit`` adds to its params)."""
+    the float32 ``W`` and ``V`` the run time reads (what ``fit`` adds to its params).
+
+    Numerics: not differentiable (computed in float64 NumPy, stored as float32).
+    """
     fb = feedback_operators({k: np.asarray(params[k], np.float64) for k in ("T_db", "U_b", "U_r_turned", "mask")},
                             np.asarray(albedo, np.float64))
     return {k: v.astype(np.float32) for k, v in fb.items()}
@@ -473,7 +510,14 @@ def coefficients(params: dict, direct, albedo, *, feedback: int, interfaces: boo
     """The run time's reduced state summed over 1 + ``feedback`` bounces: b (B, k_b, 3) per block
     and r (B, 4, k_r, 3) per receiving side (zeros without interfaces). The bounces run in the
     reduced spaces (``feedback_operators``, taken from ``params["W"]``, ``params["V"]`` when
-    ``fit`` stored them): the texels are read once, for b of the direct light."""
+    ``fit`` stored them): the texels are read once, for b of the direct light.
+
+    Numerics:
+        case: mrt_coefficients (``mrt_texels``'s operators and inputs)
+        float32: value rtol 1e-4 atol 1e-1; grad rtol 1e-4 atol 1e-2
+        (products of operators with both signs over inputs to 1e5: rounding is absolute near zero,
+          ~1e-7 of the sum of |terms|, ~1e4 for the values and ~1e5 for the operators' gradients)
+    """
     mask = params["mask"][..., None]
     n_blocks = params["T_db"].shape[0]
     use_r = interfaces and params["rec_T"].shape[0] > 0
@@ -501,7 +545,14 @@ def lightmap_parts(params: dict, direct, albedo, *, feedback: int, interfaces: b
     one's direct light). ``direct`` (B, n, 3) texel radiance in the layout's frame, ``albedo``
     (B, n, 3). The bounces run in the reduced spaces (``coefficients``); only their sum is
     expanded to texels. Pure JAX, jit-able; outgoing indirect radiance is albedo x (within +
-    through)."""
+    through).
+
+    Numerics:
+        case: mrt_parts (``mrt_texels``'s operators and inputs)
+        float32: value rtol 1e-4 atol 1e-1; grad rtol 1e-4 atol 1e-2
+        (products of operators with both signs over inputs to 1e5: rounding is absolute near zero,
+          ~1e-7 of the sum of |terms|, ~1e4 for the values and ~1e5 for the operators' gradients)
+    """
     mask = params["mask"][..., None]
     b_total, r_total = coefficients(params, direct, albedo, feedback=feedback, interfaces=interfaces)
     within = jnp.einsum("bnk,bkc->bnc", params["U_b"], b_total) * mask
@@ -511,7 +562,14 @@ def lightmap_parts(params: dict, direct, albedo, *, feedback: int, interfaces: b
 
 def lightmap(params: dict, direct, albedo, *, feedback: int = 4, interfaces: bool = True):
     """Outgoing indirect radiance (..., B, n, 3) at every texel (§7.3 steps 1-5, plus feedback),
-    for one direct lighting (B, n, 3) or a batch of them (..., B, n, 3)."""
+    for one direct lighting (B, n, 3) or a batch of them (..., B, n, 3).
+
+    Numerics:
+        case: mrt_lightmap (``mrt_texels``'s operators and inputs)
+        float32: value rtol 1e-4 atol 1e-1; grad rtol 1e-4 atol 1e-2
+        (products of operators with both signs over inputs to 1e5: rounding is absolute near zero,
+          ~1e-7 of the sum of |terms|, ~1e4 for the values and ~1e5 for the operators' gradients)
+    """
     direct = jnp.asarray(direct, params["T_db"].dtype)
     if direct.ndim > 3:
         return jax.vmap(lambda d: lightmap(params, d, albedo, feedback=feedback, interfaces=interfaces))(direct)
@@ -522,7 +580,10 @@ def lightmap(params: dict, direct, albedo, *, feedback: int = 4, interfaces: boo
 def projection(params: dict, reference, use_interfaces: bool = True) -> np.ndarray:
     """The projection floor: each block's reference indirect (B, n, 3) projected (least squares,
     over its existing texels, per channel) onto the span of its U_b and of U_r turned to each of
-    its receiving sides. No coefficients MRT can compute do better than this."""
+    its receiving sides. No coefficients MRT can compute do better than this.
+
+    Numerics: not differentiable (a float64 NumPy precomputation).
+    """
     ref = np.asarray(reference, np.float64)
     out = np.zeros_like(ref)
     rec_dst = np.asarray(params["rec_dst"])
@@ -543,7 +604,14 @@ def vector_irradiance(params: dict, b, normals_local, kind: str):
     """Irradiance / pi at perturbed normals (§6.4, App. B): ``b`` (B, k_b, 3) block coefficients,
     ``normals_local`` (B, n, 3) unit normals in each texel's frame (tangent u, tangent v,
     normal). ``kind``: "scalar" (the unperturbed F l, ignores the normal), "quadratic" (9 SH
-    coefficients convolved with the clamped cosine) or "ohlsh" (4 OHLSH coefficients)."""
+    coefficients convolved with the clamped cosine) or "ohlsh" (4 OHLSH coefficients).
+
+    Numerics:
+        case: mrt_vector_irradiance (2 blocks of 8 texels, k_b = 3, random U_b and U_quad, b in
+          [-1e5, 1e5], unit normals, kinds "scalar", "quadratic" and "ohlsh")
+        float32: value rtol 1e-4 atol 1; grad rtol 1e-4 atol 1e-4
+        (sums of terms to 1e5 of both signs: rounding is absolute near zero)
+    """
     from jprt.sphere import sh
 
     q = jnp.einsum("bnqk,bkc->bnqc", params["U_quad"], b)  # (B, n, 9, 3) incident radiance SH
@@ -564,7 +632,14 @@ def volume_probes(params: dict, b, r=None):
     """Quadratic SH (B, P, 9, 3) of the radiance at each block's probe lattice (§6.5, §7.3 step
     8): U_bvol b from the block's own light plus, with ``r`` (B, 4, k_r, 3) the summed response
     coefficients of its receiving sides (``coefficients``), U_rvol r for the light arriving
-    through them."""
+    through them.
+
+    Numerics:
+        case: mrt_volume_probes (2 blocks, 4 probes, k_b = 3, k_r = 2, random U_vol and U_rvol, b and r
+          in [-1e5, 1e5])
+        float32: value rtol 1e-5 atol 1e-1; grad rtol 1e-5 atol 1e-5
+        (sums of terms to 1e5 of both signs: rounding is absolute near zero)
+    """
     out = jnp.einsum("bpqk,bkc->bpqc", params["U_vol"], b)
     if r is not None and "U_rvol" in params:
         out = out + jnp.einsum("spqj,bsjc->bpqc", params["U_rvol"], r)
@@ -601,7 +676,10 @@ class MRTData(NamedTuple):
 def atlas_layout(n_blocks: int, t: int) -> tuple[int, np.ndarray, np.ndarray]:
     """The padded lightmap atlas (§6.2, §7.3 step 6): each block face a (t + 2)^2 tile whose
     one-texel gutter repeats its edge. Returns (resolution R, texel_index (B n,) atlas pixel of
-    each texel, fill_index (R^2,) texel each pixel shows)."""
+    each texel, fill_index (R^2,) texel each pixel shows).
+
+    Numerics: not differentiable (integer atlas layout).
+    """
     tiles = n_blocks * 6
     per_row = int(np.ceil(np.sqrt(tiles)))
     tile = t + 2
@@ -623,7 +701,10 @@ def proxy_uv(position, normal, layout, origin, size: float, t: int) -> tuple[np.
     block proxy (§7.2): the cell that holds the point (nudged along its normal into the room),
     the face of that block whose inward normal is closest to the point's normal (so a box top is
     lit like a floor, a box side like the wall facing the same way; the paper picks the face by
-    the direction from the block's centre), and the point's orthographic projection onto it."""
+    the direction from the block's centre), and the point's orthographic projection onto it.
+
+    Numerics: not differentiable (atlas coordinates of scene points in NumPy).
+    """
     lay = layouts.layout_from_dict(layout)
     p = np.asarray(position, np.float64)
     n = np.asarray(normal, np.float64)
@@ -657,7 +738,10 @@ def _texels_of(albedo: np.ndarray) -> tuple[int, int]:
 
 def fit(data: MRTData, config: dict | None = None) -> FitResult:
     """The dictionary (scene-independent, cached) and the layout's operators. ``info``:
-    precompute and T_b->r build seconds, k's, singular values for Table 2."""
+    precompute and T_b->r build seconds, k's, singular values for Table 2.
+
+    Numerics: not differentiable (a fitting or training procedure).
+    """
     cfg = _cfg(config)
     t0 = time.perf_counter()
     dic = dictionary(cfg)
@@ -688,7 +772,10 @@ def evaluator(params: dict, config: dict | None = None):
     ``valid`` and ``diffuse_albedo`` (the pixel's albedo; the lightmap stores albedo-free incident
     light / pi, step 7 multiplies). ``lighting``: a ``PointRadiance`` with the direct radiance at
     every texel (B n, 3), in the layout's texel order. One jit: b, U_b b, T_b->r, U_r r,
-    ``runtime.feedback`` bounces, the padded atlas, a bilinear lookup."""
+    ``runtime.feedback`` bounces, the padded atlas, a bilinear lookup.
+
+    Numerics: not differentiable (builds the float32 run-time program; its arithmetic is ``lightmap``'s, covered).
+    """
     cfg = _cfg(config)
     arrays = {k: jnp.asarray(params[k]) for k in _RUNTIME_KEYS}
     albedo = jnp.asarray(params["albedo"])
@@ -720,14 +807,20 @@ def evaluator(params: dict, config: dict | None = None):
 
 def example(data: MRTData, config: dict | None = None):
     """A held-out (inputs, lighting) pair: the atlas itself (every texel, its albedo) and the
-    first held-out lighting's direct light at the texels."""
+    first held-out lighting's direct light at the texels.
+
+    Numerics: not differentiable (a held-out input and lighting from a dataset).
+    """
     return atlas_gbuffer_inputs(data.albedo), PointRadiance(
         np.asarray(data.direct_test[0], np.float32).reshape(-1, 3))
 
 
 def atlas_gbuffer_inputs(albedo) -> GBuffer:
     """The G-buffer of the padded atlas: every texel's own centre, with its albedo; gutters and
-    missing faces invalid. The evaluator given it returns the texels as an (R, R, 3) image."""
+    missing faces invalid. The evaluator given it returns the texels as an (R, R, 3) image.
+
+    Numerics: not differentiable (builds a G-buffer).
+    """
     from jprt.methods.atlas import atlas_inputs
 
     alb = np.asarray(albedo, np.float32)

@@ -149,29 +149,52 @@ def features(attributes: str, position, view, light, normal, brdf, edit=None):
 
     In material mode (``edit`` given, (..., 2)) the edit parameters take the place of ``view``
     (Appendix B). Works on NumPy and JAX arrays of any batch shape.
+
+    Numerics:
+        case: rrf_features (every attribute set; positions, lights in [-1e3, 1e3], unit views and
+          normals, BRDF attributes in [0, 1])
+        float32: value rtol 0 atol 0; grad rtol 1e-6 atol 0
+        (a concatenation: exact; the case's gradient sums the cotangents of several attribute sets)
     """
     if attributes not in ATTRIBUTE_SETS:
         raise ValueError(f"unknown attribute set {attributes!r}; use one of {sorted(ATTRIBUTE_SETS)}")
     parts = {"position": position, "view": view if edit is None else edit, "light": light, "normal": normal,
              "brdf": brdf}
-    return jnp.concatenate([jnp.asarray(parts[name], jnp.float32) for name in ATTRIBUTE_SETS[attributes]], axis=-1)
+    # float32 (NumPy training data is float64); JAX float64 inputs stay float64 (x64 tests)
+    wide = any(isinstance(v, jax.Array) and v.dtype == jnp.float64 for v in parts.values())
+    dtype = jnp.float64 if wide else jnp.float32
+    return jnp.concatenate([jnp.asarray(parts[name], dtype) for name in ATTRIBUTE_SETS[attributes]], axis=-1)
 
 
 def brdf_vector(diffuse_albedo, specular_albedo, roughness):
     """The BRDF attributes a of Eq. 4 per pixel or sample: diffuse rgb, specular rgb, GGX alpha
-    (..., 7). NumPy in, NumPy out (training data); JAX in, JAX out (the evaluator)."""
+    (..., 7). NumPy in, NumPy out (training data); JAX in, JAX out (the evaluator).
+
+    Numerics:
+        diffuse_albedo: (16, 3) in [0, 1]
+        specular_albedo: (16, 3) in [0, 1]
+        roughness: (16,) in [1e-4, 1]
+        float32: value rtol 0 atol 0; grad rtol 0 atol 0
+        (a concatenation: exact)
+    """
     xp = jnp if isinstance(roughness, jax.Array) else np
     return xp.concatenate([diffuse_albedo, specular_albedo, xp.asarray(roughness)[..., None]], axis=-1)
 
 
 def data_features(data: RRFData, attributes: str) -> np.ndarray:
-    """The inputs x of Phi for every sample of ``data`` (N, D)."""
+    """The inputs x of Phi for every sample of ``data`` (N, D).
+
+    Numerics: not differentiable (training data in NumPy).
+    """
     edit = data.edit if data.meta.get("mode") == "material" else None
     return np.asarray(features(attributes, data.position, data.view, data.light, data.normal, data.brdf, edit))
 
 
 def input_size(attributes: str, mode: str = "view") -> int:
-    """Number of inputs of Phi for an attribute set (and data mode)."""
+    """Number of inputs of Phi for an attribute set (and data mode).
+
+    Numerics: not differentiable (an integer size).
+    """
     widths = dict(_WIDTHS, view=2 if mode == "material" else 3)
     return sum(widths[name] for name in ATTRIBUTE_SETS[attributes])
 
@@ -337,7 +360,10 @@ def _relative_error(pred, ref) -> float:
 
 
 def split_samples(n: int, val_fraction: float, seed: int) -> np.ndarray:
-    """The seeded training / validation split of Appendix A: True for the training samples."""
+    """The seeded training / validation split of Appendix A: True for the training samples.
+
+    Numerics: not differentiable (a boolean split).
+    """
     if not (0.0 <= val_fraction < 1.0):
         raise ValueError(f"data.val_fraction must be in [0, 1), got {val_fraction}")
     rng = np.random.default_rng(seed + 7)
@@ -355,6 +381,8 @@ def fit(data: RRFData, config: dict | None = None, *, is_train=None) -> FitResul
     ``is_train`` (the split mask) and ``n_samples``.
     ``is_train`` overrides the seeded 70/30 split; ``train.subset`` < 1 keeps that random
     fraction of the training samples (the Table 3 / Fig. 6 experiments).
+
+    Numerics: not differentiable (a fitting or training procedure).
     """
     cfg = _cfg(config)
     x = data_features(data, cfg["model"]["attributes"])
@@ -382,6 +410,8 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None):
 
     The generic core of ``fit`` (synthetic targets in tests use it directly). Returns
     ``(params, info)``; ``params`` has no light box (add ``light_lo``/``light_hi`` for rendering).
+
+    Numerics: not differentiable (a fitting or training procedure).
     """
     cfg = _cfg(config)
     x = np.asarray(x, np.float32)
@@ -682,7 +712,10 @@ def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols
 
 
 def light_box(params) -> tuple[np.ndarray, np.ndarray]:
-    """The light-position box the model was trained on (lo, hi)."""
+    """The light-position box the model was trained on (lo, hi).
+
+    Numerics: not differentiable (the trained light box).
+    """
     return np.asarray(params["light_lo"]), np.asarray(params["light_hi"])
 
 
@@ -758,6 +791,8 @@ def evaluator(params, config: dict | None = None):
     G-buffer, NaN attributes at valid pixels, NaN lights, lights outside the box); under
     ``jax.jit`` / ``vmap`` the checks are skipped and NaN inputs give NaN pixels. The function is
     pure: it jits (one program per image size and light count), vmaps and exports.
+
+    Numerics: not differentiable (builds the float32 run-time program: kd-tree traversal and per-leaf ``jprt.nn.mlp`` tanh networks, covered there; fitting is by LM on the networks).
     """
     cfg = _cfg(config)
     rc = cfg["render"]
@@ -789,7 +824,10 @@ def frame_flops(params, config: dict | None, inputs, lights) -> float:
     with networks, the light-free part of the first layer once and, per light, its light part,
     the other layers and the colour weighting (2 per multiply-add, 1 per bias add); the input
     and output scaling and the tanh are not counted. What the networks must compute, not what the
-    tiles execute (masked pixels of shared tiles, padding items)."""
+    tiles execute (masked pixels of shared tiles, padding items).
+
+    Numerics: not differentiable (a FLOP count).
+    """
     cfg = _cfg(config)
     gb = inputs.gbuffer if cfg["data"]["mode"] == "material" else inputs
     sizes = _sizes(params["leaves"]["layers"])
@@ -806,7 +844,10 @@ def frame_flops(params, config: dict | None, inputs, lights) -> float:
 
 def check_inputs(params, gbuffer, lights, *, extrapolation: str = "error", tolerance: float = 0.02) -> None:
     """Raise ValueError for an empty G-buffer, NaN attributes at valid pixels, no or NaN lights,
-    or (``extrapolation="error"``) a light outside the trained box grown by ``tolerance``."""
+    or (``extrapolation="error"``) a light outside the trained box grown by ``tolerance``.
+
+    Numerics: not differentiable (input validation).
+    """
     light_pos = np.asarray(lights.position, np.float32).reshape(-1, 3)
     light_rgb = np.asarray(lights.intensity, np.float32).reshape(-1, 3)
     valid = np.asarray(gbuffer.valid, bool)
@@ -835,7 +876,10 @@ def check_inputs(params, gbuffer, lights, *, extrapolation: str = "error", toler
 
 def example(data: RRFData, config: dict | None = None):
     """A held-out (inputs, lights) pair from ``data``: the validation samples' attributes laid
-    out as an 8 x 8 G-buffer, lit by two lights inside the trained box (the contract tests)."""
+    out as an 8 x 8 G-buffer, lit by two lights inside the trained box (the contract tests).
+
+    Numerics: not differentiable (a held-out input and lighting from a dataset).
+    """
     cfg = _cfg(config)
     is_train = split_samples(len(data), float(cfg["data"]["val_fraction"]), int(cfg["train"]["seed"]))
     idx = np.flatnonzero(~is_train)
@@ -864,6 +908,8 @@ def refit_leaves(params, data: RRFData, config: dict | None, info: dict, variant
     Each variant is {"seed": int, "subset": float}: fresh random weights from ``seed`` and a
     random ``subset`` fraction of each leaf's training samples. The tree stays fixed (Table 3
     measures the spread due to the data subset and the initial weights). Returns a list of params.
+
+    Numerics: not differentiable (a fitting or training procedure).
     """
     cfg = _cfg(config)
     x = data_features(data, cfg["model"]["attributes"])
@@ -894,5 +940,8 @@ def refit_leaves(params, data: RRFData, config: dict | None, info: dict, variant
 
 
 def parameter_count(params) -> int:
-    """Trainable weights over all leaves."""
+    """Trainable weights over all leaves.
+
+    Numerics: not differentiable (an integer count).
+    """
     return int(sum(np.asarray(leaf).size for leaf in jax.tree_util.tree_leaves(params["leaves"]["layers"])))

@@ -107,13 +107,33 @@ class Lobes(NamedTuple):
     amplitude: jax.Array
 
 
+@jax.custom_jvp
+def _sigmoid(x):
+    """The logistic function with its slope as sigmoid(x) sigmoid(-x): autodiff's s (1 - s) loses
+    every digit where float32's s rounds to 1 (30 % off at x = 15.6, 0 above 17)."""
+    return jax.nn.sigmoid(x)
+
+
+@_sigmoid.defjvp
+def _sigmoid_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    return jax.nn.sigmoid(x), jax.nn.sigmoid(x) * jax.nn.sigmoid(-x) * dx
+
+
 def constrain(raw, min_sharpness: float = 0.5, max_sharpness: float = 1.0e4, init_sharpness: float = 1.0,
               init_amplitude: float = math.log(2.0)) -> Lobes:
     """Raw encoder outputs (..., N, 7) -> constrained ``Lobes`` (module docstring). Raw zeros
     mean ``init_sharpness`` and ``init_amplitude``: lobes start broad, so every lobe's gradient
     reaches the whole image (sharp random lobes pointing away from the light die at the start),
     and as bright as the data (``fit_cnn`` sets it from the images: lobes far brighter than the
-    light field are driven to zero amplitude and maximal sharpness, where they stay dead)."""
+    light field are driven to zero amplitude and maximal sharpness, where they stay dead).
+
+    Numerics:
+        raw: (2, 4, 7) in [-30, 30]
+        fd: off (a zero raw axis is replaced by +z, a jump, and zero raw values are always drawn)
+        float32: value rtol 1e-5 atol 1e-6; grad rtol 1e-4 atol 1e-6
+        (the sigmoid saturates: float32's 1 - sigmoid(x) is 0 above x = 17, where the slope is < 1e-7)
+    """
     raw = jnp.asarray(raw)
     r = raw[..., :3]
     # a (near-)zero raw axis has no direction: +z stands in, chosen *before* the norm so that
@@ -123,22 +143,34 @@ def constrain(raw, min_sharpness: float = 0.5, max_sharpness: float = 1.0e4, ini
     axes = r / jnp.sqrt(jnp.sum(r * r, axis=-1, keepdims=True))
     lo, hi = math.log(min_sharpness), math.log(max_sharpness)
     s0 = (math.log(init_sharpness) - lo) / (hi - lo)
-    sharpness = jnp.exp(lo + (hi - lo) * jax.nn.sigmoid(raw[..., 3] + math.log(s0 / (1.0 - s0))))
+    sharpness = jnp.exp(lo + (hi - lo) * _sigmoid(raw[..., 3] + math.log(s0 / (1.0 - s0))))
     offset = math.log(math.expm1(max(float(init_amplitude), 1e-30)))  # softplus(offset) = init_amplitude
     return Lobes(axes, sharpness, jax.nn.softplus(raw[..., 4:7] + offset))
 
 
 def lobe_radiance(lobes: Lobes, directions):
     """Eq. 1: P(v) = sum_j mu_j exp(lambda_j (v . u_j - 1)) for directions (..., M, 3) of each
-    texel's lobes (..., N): (..., M, 3)."""
-    cos = jnp.einsum("...md,...nd->...mn", directions, lobes.axes)
-    w = jnp.exp(lobes.sharpness[..., None, :] * (cos - 1.0))
+    texel's lobes (..., N): (..., M, 3). v . u - 1 is evaluated as -|v - u|^2 / 2 (unit v, u): the
+    dot product's float32 rounding, ~1e-7 absolute, is lambda x 1e-7 relative in the lobe (3e-3 at
+    the largest sharpness, 1e4), the difference form's stays at rounding.
+
+    Numerics:
+        case: lobe_radiance (4 lobes of unit axes, sharpness in [0, 1e4], amplitude in [0, 1e5], at 16
+          unit directions, aligned and antipodal ones among them)
+        float32: value rtol 1e-4 atol 1e-25; grad rtol 1e-4 atol 1e-20
+    """
+    directions, axes = jnp.asarray(directions), jnp.asarray(lobes.axes)
+    cos = -0.5 * jnp.sum(jnp.square(directions[..., :, None, :] - axes[..., None, :, :]), axis=-1)  # v . u - 1
+    w = jnp.exp(lobes.sharpness[..., None, :] * cos)
     return jnp.einsum("...mn,...nc->...mc", w, lobes.amplitude)
 
 
 def jittered_directions(key, size: int, shape=()):
     """Directions (*shape, size^2, 3), each uniform in its octahedral pixel's (u, v) square (§4
-    "Optimizations": one jittered sample instead of the pixel's average)."""
+    "Optimizations": one jittered sample instead of the pixel's average).
+
+    Numerics: not differentiable (random sample directions).
+    """
     centres = octahedral.texel_centers(size).reshape(-1, 2)
     offsets = jax.random.uniform(key, tuple(shape) + centres.shape, minval=-1.0 / size, maxval=1.0 / size)
     return octahedral.decode(jnp.clip(jnp.broadcast_to(centres, offsets.shape) + offsets, -1.0, 1.0))
@@ -146,19 +178,31 @@ def jittered_directions(key, size: int, shape=()):
 
 def log_l2_loss(lobes: Lobes, directions, targets, weights):
     """Eq. 9 summed over channels, weighted mean over pixels: targets (..., M, 3) at directions
-    (..., M, 3) with weights (..., M) (solid angle x above-surface mask)."""
+    (..., M, 3) with weights (..., M) (solid angle x above-surface mask).
+
+    Numerics:
+        case: log_l2_loss (``lobe_radiance``'s domain, targets in [0, 1e5], weights in [0, 1])
+        fd: off (the loss clamps the prediction at 0, a kink that zero amplitudes reach)
+        float32: value rtol 1e-4 atol 1e-10; grad rtol 1e-4 atol 1e-10
+    """
     return sg.log_l2(lobe_radiance(lobes, directions), targets, weights)
 
 
 def pixel_weights(size: int, below):
-    """Solid angle of every octahedral pixel, zero below the surface: (T, size^2)."""
+    """Solid angle of every octahedral pixel, zero below the surface: (T, size^2).
+
+    Numerics: not differentiable (a function of the integer size and a mask).
+    """
     sa = jnp.asarray(octahedral.texel_solid_angles(size)).reshape(-1)
     return sa[None, :] * (1.0 - jnp.asarray(below, jnp.float32).reshape(below.shape[0], -1))
 
 
 def initial_amplitude(images, below, n_lobes: int, init_sharpness: float) -> float:
     """The amplitude making N broad lobes' mean match the images' mean above the surfaces: a lobe
-    of sharpness lambda averages (1 - exp(-2 lambda)) / (2 lambda) of its amplitude over the sphere."""
+    of sharpness lambda averages (1 - exp(-2 lambda)) / (2 lambda) of its amplitude over the sphere.
+
+    Numerics: not differentiable (a NumPy initial value).
+    """
     seen = ~np.asarray(below, bool)
     mean = float(np.asarray(images, np.float64)[seen].mean()) if seen.any() else 0.0
     lam = float(init_sharpness)
@@ -167,7 +211,10 @@ def initial_amplitude(images, below, n_lobes: int, init_sharpness: float) -> flo
 
 def encode(net_params, images, config: dict, init_amplitude: float = math.log(2.0)) -> Lobes:
     """The encoder's lobes for light-field images (T, n, n, 3) (its input is log(1 + T));
-    ``init_amplitude``: the one the encoder was trained with (``fit_cnn``'s info)."""
+    ``init_amplitude``: the one the encoder was trained with (``fit_cnn``'s info).
+
+    Numerics: not differentiable (covered as its parts: ``jprt.nn.cnn.sg_encoder`` and ``constrain``).
+    """
     from jprt.nn.cnn import sg_encoder
 
     m = config["model"]
@@ -181,7 +228,10 @@ def encode(net_params, images, config: dict, init_amplitude: float = math.log(2.
 def fit_cnn(images, below, config: dict, *, progress: bool = True):
     """Train the encoder on every texel's light-field image (T, n, n, 3), ``below`` (T, n, n)
     masking directions under the surface; Adam, minibatches of ``train.batch`` texels, cosine
-    decay. Returns (net_params, lobes of every texel, losses)."""
+    decay. Returns (net_params, lobes of every texel, losses).
+
+    Numerics: not differentiable (a training loop).
+    """
     import optax
 
     from jprt.nn.cnn import sg_encoder
@@ -227,7 +277,16 @@ def fit_cnn(images, below, config: dict, *, progress: bool = True):
 
 def texel_irradiance(images, normals, size: int):
     """E_t = sum_i T_t(v_i) max(n_t . v_i, 0) dOmega_i: each texel's irradiance (T, 3) from its
-    captured map (the diffuse term's input), by quadrature at the pixel centres."""
+    captured map (the diffuse term's input), by quadrature at the pixel centres.
+
+    Numerics:
+        images: (2, 4, 4, 3) in [0, 1e5]
+        normals: (2, 3) unit
+        size: = 4
+        fd: off (max(n . v, 0) has a kink, which axis-aligned normals hit at texel centres on the equator)
+        float32: value rtol 1e-5 atol 1e-2; grad rtol 1e-5 atol 1e-6
+        (a sum of 16 terms up to 1e5 x 0.8: rounding is absolute near zero)
+    """
     dirs = octahedral.texel_directions(size).reshape(-1, 3)
     sa = jnp.asarray(octahedral.texel_solid_angles(size)).reshape(-1)
     cos = jnp.maximum(jnp.asarray(normals) @ dirs.T, 0.0)  # (T, M)
@@ -239,18 +298,27 @@ def _ggx_v1(m2, ndotx):
     return 1.0 / (ndotx + jnp.sqrt(m2 + (1.0 - m2) * ndotx * ndotx))
 
 
+def _ggx_v1_cos(m2, ndotx):
+    """n.x x ``_ggx_v1`` = 1 / (1 + sqrt(1 - m2 + m2 / n.x^2)) for n.x > 0, 0 otherwise: the product
+    form's derivative at n.x = 1 is 1/2 - 1/2 plus a term of order m2, all lost in float32 for
+    a mirror-like m2 (0 where float64 has 0.06 at alpha = 1e-4, against a D of 3e7)."""
+    safe = jnp.where(ndotx > 0.0, ndotx, 1.0)
+    return jnp.where(ndotx > 0.0, 1.0 / (1.0 + jnp.sqrt(1.0 - m2 + m2 / (safe * safe))), 0.0)
+
+
 def _glossy_factor(conv, wi, normal, view, roughness, specular):
     """The convolved lobes (..., 3) times Smith's G (the V = G / (4 n.l n.v) form), Schlick's
     Fresnel and n.l, all at the reflected view direction ``wi`` (Pettineo 2016)."""
-    ndotv = jnp.clip(jnp.sum(normal * view, axis=-1), 1e-4, 1.0)
-    ndotl = jnp.clip(jnp.sum(normal * wi, axis=-1), 0.0, 1.0)
+    # clamped below only (a clip at 1 zeroes the derivative at normal incidence)
+    ndotv = jnp.maximum(jnp.sum(normal * view, axis=-1), 1e-4)
+    ndotl = jnp.sum(normal * wi, axis=-1)
     h = wi + view
     h = h / jnp.sqrt(jnp.maximum(jnp.sum(h * h, axis=-1, keepdims=True), 1e-20))
     m2 = jnp.square(roughness)
-    vis = _ggx_v1(m2, ndotl) * _ggx_v1(m2, ndotv)
+    vis_cos = _ggx_v1_cos(m2, ndotl) * _ggx_v1(m2, ndotv)  # V n.l
     f0 = jnp.asarray(specular)
     fresnel = f0 + (1.0 - f0) * jnp.power(1.0 - jnp.clip(jnp.sum(wi * h, axis=-1), 0.0, 1.0), 5.0)[..., None]
-    return conv * (vis * ndotl)[..., None] * fresnel
+    return conv * vis_cos[..., None] * fresnel
 
 
 def shade(lobes: Lobes, normal, view, roughness, specular, diffuse_albedo, irradiance):
@@ -258,39 +326,79 @@ def shade(lobes: Lobes, normal, view, roughness, specular, diffuse_albedo, irrad
     the lobes (Appendix B, Eq. 15-24: NDF SG warped to an ASG, SG x ASG convolution, Smith G and
     Schlick Fresnel at the reflected direction, times n.l) plus diffuse albedo / pi x irradiance.
     ``roughness`` is GGX alpha (Mitsuba's roughconductor ``alpha``), ``specular`` the RGB
-    reflectance at normal incidence."""
+    reflectance at normal incidence.
+
+    Numerics:
+        case: shade (4 lobes as in ``lobe_radiance``; unit normals, views to 89.9 degrees from them,
+          roughness in [1e-3, 1], specular and albedo in [0, 1], irradiance in [0, 1e5])
+        fd: off (clamps at n . v = 1e-4 and the ASG's max(v . z, 0))
+        float32: value rtol 1e-3 atol 1e-2; grad rtol 1e-3 atol 1e-2
+        (the ASG's rounding, ``jprt.sphere.sg.asg_evaluate``, times amplitudes to 1e5: absolute near zero)
+    """
     normal = jnp.asarray(normal)
     view = jnp.asarray(view)
     roughness = jnp.maximum(jnp.asarray(roughness), 1e-3)
     asg = sg.warp_ndf_to_asg(normal, view, roughness)
-    # the pixel's warped NDF against each of its N lobes: frame (..., 1, 3), sharpnesses (..., 1)
-    warped = sg.ASG(asg.x[..., None, :], asg.y[..., None, :], asg.z[..., None, :], asg.sharpness_x[..., None],
-                    asg.sharpness_y[..., None], asg.amplitude[..., None])
-    per_lobe = sg.convolve_sg_asg(lobes.axes, lobes.sharpness, 1.0, warped)  # (..., N)
+    # the pixel's warped NDF against each of its N lobes (``sg.convolve_sg_asg`` of ``asg``, with
+    # the scale and sharpnesses in the fused form of ``_warped_convolution``)
+    cos_v = jnp.maximum(jnp.sum(normal * view, axis=-1), 1e-4)[..., None]
+    scale, sx, sy = _warped_convolution(cos_v, jnp.square(roughness)[..., None], 0.5 * lobes.sharpness)
+    warped = sg.ASG(asg.x[..., None, :], asg.y[..., None, :], asg.z[..., None, :], sx, sy, 1.0)
+    per_lobe = scale * sg.asg_evaluate(lobes.axes, warped)  # (..., N)
     conv = jnp.sum(per_lobe[..., None] * lobes.amplitude, axis=-2)  # (..., 3)
     return _glossy_factor(conv, asg.z, normal, view, roughness, specular) + \
         jnp.asarray(diffuse_albedo) / jnp.pi * jnp.asarray(irradiance)
 
 
 def ggx_ndf(cos_h, alpha):
-    """GGX / Trowbridge-Reitz D(h) = alpha^2 / (pi ((n.h)^2 (alpha^2 - 1) + 1)^2), 0 for n.h <= 0."""
-    a2 = jnp.square(alpha)
+    """GGX / Trowbridge-Reitz D(h) = alpha^2 / (pi ((n.h)^2 (alpha^2 - 1) + 1)^2), 0 for n.h <= 0.
+
+    Numerics:
+        cos_h: (32,) in [-1, 1]
+        alpha: (32,) in [1e-4, 1]
+        fd: off (D is 0 for n . h <= 0, a kink at 0, an end the harness draws)
+        float32: value rtol 1e-5 atol 0; grad rtol 1e-4 atol 1e-30
+    """
     c = jnp.maximum(cos_h, 0.0)
-    d = c * c * (a2 - 1.0) + 1.0
-    return jnp.where(cos_h > 0.0, a2 / (jnp.pi * d * d), 0.0)
+    return jnp.where(cos_h > 0.0, _ggx_d((1.0 - c) * (1.0 + c), jnp.square(alpha)), 0.0)
+
+
+def _ggx_d(sin2, a2):
+    """GGX D from sin^2 of the half-vector angle: the printed (n.h)^2 (a^2 - 1) + 1 is
+    a^2 + sin^2 (1 - a^2), whose 1 - (n.h)^2 cancels to rounding (1.2e-7) near the peak, where a
+    mirror-like a^2 = 1e-8 is all of it: D was wrong by orders of magnitude at alpha = 1e-4.
+    Given sin^2 directly (|n x h|^2, or (1 - c)(1 + c) from an exact c), it stays at rounding,
+    and so does its gradient (a separate cos^2 would carry d D / d cos^2 = -2 / (pi alpha^2)
+    times the rounding of n.h's derivative at the peak: 0.5 where float64 has 0.013)."""
+    d = a2 + sin2 * (1.0 - a2)
+    return a2 / (jnp.pi * d * d)
 
 
 def ggx_brdf_cos(normal, view, wi, roughness, specular):
     """The rendered BRDF times the cosine, f(wi, view) (n . wi), of Mitsuba's rough conductor
     with ``material="none"`` (``jprt.render.scenes`` "metal"): GGX D, separable Smith G (the
-    ``_ggx_v1`` form of G / (4 n.l n.v)), Fresnel = ``specular``; 0 below the surface."""
+    ``_ggx_v1`` form of G / (4 n.l n.v)), Fresnel = ``specular``; 0 below the surface.
+
+    Numerics:
+        normal: (32, 3) unit
+        view: (32, 3) unit within 89.9 of normal
+        wi: (32, 3) unit near normal
+        roughness: (32,) in [1e-4, 1]
+        specular: (3,) in [0, 1]
+        fd: off (0 below the surface and n . v clamped at 1e-4: kinks that the drawn ends hit)
+        float32: value rtol 1e-3 atol 1e-6; grad rtol 1e-3 atol 1e-2
+    """
+    # clamped below only: a rounded n . v of 1 + 1e-8 is harmless, a clip at 1 would zero the
+    # derivative at normal incidence (20 % off in float32 there)
     ndotl = jnp.sum(normal * wi, axis=-1)
-    ndotv = jnp.clip(jnp.sum(normal * view, axis=-1), 1e-4, 1.0)
+    ndotv = jnp.maximum(jnp.sum(normal * view, axis=-1), 1e-4)
     h = wi + view
     h = h / jnp.sqrt(jnp.maximum(jnp.sum(h * h, axis=-1, keepdims=True), 1e-20))
     a2 = jnp.square(roughness)
-    d = ggx_ndf(jnp.sum(normal * h, axis=-1), roughness)
-    value = jnp.where(ndotl > 0.0, d * _ggx_v1(a2, jnp.clip(ndotl, 0.0, 1.0)) * _ggx_v1(a2, ndotv) * ndotl, 0.0)
+    cos_h = jnp.sum(normal * h, axis=-1)
+    nxh = jnp.cross(*jnp.broadcast_arrays(normal, h))  # sin^2 without 1 - cos^2's cancellation
+    d = jnp.where(cos_h > 0.0, _ggx_d(jnp.sum(nxh * nxh, axis=-1), a2), 0.0)
+    value = jnp.where(ndotl > 0.0, d * _ggx_v1_cos(a2, ndotl) * _ggx_v1(a2, ndotv), 0.0)
     f0 = jnp.asarray(specular)
     return value[..., None] * f0.reshape((1,) * (value.ndim + 1 - f0.ndim) + f0.shape)
 
@@ -300,12 +408,21 @@ def shade_quadrature(maps, normal, view, roughness, specular, *, sub: int = 4, k
     texture filtered to the pixel, no lobes): sum over the map's pixels of their radiance times
     the BRDF-cosine (``ggx_brdf_cos``) integrated over the pixel by ``sub`` x ``sub`` stratified
     jittered directions (a pixel holds its directions' mean radiance). The compression-free
-    upper bound of the lobes' shading."""
+    upper bound of the lobes' shading.
+
+    Numerics:
+        case: shade_quadrature (2 pixels' 4 x 4 maps in [0, 1e5], unit normals, views to 89.9 degrees,
+          roughness in [1e-2, 1], specular in [0, 1]; 2 x 2 jittered directions a map pixel)
+        fd: off (the BRDF's clamps and the cut below the surface)
+        float32: value rtol 1e-3 atol 1e-2; grad rtol 1e-3 atol 1e-2
+        (a sum over 64 directions of radiance to 1e5: rounding is absolute near zero)
+    """
     n = maps.shape[-2]
     key = jax.random.PRNGKey(0) if key is None else key
     grid = (jnp.arange(sub) + 0.5) / sub
     offs = jnp.stack(jnp.meshgrid(grid, grid, indexing="ij"), axis=-1).reshape(-1, 2)  # (S, 2) in (0, 1)
-    jitter = jax.random.uniform(key, offs.shape, minval=-0.5 / sub, maxval=0.5 / sub)
+    # drawn in float32 whatever the precision (x64 would draw other numbers: other directions)
+    jitter = jax.random.uniform(key, offs.shape, jnp.float32, minval=-0.5 / sub, maxval=0.5 / sub)
     corner = octahedral.texel_centers(n).reshape(-1, 2) - 1.0 / n  # (M, 2) lower corners
     uv = corner[:, None, :] + (offs + jitter)[None, :, :] * (2.0 / n)  # (M, S, 2)
     dirs = octahedral.decode(uv)
@@ -318,14 +435,18 @@ def shade_quadrature(maps, normal, view, roughness, specular, *, sub: int = 4, k
         w = ggx_brdf_cos(nrm[None, None], v[None, None], dirs, a, f0)  # (M, S, 3)
         return jnp.sum(jnp.mean(w, axis=1) * sa[:, None] * m.reshape(-1, 3), axis=0)
 
-    flat = (jnp.asarray(maps, jnp.float32).reshape((-1, n, n, 3)), normal.reshape(-1, 3), view.reshape(-1, 3),
-            jnp.maximum(jnp.asarray(roughness, jnp.float32), 1e-3).reshape(-1),
-            jnp.broadcast_to(jnp.asarray(specular, jnp.float32), lead + (3,)).reshape(-1, 3))
+    maps = jnp.asarray(maps)
+    flat = (maps.reshape((-1, n, n, 3)), normal.reshape(-1, 3), view.reshape(-1, 3),
+            jnp.broadcast_to(jnp.maximum(jnp.asarray(roughness, maps.dtype), 1e-3), lead).reshape(-1),
+            jnp.broadcast_to(jnp.asarray(specular, maps.dtype), lead + (3,)).reshape(-1, 3))
     return jax.lax.map(pixel, flat, batch_size=64).reshape(lead + (3,))
 
 
 def to_storage(lobes: Lobes, dtype=jnp.float16) -> Lobes:
-    """Lobes as stored at run time (the paper: 16-bit floats; 7 numbers x N lobes per texel)."""
+    """Lobes as stored at run time (the paper: 16-bit floats; 7 numbers x N lobes per texel).
+
+    Numerics: not differentiable (quantisation to the float16 run-time storage).
+    """
     return Lobes(*(jnp.asarray(a, dtype) for a in lobes))
 
 
@@ -338,7 +459,10 @@ def _cfg(config: dict | None) -> dict:
 def fit(data: SGData, config: dict | None = None, *, progress: bool = True):
     """Train the encoder on every captured texel (``fit_cnn``) and keep what the run time needs:
     the lobes in float16 (7 numbers per lobe: 224 bytes per texel at 16 lobes), the texels'
-    irradiance and the atlas layout. Returns ``FitResult(params, info)``."""
+    irradiance and the atlas layout. Returns ``FitResult(params, info)``.
+
+    Numerics: not differentiable (a training loop).
+    """
     import time
 
     from jprt.methods.base import FitResult
@@ -357,7 +481,10 @@ def storage_params(lobes: Lobes, data: SGData, dtype=jnp.float16, max_sharpness:
     """The evaluator's parameters for any lobes of ``data``'s texels: lobes and irradiance in
     ``dtype`` (float16, as the paper stores them), the atlas's fill index. Sharpness is clipped
     to ``max_sharpness`` (the CNN's bound; float16 overflows at 65504), which binds only for
-    baselines fitted without that bound."""
+    baselines fitted without that bound.
+
+    Numerics: not differentiable (packing into the float16 run-time storage).
+    """
     lobes = Lobes(lobes.axes, jnp.minimum(jnp.asarray(lobes.sharpness), max_sharpness), lobes.amplitude)
     stored = to_storage(lobes, dtype)
     return {"axes": stored.axes, "sharpness": stored.sharpness, "amplitude": stored.amplitude,
@@ -387,7 +514,10 @@ def _planes(at, n: int) -> tuple:
 
 def lookup_lobes(params, uv) -> Lobes:
     """The lobes at atlas UVs (..., 2): each parameter bilinear between the four nearest texels
-    (§6: the texture is filtered like any other), axes renormalised."""
+    (§6: the texture is filtered like any other), axes renormalised.
+
+    Numerics: not differentiable (reads the float16 run-time storage; bilinear filtering in float32 by design).
+    """
     from jprt.methods.atlas import atlas_lookup
 
     n = params["sharpness"].shape[-1]
@@ -395,6 +525,18 @@ def lookup_lobes(params, uv) -> Lobes:
     axes = jnp.stack(p[0:3], axis=-1)
     axes = axes / jnp.sqrt(jnp.maximum(jnp.sum(axes * axes, axis=-1, keepdims=True), 1e-20))
     return Lobes(axes, p[3], jnp.stack(p[4:7], axis=-1))
+
+
+def _warped_convolution(cos_v, r2, nu):
+    """Xu et al. 2013 Eq. 12's scale pi c / sqrt((nu + lx)(nu + ly)) and convolved sharpnesses
+    nu lx / (nu + lx), nu ly / (nu + ly) for the warped GGX NDF (``sg.warp_ndf_to_asg``:
+    c = 1 / (pi r^2), ly = 1 / (4 r^2), lx = ly / cos_v^2), written with the roughness cancelled:
+    4 cos_v / sqrt((1 + qx)(1 + qy)), nu / (1 + qx), nu / (1 + qy), qx = 4 nu cos_v^2 r^2,
+    qy = 4 nu r^2. The same numbers; autodiff of the printed form cancels terms of size
+    amplitude x 8 / r in d/dr (float32 kept 8 where the slope is 0, at r = 1e-3 and amplitude 1e5)."""
+    qx = 4.0 * nu * cos_v * cos_v * r2
+    qy = 4.0 * nu * r2
+    return 4.0 * cos_v * jax.lax.rsqrt((1.0 + qx) * (1.0 + qy)), nu / (1.0 + qx), nu / (1.0 + qy)
 
 
 def _shade_planes(at, normal, view, roughness, specular, diffuse_albedo):
@@ -410,12 +552,10 @@ def _shade_planes(at, normal, view, roughness, specular, diffuse_albedo):
     def dot(frame):  # lobe axes . a per-pixel frame vector: (..., N)
         return (ux * frame[..., 0:1] + uy * frame[..., 1:2] + uz * frame[..., 2:3]) * inv
 
-    nu = 0.5 * lam
-    ax, ay = asg.sharpness_x[..., None], asg.sharpness_y[..., None]
-    sx, sy = nu * ax / (nu + ax), nu * ay / (nu + ay)
+    cos_v = jnp.maximum(jnp.sum(normal * view, axis=-1), 1e-4)[..., None]
+    scale, sx, sy = _warped_convolution(cos_v, jnp.square(roughness)[..., None], 0.5 * lam)
     vx, vy, vz = dot(asg.x), dot(asg.y), dot(asg.z)
-    per_lobe = (asg.amplitude[..., None] * jnp.pi * jax.lax.rsqrt((nu + ax) * (nu + ay)) * jnp.maximum(vz, 0.0)
-                * jnp.exp(-sx * vx * vx - sy * vy * vy))
+    per_lobe = scale * jnp.maximum(vz, 0.0) * jnp.exp(-sx * vx * vx - sy * vy * vy)
     conv = jnp.stack([jnp.sum(per_lobe * a, axis=-1) for a in at[4:7]], axis=-1)
     return _glossy_factor(conv, asg.z, normal, view, roughness, specular) + diffuse_albedo / jnp.pi * at[7]
 
@@ -437,7 +577,10 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     the shading on (..., N) planes (``_shade_planes``). Measured at 256^2, 16 lobes on this 2-core
     CPU: 12 ms, against 35 ms for the same program untiled and 97 ms for ``shade`` on (..., N, 3)
     vectors (XLA fuses the fetch into every use of its result and streams the whole frame through
-    each fusion; a tile stays in cache)."""
+    each fusion; a tile stays in cache).
+
+    Numerics: not differentiable (builds the float32 run-time program; its arithmetic is ``shade``'s, covered).
+    """
     _cfg(config)
     from jprt.methods.atlas import atlas_lookup
 
@@ -478,7 +621,10 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
 
 def example(data: SGData, config: dict | None = None):
     """The atlas seen head-on: every texel shaded along its own normal (roughness 0.3, specular
-    0.9), at the bake's lighting (scale 1)."""
+    0.9), at the bake's lighting (scale 1).
+
+    Numerics: not differentiable (a held-out input and lighting from a dataset).
+    """
     from jprt.methods.atlas import atlas_inputs
 
     _cfg(config)

@@ -61,7 +61,10 @@ class SHData(NamedTuple):
 
 
 def order_to_degree(order: int) -> int:
-    """Sloan's SH order (number of bands) -> maximal degree l."""
+    """Sloan's SH order (number of bands) -> maximal degree l.
+
+    Numerics: not differentiable (an integer).
+    """
     if int(order) < 1:
         raise ValueError(f"SH order must be >= 1, got {order}")
     return int(order) - 1
@@ -69,7 +72,10 @@ def order_to_degree(order: int) -> int:
 
 def delta_light_coefficients(directions, irradiance, degree: int) -> np.ndarray:
     """SH coefficients ((degree + 1)^2, 3) of deltas of RGB irradiance ``irradiance`` (K, 3)
-    from unit ``directions`` (K, 3): l_i = sum_k E_k Y_i(w_k)."""
+    from unit ``directions`` (K, 3): l_i = sum_k E_k Y_i(w_k).
+
+    Numerics: not differentiable (float64 NumPy: the light's SH projection, built from ``jprt.sphere.sh.evaluate``, covered).
+    """
     d = np.asarray(directions, np.float32).reshape(-1, 3)
     e = np.asarray(irradiance, np.float64).reshape(-1, 3)
     if d.shape[0] != e.shape[0]:
@@ -80,7 +86,10 @@ def delta_light_coefficients(directions, irradiance, degree: int) -> np.ndarray:
 
 def lightmap(transfer, coefficients) -> np.ndarray:
     """Indirect texels (T, 3) = sum_i l_i t_i per channel; ``transfer`` may hold more SH
-    functions than ``coefficients`` (a degree-4 bake evaluates degree-2 lighting)."""
+    functions than ``coefficients`` (a degree-4 bake evaluates degree-2 lighting).
+
+    Numerics: not differentiable (float64 NumPy: a product of the bake and the light's coefficients).
+    """
     transfer = np.asarray(transfer, np.float64)
     c = np.asarray(coefficients, np.float64)
     if c.shape[0] > transfer.shape[1]:
@@ -89,7 +98,10 @@ def lightmap(transfer, coefficients) -> np.ndarray:
 
 
 def fit(data: SHData, config: dict | None = None) -> FitResult:
-    """Pack the baked transfer and the atlas layout as params (the bake is SH PRT's fit)."""
+    """Pack the baked transfer and the atlas layout as params (the bake is SH PRT's fit).
+
+    Numerics: not differentiable (a fitting or training procedure).
+    """
     resolve(DEFAULT_CONFIG, config)
     params = {"transfer": np.asarray(data.transfer, np.float32),
               "texel_index": np.asarray(data.atlas["texel_index"], np.int32),
@@ -100,7 +112,10 @@ def fit(data: SHData, config: dict | None = None) -> FitResult:
 def evaluator(params, config: dict | None = None):
     """``evaluate(inputs, lighting) -> (H, W, 3)``: the lightmap sum_i l_i t_i (Eq. 5) looked up
     bilinearly through the G-buffer's atlas ``uv``; invalid pixels 0. ``lighting`` is an
-    ``SHLighting`` with at most (degree + 1)^2 coefficients (fewer evaluate a lower order)."""
+    ``SHLighting`` with at most (degree + 1)^2 coefficients (fewer evaluate a lower order).
+
+    Numerics: not differentiable (builds the float32 run-time program: a lightmap product, linear in the light).
+    """
     resolve(DEFAULT_CONFIG, config)
     transfer = jnp.asarray(params["transfer"])
     fill = jnp.asarray(params["fill_index"])
@@ -119,7 +134,10 @@ def evaluator(params, config: dict | None = None):
 
 def example(data: SHData, config: dict | None = None):
     """The atlas G-buffer and a held-out light: a white delta of irradiance 1 from above and a
-    dimmer one from the side, projected to SH."""
+    dimmer one from the side, projected to SH.
+
+    Numerics: not differentiable (a held-out input and lighting from a dataset).
+    """
     resolve(DEFAULT_CONFIG, config)
     coefficients = delta_light_coefficients([[0.0, 1.0, 0.0], [0.6, 0.0, 0.8]], [[1.0, 1.0, 1.0], [0.3, 0.2, 0.1]],
                                             int(data.meta["degree"]))

@@ -195,7 +195,10 @@ def _cfg(config: dict | None) -> dict:
 
 def rotate_equirect(equirect, degrees: float) -> np.ndarray:
     """The map rotated about +Y by ``degrees`` (a column roll; exact when degrees * W / 360 is
-    an integer, nearest column otherwise)."""
+    an integer, nearest column otherwise).
+
+    Numerics: not differentiable (a column roll of a NumPy map).
+    """
     e = np.asarray(equirect)
     return np.roll(e, int(round(degrees / 360.0 * e.shape[1])), axis=1)
 
@@ -216,7 +219,10 @@ def _downsample_equirect(e: np.ndarray, max_height: int) -> np.ndarray:
 
 def prepare_environment(equirect, face_size: int, *, normalise: bool = True) -> np.ndarray:
     """An (H, W, 3) equirect map as the (6, n, n, 3) cube map the method relights with
-    (area-weighted resampling, ``jprt.sphere.cubemap``), optionally scaled to mean radiance 1."""
+    (area-weighted resampling, ``jprt.sphere.cubemap``), optionally scaled to mean radiance 1.
+
+    Numerics: not differentiable (NumPy resampling of a map, through ``jprt.sphere.cubemap``).
+    """
     e = _downsample_equirect(np.asarray(equirect, np.float32), max(8, 4 * face_size))
     cube = np.asarray(cubemap.equirect_to_cubemap(jnp.asarray(e), face_size), np.float32)
     cube = np.maximum(cube, 0.0)
@@ -231,7 +237,10 @@ def prepare_environment(equirect, face_size: int, *, normalise: bool = True) -> 
 
 def synthetic_environments(n_maps: int, face_size: int, seed: int = 0) -> np.ndarray:
     """``n_maps`` seeded procedural cube maps (E, 6, n, n, 3): a coloured sky gradient plus one
-    or two sharp lobes ("suns" and windows), mean radiance about 1 (tests, demos without assets)."""
+    or two sharp lobes ("suns" and windows), mean radiance about 1 (tests, demos without assets).
+
+    Numerics: not differentiable (seeded procedural maps).
+    """
     rng = np.random.default_rng(seed)
     d = np.asarray(cubemap.texel_directions(face_size))
     out = []
@@ -256,7 +265,10 @@ def sun_skies(n_maps: int, face_size: int, seed: int = 0) -> np.ndarray:
     Haar wavelets at its position, whose features W[k] are otherwise trained only by the few
     training maps with a sun there (issue 18: after the `small` training, the median row of W
     had moved 13 % from its random initialisation, the held-out clear sky's sun wavelets 10-24 %).
-    Measured (`small`, 40 % of the lightings such skies): no better on that sky, worse elsewhere."""
+    Measured (`small`, 40 % of the lightings such skies): no better on that sky, worse elsewhere.
+
+    Numerics: not differentiable (seeded procedural maps).
+    """
     rng = np.random.default_rng(seed)
     d = np.asarray(cubemap.texel_directions(face_size))
     omega = np.asarray(cubemap.texel_solid_angles(face_size))
@@ -283,7 +295,10 @@ def sun_skies(n_maps: int, face_size: int, seed: int = 0) -> np.ndarray:
 def render_equirect(cube, scale: int = 8) -> np.ndarray:
     """The (scale n, 2 scale n, 3) equirect map whose texels take the value of the cube-map texel
     containing their centre: what Mitsuba renders with, so references see the same piecewise
-    constant lighting as the wavelet relighting (up to the equirect's bilinear lookup)."""
+    constant lighting as the wavelet relighting (up to the equirect's bilinear lookup).
+
+    Numerics: not differentiable (a nearest-texel NumPy view of a cube map).
+    """
     n = np.asarray(cube).shape[1]
     d = cubemap.equirect_directions(scale * n, 2 * scale * n)
     return np.asarray(cubemap.sample_cubemap_nearest(jnp.asarray(cube), d), np.float32)
@@ -308,6 +323,8 @@ def trajectory(kind: str, n: int, spec: dict, target, *, phase: float = 0.0) -> 
     ``spec["turns"]`` times while the elevation rises through its range. ``phase`` in [0, 1)
     shifts the samples along the curve (held-out "near" views use phase 0.5: between the
     training positions, on the same curve).
+
+    Numerics: not differentiable (camera positions).
     """
     t = (np.arange(n) + 0.5 + phase) / max(n, 1)
     t = np.clip(t, 0.0, 1.0)
@@ -328,7 +345,10 @@ def trajectory(kind: str, n: int, spec: dict, target, *, phase: float = 0.0) -> 
 
 
 def camera_sets(ccfg: dict, seed: int):
-    """Origins of the training, near and far views."""
+    """Origins of the training, near and far views.
+
+    Numerics: not differentiable (camera positions).
+    """
     target = np.asarray(ccfg["target"], np.float64)
     train, near = [], []
     for kind in ("sphere", "helix"):
@@ -380,6 +400,8 @@ def importance_maps(indirect, position, valid, specular, roughness, *, mu: float
       2 high frequency: |TM(I) - blur(TM(I))|;
       3 k_s (1 - sigma): mean specular albedo times the complement of the remapped roughness.
     A strategy with no mass (e.g. no glossy pixel) falls back on uniform.
+
+    Numerics: not differentiable (NumPy sampling distributions).
     """
     valid = np.asarray(valid, bool)
     tm = np.asarray(losses.mu_law(_luminance(np.asarray(indirect, np.float32)), mu))
@@ -458,7 +480,14 @@ def _reflection_size(kind: str) -> int:
 
 
 def pixel_features(g: dict, reflection: str = "sh4"):
-    """Per-pixel inputs of f besides h_k: encoded w_r, n, k_d, k_s, remapped roughness (..., D)."""
+    """Per-pixel inputs of f besides h_k: encoded w_r, n, k_d, k_s, remapped roughness (..., D).
+
+    Numerics:
+        case: wavelet_pixel_features (unit reflected directions and normals, albedos in [0, 1],
+          roughness in [0, 1])
+        fd: off (the roughness is clipped to [0, 1], the domain's ends)
+        float32: value rtol 1e-5 atol 1e-6; grad rtol 1e-4 atol 1e-5
+    """
     parts = []
     if reflection == "sh4":
         parts.append(encoding.sh4(g["reflected"]))
@@ -487,7 +516,16 @@ def model(config: dict | None = None, *, n_vertices: int | None = None) -> Model
     """The transport network T_k(x, w_o) = f(h_k(x), enc(w_r), n, rho) of Eq. 4 with the CP
     feature field of Eq. 7 (``jprt.nn.factor``). With ``model.spatial = "vertex"`` S_m[x] is
     softplus of per-vertex features interpolated over the subdivided scene mesh instead
-    (``n_vertices`` needed for ``init``)."""
+    (``n_vertices`` needed for ``init``).
+
+    Numerics:
+        case: wavelet_model (face size 4, 8 features, 4 x 2 hash-grid components, a 2 x 16 ReLU f as
+          ``init`` draws them; pixels in the unit box with unit normals and reflected directions,
+          albedos and roughness in [0, 1], every wavelet index; gradients w.r.t. the parameters)
+        fd: off (ReLU and the hash grid's trilinear interpolation have kinks)
+        float32: value rtol 1e-4 atol 1e-6; grad rtol 1e-4 atol 1e-5
+        (sums of the factor field's products of both signs: rounding is absolute near zero)
+    """
     cfg = _cfg(config)
     mc, n = cfg["model"], int(cfg["envmaps"]["face_size"])
     field = factor_field(face_size=n, n_features=int(mc["n_features"]), n_levels=int(mc["n_levels"]),
@@ -557,7 +595,10 @@ def model(config: dict | None = None, *, n_vertices: int | None = None) -> Model
 
 def model_bytes(params) -> int:
     """Bytes of the learned parameters (float32), the bounding box excluded (for the per-vertex
-    variant the unused hash grid is not counted either)."""
+    variant the unused hash grid is not counted either).
+
+    Numerics: not differentiable (an integer size).
+    """
     return int(sum(np.asarray(leaf).nbytes for leaf in jax.tree_util.tree_leaves(
         {"field": params["field"], "f": params["f"]["layers"]})))
 
@@ -572,7 +613,10 @@ def training_wavelets(key, coeffs, n: int, *, unbiased: bool = False):
     weighting) and n - n // 2 distinct others uniformly at random. Returns (indices (n,), values
     (n, 3), weights (n,)): weights 1, or with ``unbiased`` (N - n // 2) / (n - n // 2) for the
     uniform half, which makes sum_k w_k L_k T_k an unbiased estimate of the sum over all N
-    wavelets (each of the other wavelets is drawn with that inverse probability)."""
+    wavelets (each of the other wavelets is drawn with that inverse probability).
+
+    Numerics: not differentiable (a random selection of wavelet indices).
+    """
     coeffs = jnp.asarray(coeffs)
     mag = jnp.sqrt(jnp.sum(jnp.square(coeffs), axis=-1))
     half = n // 2
@@ -586,14 +630,29 @@ def training_wavelets(key, coeffs, n: int, *, unbiased: bool = False):
 
 
 def indirect_output(b, nonnegative: bool = True):
-    """The image the method shows: max(B, 0) with ``nonnegative`` (model.nonnegative), else B."""
+    """The image the method shows: max(B, 0) with ``nonnegative`` (model.nonnegative), else B.
+
+    Numerics:
+        b: (32, 3) in [-1e5, 1e5]
+        nonnegative: = True
+        fd: off (max(B, 0) has a kink at 0, drawn)
+        float32: value rtol 0 atol 0; grad rtol 0 atol 0
+    """
     return jnp.maximum(b, 0.0) if nonnegative else b
 
 
 def indirect_loss(pred, target, mu: float, nonnegative: bool = True):
     """The training loss on B (Eq. 8): the mu-law L2 of what the image shows
     (``indirect_output``), plus, with ``nonnegative``, the mu-law square of the clipped negative
-    part (zero where B >= 0), which keeps a gradient on negative predictions."""
+    part (zero where B >= 0), which keeps a gradient on negative predictions.
+
+    Numerics:
+        pred: (32, 3) in [-1e5, 1e5]
+        target: (32, 3) in [0, 1e5]
+        mu: = 10.0
+        fd: off (the clip at B = 0 is a kink, drawn)
+        float32: value rtol 1e-5 atol 1e-12; grad rtol 1e-5 atol 1e-12
+    """
     if not nonnegative:
         return losses.mu_law_l2(pred, target, mu)
     neg = jnp.minimum(pred, 0.0)
@@ -602,7 +661,15 @@ def indirect_loss(pred, target, mu: float, nonnegative: bool = True):
 
 def select_wavelets(light_coeffs, k: int):
     """Algorithm 1, line 3: the ``k`` largest area-weighted coefficients of a (6, n, n, 3)
-    wavelet cube map -> (flat indices (k,), values (k, 3))."""
+    wavelet cube map -> (flat indices (k,), values (k, 3)).
+
+    Numerics:
+        light_coeffs: (6, 4, 4, 3) in [-1e5, 1e5]
+        k: = 8
+        fd: off (the selected set changes where importances tie)
+        float32: value rtol 0 atol 0; grad rtol 0 atol 0
+        (a selection: the values are gathered, exact)
+    """
     return haar.top_k(light_coeffs, int(k), area_weighted=True)
 
 
@@ -610,7 +677,15 @@ def render_pixels(transport_fn: Callable, g: dict, light_coeffs, k: int, *, chun
     """B = sum_{k in K} L_k T_k for P pixels (Algorithm 1, lines 3-10), in chunks of ``chunk``
     pixels so memory stays O(chunk x K x width) (``jax.lax.map``). ``g`` is a dict of (P, ...)
     arrays, ``transport_fn(g_chunk, idx) -> (chunk, K, 3)``. With ``valid`` (P,) a chunk with no
-    valid pixel is skipped (its pixels are 0). Returns (P, 3)."""
+    valid pixel is skipped (its pixels are 0). Returns (P, 3).
+
+    Numerics:
+        case: wavelet_render (exact transport coefficients (P = 8, face size 2) in [-1e3, 1e3], light
+          coefficients in [-1e5, 1e5], K = 8 of 24 wavelets, chunks of 3 pixels)
+        fd: off (the top-K set changes where importances tie)
+        float32: value rtol 1e-5 atol 1e2; grad rtol 1e-5 atol 1e-3
+        (a sum of K = 8 products to 1e8 of both signs: rounding is absolute near zero)
+    """
     idx, vals = select_wavelets(light_coeffs, k)
     p = jax.tree_util.tree_leaves(g)[0].shape[0]
     c = max(1, min(int(chunk), p))
@@ -634,7 +709,10 @@ def render_pixels(transport_fn: Callable, g: dict, light_coeffs, k: int, *, chun
 
 def exact_transport_fn(transport_coeffs):
     """A ``transport_fn`` reading exact transport coefficients (P, 6, n, n, 3) by pixel index
-    (the G-buffer dict must carry "pixel" (P,) int32): for tests and the ground-truth check."""
+    (the G-buffer dict must carry "pixel" (P,) int32): for tests and the ground-truth check.
+
+    Numerics: not differentiable (builds a transport function; covered through ``render_pixels``).
+    """
     t = jnp.asarray(transport_coeffs)
     flat = t.reshape(t.shape[0], -1, 3)
 
@@ -652,6 +730,8 @@ def transport_check(transport, cube, ks=(32, 64, 128, 300), *, chunk: int = 1024
       cube: (6, n, n, 3) environment.
     Returns {"full": (P, 3) sum_t T_t L_t, "wavelet_all": (P, 3) the same through the Haar
     basis with every wavelet, "by_k": {K: (P, 3) with the top-K area-weighted wavelets}}.
+
+    Numerics: not differentiable (a ground-truth check from Mitsuba's transport).
     """
     t = jnp.asarray(transport)
     p, n = t.shape[0], t.shape[2]
@@ -675,7 +755,10 @@ def transport_check(transport, cube, ks=(32, 64, 128, 300), *, chunk: int = 1024
 
 def indirect_baseline_scale(direct, indirect, valid) -> np.ndarray:
     """The best RGB scale c (least squares over valid pixels) of indirect ~ c * direct: the
-    baseline of the acceptance targets."""
+    baseline of the acceptance targets.
+
+    Numerics: not differentiable (a NumPy least-squares baseline).
+    """
     d = np.asarray(direct, np.float64)[np.asarray(valid, bool)]
     i = np.asarray(indirect, np.float64)[np.asarray(valid, bool)]
     return (np.sum(d * i, axis=0) / np.maximum(np.sum(d * d, axis=0), 1e-30)).astype(np.float32)
@@ -701,7 +784,10 @@ def _bbox(data: WaveletData, margin: float = 0.02) -> np.ndarray:
 
 def run_key(config: dict | None = None) -> str:
     """Content hash of everything a trained model depends on (scene, maps, cameras, data, model,
-    training): names checkpoint folders so an interrupted run resumes and a finished one is reused."""
+    training): names checkpoint folders so an interrupted run resumes and a finished one is reused.
+
+    Numerics: not differentiable (a content hash).
+    """
     cfg = _cfg(config)
     return stable_hash({k: cfg[k] for k in ("scene", "envmaps", "cameras", "data", "model", "train")})
 
@@ -710,7 +796,10 @@ def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str |
         log_path: str | None = None, progress: bool = True, stop_after: int | None = None) -> FitResult:
     """Train the transport network on ``data`` (§5) with Adam; resumes bit-identically from
     ``checkpoint_path`` when it exists. Returns ``FitResult(params, info)``, info {"losses",
-    "train_s", "resumed_from", "step"}."""
+    "train_s", "resumed_from", "step"}.
+
+    Numerics: not differentiable (a fitting or training procedure).
+    """
     from jprt.solve.adam import train
     import optax
 
@@ -792,6 +881,8 @@ def evaluator(params, config: dict | None = None):
     Haar transform (Eq. 3), the top-K area-weighted wavelets (K = ``render.k``, the one place K is
     set), T_k of every pixel in chunks of ``render.chunk`` pixels, the dot product. Pixels whose
     primary ray missed are 0. Pure and jitted.
+
+    Numerics: not differentiable (builds the float32 run-time program: ``render_pixels`` of ``model``, covered).
     """
     cfg = _cfg(config)
     m = model(cfg)
@@ -823,7 +914,10 @@ def frame_flops(params, config: dict | None, inputs, lighting) -> float:
     trilinear weights (8 corners x M); per (valid pixel, wavelet) S[x] * W[k], the folded first
     layer (2 M hidden), the other layers with their biases and ReLUs, the output layer and the
     dot product with L_k. Encodings, the Haar transform and the top-K selection are not counted
-    (XLA's cost analysis counts a loop body once, so the method counts for itself)."""
+    (XLA's cost analysis counts a loop body once, so the method counts for itself).
+
+    Numerics: not differentiable (a FLOP count).
+    """
     cfg = _cfg(config)
     mc = cfg["model"]
     k = int(cfg["render"]["k"])
@@ -842,7 +936,10 @@ def frame_flops(params, config: dict | None, inputs, lighting) -> float:
 
 def example(data: WaveletData, config: dict | None = None):
     """A held-out (inputs, lighting) pair: the first far test view's G-buffer under its held-out
-    map (the near views, or a training view, when there is none)."""
+    map (the near views, or a training view, when there is none).
+
+    Numerics: not differentiable (a held-out input and lighting from a dataset).
+    """
     cfg = _cfg(config)
     fields = model(cfg).fields
     for name in ("far", "near"):
