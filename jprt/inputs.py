@@ -21,15 +21,41 @@ from typing import NamedTuple, Union
 import numpy as np
 
 __all__ = ["GBuffer", "Camera", "PointLights", "SpotLights", "DirectionalLights", "EnvMap", "CubeMap",
-           "SHLighting", "PointRadiance", "LightScale", "Lighting", "validate_envmap", "validate_lighting", "vec3"]
+           "SHLighting", "PointRadiance", "LightScale", "Lighting", "validate_envmap", "validate_lighting",
+           "validate_gbuffer", "vec3"]
 
 
-def vec3(v) -> tuple[float, float, float]:
-    """A finite 3-vector as a tuple of floats, or ValueError."""
-    v = np.asarray(v, dtype=np.float64).reshape(-1)
-    if v.shape != (3,) or not np.isfinite(v).all():
-        raise ValueError(f"expected a finite 3-vector, got {v!r}")
-    return (float(v[0]), float(v[1]), float(v[2]))
+def vec3(v, name: str = "vector") -> tuple[float, float, float]:
+    """A finite 3-vector as a tuple of floats, or a one-line ValueError naming ``name``."""
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    if a.shape != (3,) or not np.isfinite(a).all():
+        raise ValueError(f"{name} must be a finite 3-vector, got {_given(v)}")
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def _given(value) -> str:
+    """A short description of what was given: its shape and, when small, its values."""
+    a = np.asarray(value)
+    if a.size <= 4:
+        return repr(a.tolist())
+    return f"an array of shape {a.shape}"
+
+
+def _nonfinite(name: str, a: np.ndarray) -> None:
+    """One-line ValueError naming ``name`` and the first non-finite entry."""
+    bad = ~np.isfinite(a)
+    if bad.any():
+        where = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(f"{name} must be finite, got {int(bad.sum())} NaN/inf entries (first at {where}: "
+                         f"{a[where]})")
+
+
+def _nonnegative(name: str, a: np.ndarray, signed: bool) -> None:
+    """One-line ValueError naming ``name`` unless every entry is >= 0 (or ``signed`` is asked for)."""
+    if not signed and (a < 0).any():
+        where = tuple(int(i) for i in np.argwhere(a < 0)[0])
+        raise ValueError(f"{name} must be >= 0 (pass signed=True for signed lighting), got "
+                         f"{int((a < 0).sum())} negative entries (first at {where}: {a[where]})")
 
 
 class GBuffer(NamedTuple):
@@ -91,18 +117,12 @@ class PointLights(NamedTuple):
     intensity: np.ndarray
 
     @classmethod
-    def create(cls, position, intensity) -> "PointLights":
-        """Validated constructor: accepts one light ((3,) arrays) or K lights ((K, 3))."""
-        position = np.atleast_2d(np.asarray(position, np.float32))
-        intensity = np.atleast_2d(np.asarray(intensity, np.float32))
-        if intensity.shape[0] == 1 and position.shape[0] > 1:
-            intensity = np.repeat(intensity, position.shape[0], axis=0)
-        if position.ndim != 2 or position.shape[1] != 3 or intensity.shape != position.shape:
-            raise ValueError(
-                f"point lights need position (K, 3) and intensity (K, 3); got {position.shape} and {intensity.shape}"
-            )
-        if not (np.isfinite(position).all() and np.isfinite(intensity).all()):
-            raise ValueError("point light position or intensity contains NaN or inf")
+    def create(cls, position, intensity, *, signed: bool = False) -> "PointLights":
+        """Validated constructor: accepts one light ((3,) arrays) or K lights ((K, 3)); finite
+        values, intensities >= 0 unless ``signed`` (a signed basis light)."""
+        position = _rows("point light position", position, None, 3)
+        intensity = _rows("point light intensity", intensity, position.shape[0], 3)
+        _nonnegative("point light intensity", intensity, signed)
         return cls(position, intensity)
 
     @property
@@ -117,11 +137,11 @@ def _rows(name: str, value, k: int | None, width: int | None) -> np.ndarray:
     a = np.atleast_2d(a) if width is not None else np.atleast_1d(a)
     if k is not None and a.shape[0] == 1 and k > 1:
         a = np.repeat(a, k, axis=0)
-    if (width is not None and (a.ndim != 2 or a.shape[1] != width)) or (k is not None and a.shape[0] != k):
+    if (width is not None and (a.ndim != 2 or a.shape[1] != width)) or (k is not None and a.shape[0] != k) or \
+            (width is None and a.ndim != 1):
         want = f"({k if k is not None else 'K'}{', ' + str(width) if width is not None else ''})"
-        raise ValueError(f"{name} must have shape {want}, got {np.shape(value)}")
-    if not np.isfinite(a).all():
-        raise ValueError(f"{name} contains NaN or inf")
+        raise ValueError(f"{name} must have shape {want}, got shape {np.shape(value)}")
+    _nonfinite(name, a)
     return a
 
 
@@ -144,17 +164,18 @@ class SpotLights(NamedTuple):
     beam_deg: np.ndarray
 
     @classmethod
-    def create(cls, position, target, intensity, cutoff_deg=30.0, beam_deg=None) -> "SpotLights":
+    def create(cls, position, target, intensity, cutoff_deg=30.0, beam_deg=None, *, signed: bool = False) -> "SpotLights":
         """Validated constructor; one light may be given as (3,) arrays. ``beam_deg`` defaults to
-        three quarters of ``cutoff_deg``."""
+        three quarters of ``cutoff_deg``; intensities >= 0 unless ``signed``."""
         position = _rows("spot position", position, None, 3)
         k = position.shape[0]
         target = _rows("spot target", target, k, 3)
         intensity = _rows("spot intensity", intensity, k, 3)
+        _nonnegative("spot intensity", intensity, signed)
         cutoff = _rows("spot cutoff_deg", cutoff_deg, k, None)
         beam = _rows("spot beam_deg", 0.75 * cutoff if beam_deg is None else beam_deg, k, None)
         if np.any(np.linalg.norm(target - position, axis=1) < 1e-6):
-            raise ValueError("spot light target coincides with its position (no axis direction)")
+            raise ValueError("spot target must differ from its position (the axis direction), got the same point")
         if np.any((cutoff <= 0) | (cutoff > 90)) or np.any((beam <= 0) | (beam > cutoff)):
             raise ValueError(f"spot angles need 0 < beam_deg <= cutoff_deg <= 90, got beam {beam} and cutoff {cutoff}")
         return cls(position, target, intensity, cutoff, beam)
@@ -177,13 +198,15 @@ class DirectionalLights(NamedTuple):
     irradiance: np.ndarray
 
     @classmethod
-    def create(cls, direction, irradiance) -> "DirectionalLights":
-        """Validated constructor; one light may be given as (3,) arrays; directions are normalised."""
+    def create(cls, direction, irradiance, *, signed: bool = False) -> "DirectionalLights":
+        """Validated constructor; one light may be given as (3,) arrays; directions are normalised;
+        irradiance >= 0 unless ``signed``."""
         direction = _rows("directional light direction", direction, None, 3)
         norm = np.linalg.norm(direction, axis=1, keepdims=True)
         if np.any(norm < 1e-12):
-            raise ValueError("directional light direction has zero length")
+            raise ValueError("directional light direction must be non-zero, got a zero vector")
         irradiance = _rows("directional light irradiance", irradiance, direction.shape[0], 3)
+        _nonnegative("directional light irradiance", irradiance, signed)
         return cls((direction / norm).astype(np.float32), irradiance)
 
     @property
@@ -202,9 +225,9 @@ class EnvMap(NamedTuple):
     radiance: np.ndarray
 
     @classmethod
-    def create(cls, radiance) -> "EnvMap":
-        """Validated constructor (finite values, (H, W, 3) with H, W >= 2)."""
-        return cls(validate_envmap(radiance))
+    def create(cls, radiance, *, signed: bool = False) -> "EnvMap":
+        """Validated constructor (finite values, (H, W, 3) with H, W >= 2, >= 0 unless ``signed``)."""
+        return cls(validate_envmap(radiance, signed=signed))
 
     @classmethod
     def from_file(cls, path: str) -> "EnvMap":
@@ -233,6 +256,16 @@ class CubeMap(NamedTuple):
 
     radiance: np.ndarray
 
+    @classmethod
+    def create(cls, radiance, *, signed: bool = False) -> "CubeMap":
+        """Validated constructor: (6, n, n, 3), finite, >= 0 unless ``signed``."""
+        a = np.asarray(radiance, np.float32)
+        if a.ndim != 4 or a.shape[0] != 6 or a.shape[1] != a.shape[2] or a.shape[1] < 1 or a.shape[3] != 3:
+            raise ValueError(f"cube map radiance must have shape (6, n, n, 3), got shape {a.shape}")
+        _nonfinite("cube map radiance", a)
+        _nonnegative("cube map radiance", a, signed)
+        return cls(a)
+
 
 class SHLighting(NamedTuple):
     """Distant lighting as real spherical-harmonic coefficients (``jprt.sphere.sh`` order).
@@ -242,6 +275,16 @@ class SHLighting(NamedTuple):
     """
 
     coefficients: np.ndarray
+
+    @classmethod
+    def create(cls, coefficients) -> "SHLighting":
+        """Validated constructor: ((degree + 1)^2, 3), finite (SH coefficients are signed)."""
+        a = np.asarray(coefficients, np.float32)
+        n = a.shape[0] if a.ndim == 2 else 0
+        if a.ndim != 2 or a.shape[1] != 3 or n < 1 or int(round(np.sqrt(n))) ** 2 != n:
+            raise ValueError(f"SH lighting coefficients must have shape ((degree + 1)^2, 3), got shape {a.shape}")
+        _nonfinite("SH lighting coefficients", a)
+        return cls(a)
 
 
 class PointRadiance(NamedTuple):
@@ -253,6 +296,16 @@ class PointRadiance(NamedTuple):
     """
 
     direct: np.ndarray
+
+    @classmethod
+    def create(cls, direct, *, signed: bool = False) -> "PointRadiance":
+        """Validated constructor: (S, 3), finite, >= 0 unless ``signed``."""
+        a = np.asarray(direct, np.float32)
+        if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < 1:
+            raise ValueError(f"point radiance direct must have shape (S, 3), got shape {a.shape}")
+        _nonfinite("point radiance direct", a)
+        _nonnegative("point radiance direct", a, signed)
+        return cls(a)
 
 
 class LightScale(NamedTuple):
@@ -266,37 +319,91 @@ class LightScale(NamedTuple):
 
     scale: np.ndarray
 
+    @classmethod
+    def create(cls, scale) -> "LightScale":
+        """Validated constructor: (3,), finite, >= 0."""
+        a = np.asarray(scale, np.float32)
+        if a.shape != (3,):
+            raise ValueError(f"light scale must have shape (3,), got {_given(scale)}")
+        _nonfinite("light scale", a)
+        _nonnegative("light scale", a, False)
+        return cls(a)
+
 
 Lighting = Union[PointLights, SpotLights, DirectionalLights, EnvMap, None]
 
 
-def validate_envmap(radiance) -> np.ndarray:
-    """Return ``radiance`` as a float32 (H, W, 3) array, or raise a one-line ValueError."""
+def validate_envmap(radiance, *, signed: bool = False) -> np.ndarray:
+    """Return ``radiance`` as a float32 (H, W, 3) array, or raise a one-line ValueError (shape,
+    finite values, >= 0 unless ``signed``)."""
     radiance = np.asarray(radiance, dtype=np.float32)
     if radiance.ndim != 3 or radiance.shape[2] != 3 or radiance.shape[0] < 2 or radiance.shape[1] < 2:
-        raise ValueError(f"environment map must be (H, W, 3) with H, W >= 2, got shape {radiance.shape}")
-    bad = ~np.isfinite(radiance)
-    if bad.any():
-        i, j, _ = np.argwhere(bad)[0]
-        raise ValueError(
-            f"environment map contains {int(bad.any(axis=2).sum())} non-finite texels (first at row {i}, column {j})"
-        )
+        raise ValueError(f"environment map radiance must have shape (H, W, 3) with H, W >= 2, got shape "
+                         f"{radiance.shape}")
+    _nonfinite("environment map radiance", radiance)
+    _nonnegative("environment map radiance", radiance, signed)
     return radiance
 
 
-def validate_lighting(lighting: Lighting) -> Lighting:
-    """Return ``lighting`` re-validated (finite values, right shapes), or raise ValueError."""
+def validate_lighting(lighting, *, signed: bool = False, expected: type | None = None):
+    """Return ``lighting`` re-validated (finite values, right shapes, non-negative unless
+    ``signed``), or raise a one-line ValueError; TypeError when it is not of the ``expected``
+    type (a method's ``Method.lighting``)."""
+    if expected is not None and lighting is not None and not isinstance(lighting, expected):
+        raise TypeError(f"lighting must be {expected.__name__}, got {type(lighting).__name__}")
     if lighting is None:
         return None
     if isinstance(lighting, PointLights):
-        return PointLights.create(lighting.position, lighting.intensity)
+        return PointLights.create(lighting.position, lighting.intensity, signed=signed)
     if isinstance(lighting, SpotLights):
-        return SpotLights.create(*lighting)
+        return SpotLights.create(*lighting, signed=signed)
     if isinstance(lighting, DirectionalLights):
-        return DirectionalLights.create(*lighting)
+        return DirectionalLights.create(*lighting, signed=signed)
     if isinstance(lighting, EnvMap):
-        return EnvMap.create(lighting.radiance)
-    raise TypeError(f"unknown lighting type {type(lighting).__name__}")
+        return EnvMap.create(lighting.radiance, signed=signed)
+    if isinstance(lighting, CubeMap):
+        return CubeMap.create(lighting.radiance, signed=signed)
+    if isinstance(lighting, SHLighting):
+        return SHLighting.create(lighting.coefficients)
+    if isinstance(lighting, PointRadiance):
+        return PointRadiance.create(lighting.direct, signed=signed)
+    if isinstance(lighting, LightScale):
+        return LightScale.create(lighting.scale)
+    raise TypeError(f"lighting must be one of jprt.inputs' lighting types, got {type(lighting).__name__}")
+
+
+def validate_gbuffer(gbuffer: "GBuffer") -> "GBuffer":
+    """Return ``gbuffer`` checked, or raise a one-line ValueError naming the field: every field
+    (H, W, ...) with the same H, W and its documented trailing shape; at valid pixels positions,
+    normals, views, albedos and roughness finite, normals and views unit (within 1e-3) or zero
+    (a lightmap atlas's G-buffer has no directions), roughness in [0, 1], albedos >= 0."""
+    if not isinstance(gbuffer, GBuffer):
+        raise TypeError(f"inputs must be a GBuffer, got {type(gbuffer).__name__}")
+    valid = np.asarray(gbuffer.valid)
+    if valid.ndim != 2:
+        raise ValueError(f"G-buffer valid must have shape (H, W), got shape {valid.shape}")
+    h, w = valid.shape
+    tails = {"position": (3,), "normal": (3,), "view": (3,), "reflected": (3,), "uv": (2,), "diffuse_albedo": (3,),
+             "specular_albedo": (3,), "roughness": (), "object_id": ()}
+    for name, tail in tails.items():
+        shape = np.shape(getattr(gbuffer, name))
+        if shape != (h, w) + tail:
+            raise ValueError(f"G-buffer {name} must have shape {(h, w) + tail} (as valid), got shape {shape}")
+    v = valid.astype(bool)
+    for name in ("position", "normal", "view", "diffuse_albedo", "specular_albedo", "roughness"):
+        _nonfinite(f"G-buffer {name} at valid pixels", np.asarray(getattr(gbuffer, name))[v])
+    for name in ("normal", "view"):
+        length = np.linalg.norm(np.asarray(getattr(gbuffer, name), np.float64)[v], axis=-1)
+        length = length[length > 0]  # zero: a lightmap atlas's G-buffer carries no directions
+        if length.size and np.max(np.abs(length - 1.0)) > 1e-3:
+            raise ValueError(f"G-buffer {name} must be unit vectors at valid pixels, got lengths from "
+                             f"{length.min():.6g} to {length.max():.6g}")
+    rough = np.asarray(gbuffer.roughness)[v]
+    if rough.size and (rough.min() < 0 or rough.max() > 1):
+        raise ValueError(f"G-buffer roughness must be in [0, 1] at valid pixels, got {rough.min():.6g} to {rough.max():.6g}")
+    for name in ("diffuse_albedo", "specular_albedo"):
+        _nonnegative(f"G-buffer {name} at valid pixels", np.asarray(getattr(gbuffer, name))[v], False)
+    return gbuffer
 
 
 

@@ -87,7 +87,40 @@ class Method(NamedTuple):
         """The method of a package laid out as DESIGN.md says: ``model.DEFAULT_CONFIG``,
         ``data.make_dataset``, ``model.fit`` (or ``fit``), ``model.evaluator``, ``model.example``."""
         return cls(name, paper, lighting, model.DEFAULT_CONFIG, presets, data.make_dataset, fit or model.fit,
-                   model.evaluator, model.example, getattr(model, "frame_flops", None))
+                   checked_evaluator(model.evaluator, lighting), model.example, getattr(model, "frame_flops", None))
+
+
+def checked_evaluator(evaluator: Callable, lighting: type) -> Callable:
+    """``evaluator`` whose functions validate concrete arguments once, at the method's entry: a
+    lighting of a ``jprt.inputs`` type must be the method's (``lighting``) and valid
+    (``jprt.inputs.validate_lighting``: shapes, finite, non-negative), a ``GBuffer`` valid
+    (``jprt.inputs.validate_gbuffer``). Traced calls (under ``jax.jit``, ``vmap``, export) skip
+    the checks, so the timed program is the evaluator's alone; raw arrays where a method accepts
+    them pass through to the method's own checks."""
+    import functools
+
+    from jprt import inputs as jin
+
+    types = tuple(t for t in vars(jin).values() if isinstance(t, type) and issubclass(t, tuple)
+                  and t.__module__ == jin.__name__ and t not in (jin.GBuffer, jin.Camera))
+
+    @functools.wraps(evaluator)
+    def make(params, config=None, **kwargs):
+        evaluate = evaluator(params, config, **kwargs)
+
+        @functools.wraps(evaluate)
+        def checked(inputs, lighting):
+            if not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((inputs, lighting))):
+                if isinstance(lighting, types):
+                    jin.validate_lighting(lighting, expected=lighting_type)
+                if isinstance(inputs, jin.GBuffer):
+                    jin.validate_gbuffer(inputs)
+            return evaluate(inputs, lighting)
+
+        return checked
+
+    lighting_type = lighting
+    return make
 
 
 def resolve(default_config: Mapping, config: Mapping | None = None) -> dict:

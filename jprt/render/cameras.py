@@ -17,16 +17,18 @@ __all__ = ["Camera", "look_at", "orbit", "helix", "random_in_box", "to_sensor_di
 
 def look_at(origin, target, up=(0.0, 1.0, 0.0), *, fov: float = 39.3077, width: int = 256, height: int = 256) -> Camera:
     """Validated ``Camera`` constructor."""
-    origin, target, up = _vec3(origin), _vec3(target), _vec3(up)
+    origin, target, up = _vec3(origin, "camera origin"), _vec3(target, "camera target"), _vec3(up, "camera up")
     forward = np.subtract(target, origin)
     if np.linalg.norm(forward) == 0:
-        raise ValueError("camera origin and target coincide")
+        raise ValueError(f"camera target must differ from its origin, got both {list(origin)}")
     if np.linalg.norm(np.cross(forward, up)) < 1e-9 * np.linalg.norm(forward) * max(np.linalg.norm(up), 1e-30):
-        raise ValueError("camera up vector is parallel to the viewing direction")
-    if not (0 < fov < 180):
-        raise ValueError(f"fov must be in (0, 180) degrees, got {fov}")
-    if int(width) <= 0 or int(height) <= 0:
-        raise ValueError(f"image size must be positive, got {width}x{height}")
+        raise ValueError(f"camera up must not be parallel to the view direction, got up {list(up)} and view "
+                         f"{forward.tolist()}")
+    if not (np.isfinite(fov) and 0 < fov < 180):
+        raise ValueError(f"camera fov must be in (0, 180) degrees, got {fov!r}")
+    for name, v in (("width", width), ("height", height)):
+        if int(v) != v or int(v) < 1:
+            raise ValueError(f"camera {name} must be an integer >= 1, got {v!r}")
     return Camera(origin, target, up, float(fov), int(width), int(height))
 
 

@@ -93,7 +93,7 @@ def test_bad_input_writes_nothing(tmp_path, mi):
         render_dataset(str(tmp_path / "missing.xml"), CAMERAS, LIGHTS, spp=1, cache_dir=str(cache), progress=False)
     bad = np.ones((4, 8, 3), np.float32)
     bad[1, 2, 0] = np.nan
-    with pytest.raises(ValueError, match="non-finite"):
+    with pytest.raises(ValueError, match="must be finite"):
         render_dataset(SCENE, CAMERAS, [EnvMap(bad)], spp=1, cache_dir=str(cache), progress=False)
     with pytest.raises(ValueError, match="zip"):
         render_dataset(SCENE, CAMERAS, LIGHTS[:1], spp=1, pairs="zip", cache_dir=str(cache), progress=False)

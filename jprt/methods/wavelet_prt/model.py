@@ -223,7 +223,9 @@ def prepare_environment(equirect, face_size: int, *, normalise: bool = True) -> 
 
     Numerics: not differentiable (NumPy resampling of a map, through ``jprt.sphere.cubemap``).
     """
-    e = _downsample_equirect(np.asarray(equirect, np.float32), max(8, 4 * face_size))
+    from jprt.inputs import validate_envmap
+
+    e = _downsample_equirect(validate_envmap(equirect), max(8, 4 * face_size))
     cube = np.asarray(cubemap.equirect_to_cubemap(jnp.asarray(e), face_size), np.float32)
     cube = np.maximum(cube, 0.0)
     if normalise:

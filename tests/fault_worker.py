@@ -1,0 +1,54 @@
+"""The work the fault tests (``test_faults.py``) kill with SIGKILL and restart, run as
+``python -m tests.fault_worker KIND ARGS``:
+
+* ``render CACHE [DELAY]``: the dataset of ``tests/render/test_dataset.py`` with more views and
+  lights (16 entries), sleeping DELAY seconds after each entry (a window to kill in);
+* ``train CHECKPOINT OUT``: the tiny neural-wavelet model of ``tests/methods/test_wavelet_prt.py``
+  trained by Adam with a checkpoint every 25 steps; its final params go to OUT and the run's
+  ``resumed_from`` / ``step`` / number of losses to stdout as JSON;
+* ``sweep FOLDER``: the sweep of ``tests/test_sweep.py``.
+"""
+
+import json
+import sys
+import time
+
+
+def render(cache: str, delay: float = 0.0):
+    from jprt.render import cameras
+    from jprt.render.dataset import render_dataset
+    from jprt.render.lights import PointLights
+    from jprt.render.scenes import cornell_box
+
+    views = [cameras.look_at((x, 0, 3.9), (0, 0, 0), width=8, height=8) for x in (-0.3, -0.1, 0.1, 0.3)]
+    lights = [PointLights.create([x, 0.6, 0], [2, 2, 2]) for x in (-0.3, -0.1, 0.1, 0.3)]
+    ds = render_dataset(cornell_box(area_light=False), views, lights, spp=4, seed=7, cache_dir=cache, progress=False,
+                        on_entry=(lambda name: time.sleep(delay)) if delay else None)
+    print(json.dumps(ds.stats))
+    return ds
+
+
+TRAIN = {"steps": 1000, "checkpoint_every": 25, "log_every": 25}
+
+
+def train(checkpoint: str, out: str):
+    from jprt import io
+    from jprt.methods.wavelet_prt import model as wp
+    from tests.methods.test_wavelet_prt import TINY, _fake_data
+
+    cfg = dict(TINY, train=dict(TINY["train"], **TRAIN))
+    result = wp.fit(_fake_data(n=4), cfg, checkpoint_path=checkpoint, progress=False)
+    io.save_checkpoint(out, result.params)
+    print(json.dumps({"resumed_from": result.info.get("resumed_from", 0), "step": result.info["step"],
+                      "losses": len(result.info["losses"])}))
+    return result
+
+
+if __name__ == "__main__":
+    kind, *args = sys.argv[1:]
+    if kind == "render":
+        render(args[0], float(args[1]) if len(args) > 1 else 0.0)
+    elif kind == "train":
+        train(*args)
+    else:
+        raise SystemExit(f"unknown work {kind!r}")
