@@ -8,6 +8,7 @@ one, never half of one, and an interrupted write leaves at most a ``*.tmp`` file
 from __future__ import annotations
 
 import contextlib
+import errno
 import io as _io
 import json
 import os
@@ -27,6 +28,7 @@ __all__ = [
     "preview_pixels",
     "save_checkpoint",
     "load_checkpoint",
+    "CorruptCheckpoint",
 ]
 
 
@@ -46,9 +48,12 @@ def atomic_path(path: str, suffix: str = "") -> Iterator[str]:
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EFBIG, errno.EDQUOT):
+            raise OSError(e.errno, f"cannot write {path}: {e.strerror} (disk full or a file-size limit); the "
+                                   f"partial file was removed, so no later run reads it") from e
         raise
 
 
@@ -198,11 +203,16 @@ def save_checkpoint(path: str, tree: Any, *, step: int | None = None, meta: dict
             np.savez(f, **arrays)
 
 
+class CorruptCheckpoint(ValueError):
+    """A checkpoint file that cannot be read (truncated, bit-flipped, not a checkpoint)."""
+
+
 def load_checkpoint(path: str, like: Any) -> tuple[Any, int | None, dict]:
     """Load a checkpoint written by ``save_checkpoint`` into the structure of ``like``.
 
-    Returns (tree, step, meta). Raises ValueError when the stored tree paths, shapes or dtypes
-    differ from ``like``'s (a checkpoint from a different model or config).
+    Returns (tree, step, meta). Raises ``CorruptCheckpoint`` (a ValueError) when the file cannot
+    be read, ValueError when the stored tree paths, shapes or dtypes differ from ``like``'s (a
+    checkpoint from a different model or config).
     """
     import jax
 
@@ -211,9 +221,9 @@ def load_checkpoint(path: str, like: Any) -> tuple[Any, int | None, dict]:
     try:
         with np.load(path, allow_pickle=False) as data:
             stored = {k: data[k] for k in data.files}
-    except Exception as e:
-        raise ValueError(f"cannot read checkpoint {path}: {e}") from None
-    header = json.loads(bytes(stored.pop("__jprt_checkpoint__")).decode())
+        header = json.loads(bytes(stored.pop("__jprt_checkpoint__")).decode())
+    except Exception as e:  # truncated, bit-flipped (the zip's CRC-32), or not a checkpoint at all
+        raise CorruptCheckpoint(f"cannot read checkpoint {path}: {e}") from None
     leaves_with_path, treedef = jax.tree_util.tree_flatten_with_path(like)
     keys = sorted(stored)
     if len(keys) != len(leaves_with_path):

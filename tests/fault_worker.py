@@ -6,7 +6,8 @@
 * ``train CHECKPOINT OUT``: the tiny neural-wavelet model of ``tests/methods/test_wavelet_prt.py``
   trained by Adam with a checkpoint every 25 steps; its final params go to OUT and the run's
   ``resumed_from`` / ``step`` / number of losses to stdout as JSON;
-* ``sweep FOLDER``: the sweep of ``tests/test_sweep.py``.
+* ``render-limited CACHE LIMIT``: ``render`` under a file-size limit of LIMIT bytes (set here, in
+  the worker: a fork of the multithreaded test process to set it could deadlock).
 """
 
 import json
@@ -28,7 +29,7 @@ def render(cache: str, delay: float = 0.0):
     return ds
 
 
-TRAIN = {"steps": 1000, "checkpoint_every": 25, "log_every": 25}
+TRAIN = {"steps": 120, "checkpoint_every": 10, "log_every": 10}
 
 
 def train(checkpoint: str, out: str):
@@ -48,6 +49,13 @@ if __name__ == "__main__":
     kind, *args = sys.argv[1:]
     if kind == "render":
         render(args[0], float(args[1]) if len(args) > 1 else 0.0)
+    elif kind == "render-limited":
+        import resource
+        import signal
+
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit then fails with EFBIG
+        resource.setrlimit(resource.RLIMIT_FSIZE, (int(args[1]), int(args[1])))
+        render(args[0])
     elif kind == "train":
         train(*args)
     else:

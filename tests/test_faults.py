@@ -11,15 +11,26 @@ import subprocess
 import sys
 import time
 
+import jax
 import numpy as np
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+def _env():
+    """The worker's environment: this session's XLA compilation cache (tests/conftest.py), so the
+    killed run, the resumed run and this process compile the training step once between them."""
+    env = dict(os.environ)
+    if jax.config.jax_compilation_cache_dir:
+        env["JAX_COMPILATION_CACHE_DIR"] = jax.config.jax_compilation_cache_dir
+        env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = str(jax.config.jax_persistent_cache_min_compile_time_secs)
+    return env
+
+
 def _start(*args):
     return subprocess.Popen([sys.executable, "-m", "tests.fault_worker", *map(str, args)], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
 
 
 def _kill_when(proc, ready, timeout_s=120.0):
@@ -40,7 +51,7 @@ def _kill_when(proc, ready, timeout_s=120.0):
 
 def _run(*args):
     done = subprocess.run([sys.executable, "-m", "tests.fault_worker", *map(str, args)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=600)
+                          capture_output=True, text=True, timeout=600, env=_env())
     assert done.returncode == 0, done.stderr[-3000:]
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -84,9 +95,72 @@ def test_a_killed_adam_training_resumes_bit_identically(tmp_path):
     # no step before the last checkpoint is repeated: the run starts where the checkpoint ends
     assert info["resumed_from"] == step_at_kill and info["step"] == fault_worker.TRAIN["steps"]
     assert info["losses"] == fault_worker.TRAIN["steps"] - step_at_kill
-    whole = _run("train", tmp_path / "whole.npz", tmp_path / "whole_out.npz")
-    assert whole["resumed_from"] == 0
+    # the uninterrupted run, in this process: equal bits across processes too
+    fault_worker.train(str(tmp_path / "whole.npz"), str(tmp_path / "whole_out.npz"))
     a, b = _checkpoint(tmp_path / "resumed.npz")[0], _checkpoint(tmp_path / "whole_out.npz")[0]
     assert a.keys() == b.keys() and a
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip_byte"])
+def test_a_damaged_checkpoint_is_detected_and_training_rebuilt(tmp_path, damage):
+    """A truncated or bit-flipped checkpoint is not resumed from: a warning, the file kept aside
+    as .corrupt, and training from step 0 (bit-identical to a run that never had it)."""
+    from jprt.methods.wavelet_prt import model as wp
+    from tests.methods.test_wavelet_prt import TINY, _fake_data
+
+    data = _fake_data(n=4)
+    path = tmp_path / "ckpt.npz"
+    wp.fit(data, TINY, checkpoint_path=str(path), progress=False, stop_after=4)
+    raw = bytearray(path.read_bytes())
+    if damage == "truncate":
+        raw = raw[: len(raw) // 2]
+    else:
+        raw[len(raw) // 3] ^= 0x40  # inside the arrays: the zip's CRC-32 no longer matches
+    path.write_bytes(bytes(raw))
+    with pytest.warns(UserWarning, match="cannot read checkpoint"):
+        rebuilt = wp.fit(data, TINY, checkpoint_path=str(path), progress=False)
+    assert rebuilt.info["resumed_from"] == 0 and (tmp_path / "ckpt.npz.corrupt").exists()
+    whole = wp.fit(data, TINY, progress=False)
+    for a, b in zip(jax.tree_util.tree_leaves(rebuilt.params), jax.tree_util.tree_leaves(whole.params)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.mitsuba
+def test_a_full_disk_fails_clearly_and_leaves_no_entry_a_later_run_trusts(tmp_path, mi):
+    from jprt.cache import entry_state
+    from tests import fault_worker
+
+    cache = tmp_path / "cache"
+    done = subprocess.run([sys.executable, "-m", "tests.fault_worker", "render-limited", str(cache), "3000"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode != 0
+    assert "disk full or a file-size limit" in done.stderr and "File too large" in done.stderr, done.stderr[-2000:]
+    folder = glob.glob(str(cache / "datasets" / "*"))
+    assert folder and not glob.glob(folder[0] + "/*.tmp") and not glob.glob(folder[0] + "/.*.tmp")
+    for entry in glob.glob(folder[0] + "/*.npz"):
+        assert entry_state(entry) in ("ok", "missing"), entry  # a checksum only ever for a whole file
+    resumed = fault_worker.render(str(cache))
+    assert resumed.stats["corrupt"] == 0 and resumed.stats["rendered"] + resumed.stats["cached"] == 24
+    fresh = fault_worker.render(str(tmp_path / "fresh"))
+    np.testing.assert_allclose(resumed.stacked("indirect"), fresh.stacked("indirect"), rtol=1e-6, atol=1e-7)
+
+
+def test_training_on_a_1e5_sun_and_a_near_black_map_stays_finite():
+    """Extreme data: one map holding a texel of radiance 1e5 (its images 1e3 x brighter), one
+    1e-8 x dimmer than the rest: the loss is finite at every step, the parameters too."""
+    from jprt.methods.wavelet_prt import model as wp
+    from tests.methods.test_wavelet_prt import TINY, _fake_data
+
+    data = _fake_data(n=4)
+    envs = np.array(data.envs)
+    envs[0, 2, 1, 1] = 1e5  # a sun in one texel of the first map
+    envs[1] *= 1e-8  # a near-black second map
+    train = dict(data.train)
+    train["indirect"] = train["indirect"] * np.array([1e3, 1e-8, 1.0], np.float32)[:, None, None, None, None]
+    train["direct"] = train["direct"] * np.array([1e3, 1e-8, 1.0], np.float32)[:, None, None, None, None]
+    extreme = data._replace(train=train, envs=envs)
+    result = wp.fit(extreme, dict(TINY, train=dict(TINY["train"], steps=24)), progress=False)
+    assert np.all(np.isfinite(result.info["losses"])) and len(result.info["losses"]) == 24
+    assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in jax.tree_util.tree_leaves(result.params))

@@ -20,6 +20,7 @@ import json
 import os
 import sys
 import time
+import warnings
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -72,7 +73,7 @@ def train(loss_fn: Callable, params, sampler: Callable, *, key, steps: int, lear
     import optax
     from tqdm import tqdm
 
-    from jprt.io import load_checkpoint, save_checkpoint
+    from jprt.io import CorruptCheckpoint, load_checkpoint, save_checkpoint
 
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")
@@ -80,9 +81,16 @@ def train(loss_fn: Callable, params, sampler: Callable, *, key, steps: int, lear
     state = TrainState(params, optimizer.init(params), jnp.zeros((), jnp.int32))
     resumed_from = 0
     if checkpoint_path and os.path.exists(checkpoint_path):
-        state, _, _ = load_checkpoint(checkpoint_path, like=state)
-        state = TrainState(*state)
-        resumed_from = int(state.step)
+        try:
+            loaded, _, _ = load_checkpoint(checkpoint_path, like=state)
+        except CorruptCheckpoint as e:
+            # detected (truncated or bit-flipped), kept aside for inspection, and rebuilt: training
+            # starts over rather than from damaged state
+            os.replace(checkpoint_path, checkpoint_path + ".corrupt")
+            warnings.warn(f"{e}; moved to {checkpoint_path}.corrupt, training from step 0", stacklevel=2)
+        else:
+            state = TrainState(*loaded)
+            resumed_from = int(state.step)
 
     @jax.jit
     def step_fn(state: TrainState, data):

@@ -119,6 +119,17 @@ def test_ill_conditioned_problems_never_return_nan():
     assert np.isfinite(float(result.loss)) and float(result.loss) <= float(start.history[0])
 
 
+def test_residuals_that_overflow_float32_never_return_nan():
+    """Targets of 1e20 (squared residuals overflow float32 to inf) on a rank-deficient problem:
+    the steps that come out non-finite are rejected, the parameters stay finite."""
+    params, data = problem(64)
+    x = np.repeat(data["x"][:4], 16, axis=0)
+    x[:, 2] = 0.0
+    data = {"x": x, "y": 1e20 * smooth_target(x)}
+    result = lm.solve(residual, params, data, settings=lm.LMSettings(max_iters=10))
+    assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree_util.tree_leaves(result.params))
+
+
 @pytest.mark.slow  # ~7 s: importing and compiling the archived jaxopt (the comparison backend)
 def test_jaxopt_backend_runs_the_same_problem():
     params, data = problem(300)
