@@ -6,6 +6,8 @@
 * ``train CHECKPOINT OUT``: the tiny neural-wavelet model of ``tests/methods/test_wavelet_prt.py``
   trained by Adam with a checkpoint every 25 steps; its final params go to OUT and the run's
   ``resumed_from`` / ``step`` / number of losses to stdout as JSON;
+* ``sweep OUT [DELAY]``: the fake method's 2 x 2 sweep of ``tests/test_sweep.py`` into OUT,
+  sleeping DELAY seconds after each point; prints its counts;
 * ``render-limited CACHE LIMIT``: ``render`` under a file-size limit of LIMIT bytes (set here, in
   the worker: a fork of the multithreaded test process to set it could deadlock).
 """
@@ -45,10 +47,40 @@ def train(checkpoint: str, out: str):
     return result
 
 
+GRID = {"model.bias": [0.0, 0.02], "data.n": [2, 3]}
+
+
+def sweep(out: str, delay: float = 0.0):
+    import os
+    import types
+
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import fake_method
+
+    from jprt import runner
+    from jprt import sweep as jsweep
+    from jprt.methods import REGISTRY
+
+    REGISTRY.setdefault("fake", fake_method.make_fake_method())
+    experiment = types.SimpleNamespace(METHOD="fake", CONFIG=fake_method.config(out), held_out=fake_method.held_out,
+                                       pathtracer=fake_method.pathtracer)
+
+    def slow(module, cfg):
+        summary = runner.run(module, cfg)
+        time.sleep(delay)
+        return summary
+
+    record = jsweep.run_sweep(experiment, experiment.CONFIG, GRID, run=slow, progress=False)
+    print(json.dumps(record["counts"]))
+    return record
+
+
 if __name__ == "__main__":
     kind, *args = sys.argv[1:]
     if kind == "render":
         render(args[0], float(args[1]) if len(args) > 1 else 0.0)
+    elif kind == "sweep":
+        sweep(args[0], float(args[1]) if len(args) > 1 else 0.0)
     elif kind == "render-limited":
         import resource
         import signal
