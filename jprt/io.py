@@ -12,6 +12,7 @@ import errno
 import io as _io
 import json
 import os
+import re
 import tempfile
 from typing import Any, Iterator, Sequence
 
@@ -28,6 +29,7 @@ __all__ = [
     "preview_pixels",
     "save_checkpoint",
     "load_checkpoint",
+    "load_tree",
     "CorruptCheckpoint",
 ]
 
@@ -201,6 +203,42 @@ def save_checkpoint(path: str, tree: Any, *, step: int | None = None, meta: dict
     with atomic_path(path, suffix=".npz") as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
+
+
+_KEY = re.compile(r"\['((?:[^'\\]|\\.)*)'\]|\[(\d+)\]|\.(\w+)")
+
+
+def load_tree(path: str) -> tuple[Any, int | None, dict]:
+    """(tree, step, meta) of a ``save_checkpoint`` file, the tree rebuilt from its stored tree
+    paths (dicts for string keys and attributes, lists for indices), without the model that made
+    it. Raises ``CorruptCheckpoint`` when the file cannot be read."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            stored = {k: data[k] for k in data.files}
+        header = json.loads(bytes(stored.pop("__jprt_checkpoint__")).decode())
+    except Exception as e:  # truncated, bit-flipped (the zip's CRC-32), or not a checkpoint at all
+        raise CorruptCheckpoint(f"cannot read checkpoint {path}: {e}") from None
+    root: dict = {}
+    for key in sorted(stored):
+        path_str = key.split("|", 1)[1]
+        parts = [m.group(1) if m.group(1) is not None else int(m.group(2)) if m.group(2) is not None else m.group(3)
+                 for m in _KEY.finditer(path_str)]
+        if not parts:
+            return stored[key], header["step"], header["meta"]  # a single array
+        node = root
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+        node[parts[-1]] = stored[key]
+
+    def lists(node):
+        if not isinstance(node, dict):
+            return node
+        out = {k: lists(v) for k, v in node.items()}
+        if out and all(isinstance(k, int) for k in out):
+            return [out[i] for i in range(len(out))]
+        return out
+
+    return lists(root), header["step"], header["meta"]
 
 
 class CorruptCheckpoint(ValueError):

@@ -68,35 +68,10 @@ def check_run_folder(folder: str) -> tuple[dict, dict]:
     return summary, config
 
 
-_KEY = re.compile(r"\['((?:[^'\\]|\\.)*)'\]|\[(\d+)\]|\.(\w+)")
-
-
 def load_params(path: str):
-    """The pytree ``jprt.io.save_checkpoint`` wrote, rebuilt from its stored tree paths (dicts for
-    string keys and attributes, lists for indices), without the model that made it."""
-    with np.load(path, allow_pickle=False) as data:
-        stored = {k: data[k] for k in data.files if k != "__jprt_checkpoint__"}
-    root: dict = {}
-    for key in sorted(stored):
-        path_str = key.split("|", 1)[1]
-        parts = [m.group(1) if m.group(1) is not None else int(m.group(2)) if m.group(2) is not None else m.group(3)
-                 for m in _KEY.finditer(path_str)]
-        if not parts:
-            return stored[key]  # a single array
-        node = root
-        for p, nxt in zip(parts[:-1], parts[1:]):
-            node = node.setdefault(p, {})
-        node[parts[-1]] = stored[key]
-
-    def lists(node):
-        if not isinstance(node, dict):
-            return node
-        out = {k: lists(v) for k, v in node.items()}
-        if out and all(isinstance(k, int) for k in out):
-            return [out[i] for i in range(len(out))]
-        return out
-
-    return lists(root)
+    """The pytree ``jprt.io.save_checkpoint`` wrote, rebuilt from its stored tree paths
+    (``jprt.io.load_tree``), without the model that made it."""
+    return io.load_tree(path)[0]
 
 
 class Session:

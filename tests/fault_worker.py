@@ -8,6 +8,9 @@
   ``resumed_from`` / ``step`` / number of losses to stdout as JSON;
 * ``sweep OUT [DELAY]``: the fake method's 2 x 2 sweep of ``tests/test_sweep.py`` into OUT,
   sleeping DELAY seconds after each point; prints its counts;
+* ``lm CHECKPOINT_DIR OUT``: an RRF kd-tree fit by LM (the step target of
+  ``tests/methods/test_rrf.py``) checkpointing each batch of node fits; params to OUT, the
+  checkpoint counts to stdout;
 * ``render-limited CACHE LIMIT``: ``render`` under a file-size limit of LIMIT bytes (set here, in
   the worker: a fork of the multithreaded test process to set it could deadlock).
 """
@@ -47,6 +50,25 @@ def train(checkpoint: str, out: str):
     return result
 
 
+LM_CONFIG = {"model": {"hidden": [3]}, "tree": {"min_samples": 40, "max_depth": 3, "threshold": 0.01, "expand": 0.0},
+             "train": {"max_iters": 30, "trial_iters": 30, "progress": False}}
+
+
+def lm(checkpoint_dir, out: str):
+    import numpy as np
+
+    from jprt import io
+    from jprt.methods.rrf import model as rrf
+
+    rng = np.random.default_rng(0)
+    x = rng.random((2000, 2)).astype(np.float32)
+    y = (1 + 0.3 * x[:, 0] + 0.2 * x[:, 1] + np.where(x[:, 0] < 0.3, 0.0, 1.0))[:, None]
+    params, info = rrf.fit_arrays(x, y, np.zeros(len(x), np.int32), LM_CONFIG, checkpoint_dir=checkpoint_dir)
+    io.save_checkpoint(out, params)
+    print(json.dumps({k: v for k, v in info.get("checkpoint", {}).items() if k != "folder"}))
+    return params, info
+
+
 GRID = {"model.bias": [0.0, 0.02], "data.n": [2, 3]}
 
 
@@ -79,6 +101,8 @@ if __name__ == "__main__":
     kind, *args = sys.argv[1:]
     if kind == "render":
         render(args[0], float(args[1]) if len(args) > 1 else 0.0)
+    elif kind == "lm":
+        lm(*args)
     elif kind == "sweep":
         sweep(args[0], float(args[1]) if len(args) > 1 else 0.0)
     elif kind == "render-limited":

@@ -188,3 +188,23 @@ def test_a_killed_sweep_resumes_without_redoing_finished_points(tmp_path, monkey
     got = [{k: r.get(k) for k in keys} for r in resumed["rows"]]
     want = [{k: r.get(k) for k in keys} for r in whole["rows"]]
     assert [dict(g, status="done") for g in got] == want
+
+
+def test_a_killed_lm_fit_resumes_bit_identically(tmp_path):
+    """An RRF kd-tree fit by LM, killed after its first batch of node fits: the rerun reads the
+    finished batches (none fitted twice), fits the rest, and its params equal an uninterrupted
+    fit's bit for bit."""
+    from tests import fault_worker
+
+    batches = lambda: glob.glob(str(tmp_path / "ckpt" / "rrf_*" / "nodes_*.npz"))  # noqa: E731
+    _kill_when(_start("lm", tmp_path / "ckpt", tmp_path / "unused.npz"), lambda: len(batches()) >= 1)
+    finished = len(batches())
+    counts = _run("lm", tmp_path / "ckpt", tmp_path / "resumed.npz")
+    assert counts["loaded"] == finished >= 1 and counts["fitted"] >= 1
+    total = counts["loaded"] + counts["fitted"]
+    fault_worker.lm(None, str(tmp_path / "whole.npz"))  # uninterrupted, in this process, no checkpoints
+    assert len(batches()) == total
+    a, b = _checkpoint(tmp_path / "resumed.npz")[0], _checkpoint(tmp_path / "whole.npz")[0]
+    assert a.keys() == b.keys() and a
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)

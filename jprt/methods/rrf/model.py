@@ -39,15 +39,19 @@ candidate from scratch to convergence, which costs ~D times more here.
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
+import os
 import sys
 import time
+import warnings
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jprt.config import stable_hash
 from jprt.inputs import GBuffer, PointLights
 from jprt.methods.base import FitResult, resolve
 from jprt.methods.rrf import kdtree
@@ -372,7 +376,7 @@ def split_samples(n: int, val_fraction: float, seed: int) -> np.ndarray:
     return is_train
 
 
-def fit(data: RRFData, config: dict | None = None, *, is_train=None) -> FitResult:
+def fit(data: RRFData, config: dict | None = None, *, is_train=None, checkpoint_dir: str | None = None) -> FitResult:
     """Fit the kd-tree of RRFs to ``data`` (§4, Appendix A). Returns ``FitResult(params, info)``.
 
     ``params`` is a pytree of arrays (kd-tree, per-object input boxes, stacked leaf networks with
@@ -380,7 +384,8 @@ def fit(data: RRFData, config: dict | None = None, *, is_train=None) -> FitResul
     ``report`` (the kd-tree build report), ``leaf_train_error`` / ``leaf_val_error`` (per leaf),
     ``is_train`` (the split mask) and ``n_samples``.
     ``is_train`` overrides the seeded 70/30 split; ``train.subset`` < 1 keeps that random
-    fraction of the training samples (the Table 3 / Fig. 6 experiments).
+    fraction of the training samples (the Table 3 / Fig. 6 experiments); ``checkpoint_dir``:
+    see ``fit_arrays``.
 
     Numerics: not differentiable (a fitting or training procedure).
     """
@@ -399,17 +404,22 @@ def fit(data: RRFData, config: dict | None = None, *, is_train=None) -> FitResul
         keep = np.ones(len(data), bool)
         keep[drop] = False
         x, data, is_train = x[keep], data.subset(keep), is_train[keep]
-    params, info = fit_arrays(x, data.indirect, data.object_id, cfg, is_train=is_train)
+    params, info = fit_arrays(x, data.indirect, data.object_id, cfg, is_train=is_train, checkpoint_dir=checkpoint_dir)
     params["light_lo"] = jnp.asarray(data.meta["light_lo"], jnp.float32)
     params["light_hi"] = jnp.asarray(data.meta["light_hi"], jnp.float32)
     return FitResult(params, info)
 
 
-def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None):
+def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None, checkpoint_dir: str | None = None):
     """Fit the partitioned RRF to arbitrary inputs ``x`` (N, D) and outputs ``y`` (N, R).
 
     The generic core of ``fit`` (synthetic targets in tests use it directly). Returns
     ``(params, info)``; ``params`` has no light box (add ``light_lo``/``light_hi`` for rendering).
+
+    ``checkpoint_dir``: every batch of LM node fits is saved there as it finishes (in a folder
+    named by the data and config), and read back by a rerun: a fit killed and restarted repeats
+    at most the batch it was in and ends bit-identical to an uninterrupted one (``info
+    ["checkpoint"]`` counts the batches loaded and fitted).
 
     Numerics: not differentiable (a fitting or training procedure).
     """
@@ -441,6 +451,7 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None):
     xn = _normalise(x, object_id, obj_lo, obj_hi)
 
     fitter = _NodeFitter(x, y, sizes, cfg, int(t["seed"]), say)
+    checkpoint = None
     max_iters = int(t["max_iters"])
     trial_iters = min(int(t["trial_iters"]), max_iters) if tree_cfg["axis"] == "all" else max_iters
 
@@ -459,6 +470,10 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None):
             return [kdtree.NodeFit(p.init, *fitter.errors(p)) for p in problems]
         return fitter(problems, max_iters - trial_iters)
 
+    if checkpoint_dir is not None:
+        key = stable_hash({"config": cfg, "data": [hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()
+                                                   for a in (x, y, object_id, np.asarray(is_train, bool))]})
+        fit_nodes, checkpoint = _checkpointed(fit_nodes, fitter, os.path.join(checkpoint_dir, f"rrf_{key}"))
     tree, payloads, report = kdtree.build(
         xn, object_id, is_train, fit_nodes, threshold=float(tree_cfg["threshold"]), axis=tree_cfg["axis"],
         expand=float(tree_cfg["expand"]), max_depth=int(tree_cfg["max_depth"]),
@@ -468,9 +483,52 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None):
     train_err, val_err = _leaf_errors(params, xn, x, y, object_id, is_train)
     info = {"train_s": time.perf_counter() - t0, "report": report, "leaf_train_error": train_err,
             "leaf_val_error": val_err, "is_train": is_train, "n_samples": len(x)}
+    if checkpoint is not None:
+        info["checkpoint"] = dict(checkpoint)
     say(f"{tree.n_leaves} leaves, max depth {tree.max_depth}, {info['train_s']:.1f} s; leaf relative error "
         f"train median {np.median(train_err):.3f} / val median {np.median(val_err):.3f}")
     return FitResult(params, info)
+
+
+def _checkpointed(fit_nodes, fitter: "_NodeFitter", folder: str):
+    """``fit_nodes`` whose every call's node fits are saved to ``folder`` (``nodes_KKKKK.npz``,
+    in call order, with the fitter's host RNG state after the call: fresh networks draw their
+    initial weights from it) and read back on a rerun. The kd-tree build is deterministic given
+    its fits, so the rerun asks for the same calls in the same order; a file made for other nodes
+    or a damaged one is fitted again with a warning. Returns (wrapped, counts)."""
+    from jprt import io
+
+    os.makedirs(folder, exist_ok=True)
+    counts = {"folder": folder, "loaded": 0, "fitted": 0}
+    calls = [0]
+
+    def wrapped(problems, stage):
+        k = calls[0]
+        calls[0] += 1
+        if not problems:
+            return fit_nodes(problems, stage)
+        path = os.path.join(folder, f"nodes_{k:05d}.npz")
+        digest = stable_hash({"stage": stage, "nodes": [hashlib.sha256(np.concatenate(
+            [np.asarray(p.train, np.int64), [-1], np.asarray(p.val, np.int64)]).tobytes()).hexdigest() for p in problems]})
+        if os.path.exists(path):
+            try:
+                tree, _, meta = io.load_tree(path)
+                if meta.get("digest") != digest or len(tree) != len(problems):
+                    raise io.CorruptCheckpoint(f"checkpoint {path} was made for other nodes")
+                fits = [kdtree.NodeFit(f["payload"], float(f["train_error"]), float(f["val_error"])) for f in tree]
+                fitter.rng.bit_generator.state = meta["rng"]
+                counts["loaded"] += 1
+                return fits
+            except io.CorruptCheckpoint as e:
+                warnings.warn(f"{e}; fitting those nodes again", stacklevel=2)
+        fits = fit_nodes(problems, stage)
+        io.save_checkpoint(path, [{"payload": f.payload, "train_error": np.float64(f.train_error),
+                                   "val_error": np.float64(f.val_error)} for f in fits],
+                           step=k, meta={"digest": digest, "rng": fitter.rng.bit_generator.state})
+        counts["fitted"] += 1
+        return fits
+
+    return wrapped, counts
 
 
 def _leaf_problem(xn, object_id, is_train, obj, lo, hi, expand):
