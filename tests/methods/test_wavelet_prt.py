@@ -336,7 +336,7 @@ def test_indirect_baseline_scale_is_least_squares():
 # -- training ----------------------------------------------------------------------------------
 
 
-@pytest.mark.slow  # make test runs the stronger tests/test_faults.py: the same resume after a SIGKILL
+@pytest.mark.slow  # make test runs the stronger tests/faults/: the same resume after a SIGKILL
 def test_training_resumes_bit_identically(tmp_path):
     data = _fake_data(n=4)
     full = wp.fit(data, TINY, checkpoint_path=str(tmp_path / "a.npz"), progress=False)

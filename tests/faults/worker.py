@@ -1,5 +1,5 @@
-"""The work the fault tests (``test_faults.py``) kill with SIGKILL and restart, run as
-``python -m tests.fault_worker KIND ARGS``:
+"""The work the fault tests (``test_kill_and_resume.py``) kill with SIGKILL and restart, run as
+``python -m tests.faults.worker KIND ARGS``:
 
 * ``render CACHE [DELAY]``: the dataset of ``tests/render/test_dataset.py`` with more views and
   lights (16 entries), sleeping DELAY seconds after each entry (a window to kill in);
@@ -76,7 +76,7 @@ def sweep(out: str, delay: float = 0.0):
     import os
     import types
 
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import fake_method
 
     from jprt import runner

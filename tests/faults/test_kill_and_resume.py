@@ -1,4 +1,5 @@
-"""Work killed with SIGKILL and restarted (issue 20): what was written before the kill stays
+"""Work killed with SIGKILL and restarted (issue 20; in a folder of its own so that pytest-xdist,
+which hands out whole files, starts this long file early): what was written before the kill stays
 as it was, nothing finished is redone, and the result equals an uninterrupted run (bit for
 bit for training; to float rounding for Mitsuba renders, which differ by about one ulp between
 processes: 2e-7 measured on values near 0.3, so 1e-6 relative is the stated tolerance)."""
@@ -15,7 +16,7 @@ import jax
 import numpy as np
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 def _env():
@@ -29,7 +30,7 @@ def _env():
 
 
 def _start(*args):
-    return subprocess.Popen([sys.executable, "-m", "tests.fault_worker", *map(str, args)], cwd=ROOT,
+    return subprocess.Popen([sys.executable, "-m", "tests.faults.worker", *map(str, args)], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
 
 
@@ -50,7 +51,7 @@ def _kill_when(proc, ready, timeout_s=120.0):
 
 
 def _run(*args):
-    done = subprocess.run([sys.executable, "-m", "tests.fault_worker", *map(str, args)], cwd=ROOT,
+    done = subprocess.run([sys.executable, "-m", "tests.faults.worker", *map(str, args)], cwd=ROOT,
                           capture_output=True, text=True, timeout=600, env=_env())
     assert done.returncode == 0, done.stderr[-3000:]
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -58,7 +59,7 @@ def _run(*args):
 
 @pytest.mark.mitsuba
 def test_a_killed_dataset_render_resumes_without_touching_finished_entries(tmp_path, mi):
-    from tests import fault_worker
+    from tests.faults import worker as fault_worker
 
     cache = tmp_path / "cache"
     items = lambda: sorted(glob.glob(str(cache / "datasets" / "*" / "item_*.npz.sha256")))  # noqa: E731
@@ -85,7 +86,7 @@ def _checkpoint(path):
 
 
 def test_a_killed_adam_training_resumes_bit_identically(tmp_path):
-    from tests import fault_worker
+    from tests.faults import worker as fault_worker
 
     ckpt = tmp_path / "train.npz"
     _kill_when(_start("train", ckpt, tmp_path / "unused.npz"), ckpt.exists)
@@ -130,10 +131,10 @@ def test_a_damaged_checkpoint_is_detected_and_training_rebuilt(tmp_path, damage)
 @pytest.mark.mitsuba
 def test_a_full_disk_fails_clearly_and_leaves_no_entry_a_later_run_trusts(tmp_path, mi):
     from jprt.cache import entry_state
-    from tests import fault_worker
+    from tests.faults import worker as fault_worker
 
     cache = tmp_path / "cache"
-    done = subprocess.run([sys.executable, "-m", "tests.fault_worker", "render-limited", str(cache), "3000"],
+    done = subprocess.run([sys.executable, "-m", "tests.faults.worker", "render-limited", str(cache), "3000"],
                           cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode != 0
     assert "disk full or a file-size limit" in done.stderr and "File too large" in done.stderr, done.stderr[-2000:]
@@ -171,7 +172,7 @@ def test_a_killed_sweep_resumes_without_redoing_finished_points(tmp_path, monkey
     (the point that was running when killed has no summary and is run again), and its table
     equals an uninterrupted sweep's (timings aside)."""
     from jprt.methods import REGISTRY
-    from tests import fault_worker
+    from tests.faults import worker as fault_worker
 
     points = lambda: glob.glob(str(tmp_path / "a" / "sweep_*" / "points" / "*" / "summary.json"))  # noqa: E731
     _kill_when(_start("sweep", tmp_path / "a", 3.0), lambda: len(points()) >= 1)
@@ -194,7 +195,7 @@ def test_a_killed_lm_fit_resumes_bit_identically(tmp_path):
     """An RRF kd-tree fit by LM, killed after its first batch of node fits: the rerun reads the
     finished batches (none fitted twice), fits the rest, and its params equal an uninterrupted
     fit's bit for bit."""
-    from tests import fault_worker
+    from tests.faults import worker as fault_worker
 
     batches = lambda: glob.glob(str(tmp_path / "ckpt" / "rrf_*" / "nodes_*.npz"))  # noqa: E731
     _kill_when(_start("lm", tmp_path / "ckpt", tmp_path / "unused.npz"), lambda: len(batches()) >= 1)
