@@ -205,6 +205,17 @@ def save_checkpoint(path: str, tree: Any, *, step: int | None = None, meta: dict
             np.savez(f, **arrays)
 
 
+def _read_checkpoint(path: str) -> tuple[dict, dict]:
+    """(arrays by stored key, header) of a ``save_checkpoint`` file, or ``CorruptCheckpoint``."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            stored = {k: data[k] for k in data.files}
+        header = json.loads(bytes(stored.pop("__jprt_checkpoint__")).decode())
+    except Exception as e:  # truncated, bit-flipped (the zip's CRC-32), or not a checkpoint at all
+        raise CorruptCheckpoint(f"cannot read checkpoint {path}: {e}") from None
+    return stored, header
+
+
 _KEY = re.compile(r"\['((?:[^'\\]|\\.)*)'\]|\[(\d+)\]|\.(\w+)")
 
 
@@ -212,12 +223,7 @@ def load_tree(path: str) -> tuple[Any, int | None, dict]:
     """(tree, step, meta) of a ``save_checkpoint`` file, the tree rebuilt from its stored tree
     paths (dicts for string keys and attributes, lists for indices), without the model that made
     it. Raises ``CorruptCheckpoint`` when the file cannot be read."""
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            stored = {k: data[k] for k in data.files}
-        header = json.loads(bytes(stored.pop("__jprt_checkpoint__")).decode())
-    except Exception as e:  # truncated, bit-flipped (the zip's CRC-32), or not a checkpoint at all
-        raise CorruptCheckpoint(f"cannot read checkpoint {path}: {e}") from None
+    stored, header = _read_checkpoint(path)
     root: dict = {}
     for key in sorted(stored):
         path_str = key.split("|", 1)[1]
@@ -256,12 +262,7 @@ def load_checkpoint(path: str, like: Any) -> tuple[Any, int | None, dict]:
 
     if not os.path.isfile(path):
         raise FileNotFoundError(f"checkpoint not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            stored = {k: data[k] for k in data.files}
-        header = json.loads(bytes(stored.pop("__jprt_checkpoint__")).decode())
-    except Exception as e:  # truncated, bit-flipped (the zip's CRC-32), or not a checkpoint at all
-        raise CorruptCheckpoint(f"cannot read checkpoint {path}: {e}") from None
+    stored, header = _read_checkpoint(path)
     leaves_with_path, treedef = jax.tree_util.tree_flatten_with_path(like)
     keys = sorted(stored)
     if len(keys) != len(leaves_with_path):
