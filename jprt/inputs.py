@@ -22,7 +22,7 @@ import numpy as np
 
 __all__ = ["GBuffer", "Camera", "PointLights", "SpotLights", "DirectionalLights", "EnvMap", "CubeMap",
            "SHLighting", "PointRadiance", "LightScale", "Lighting", "validate_envmap", "validate_lighting",
-           "validate_gbuffer", "vec3"]
+           "validate_gbuffer", "LIGHTING_TYPES", "vec3"]
 
 
 def vec3(v, name: str = "vector") -> tuple[float, float, float]:
@@ -331,6 +331,9 @@ class LightScale(NamedTuple):
 
 
 Lighting = Union[PointLights, SpotLights, DirectionalLights, EnvMap, None]
+
+#: Every lighting type ``validate_lighting`` checks (the ``Method.lighting`` of some method).
+LIGHTING_TYPES = (PointLights, SpotLights, DirectionalLights, EnvMap, CubeMap, SHLighting, PointRadiance, LightScale)
 
 
 def validate_envmap(radiance, *, signed: bool = False) -> np.ndarray:

@@ -24,6 +24,7 @@ A method is a ``Method`` NamedTuple of plain functions::
 
 from __future__ import annotations
 
+import functools
 from typing import Any, Callable, Mapping, NamedTuple
 
 import jax
@@ -90,19 +91,14 @@ class Method(NamedTuple):
                    checked_evaluator(model.evaluator, lighting), model.example, getattr(model, "frame_flops", None))
 
 
-def checked_evaluator(evaluator: Callable, lighting: type) -> Callable:
+def checked_evaluator(evaluator: Callable, lighting_type: type) -> Callable:
     """``evaluator`` whose functions validate concrete arguments once, at the method's entry: a
-    lighting of a ``jprt.inputs`` type must be the method's (``lighting``) and valid
+    lighting of a ``jprt.inputs`` type must be the method's (``lighting_type``) and valid
     (``jprt.inputs.validate_lighting``: shapes, finite, non-negative), a ``GBuffer`` valid
     (``jprt.inputs.validate_gbuffer``). Traced calls (under ``jax.jit``, ``vmap``, export) skip
     the checks, so the timed program is the evaluator's alone; raw arrays where a method accepts
     them pass through to the method's own checks."""
-    import functools
-
     from jprt import inputs as jin
-
-    types = tuple(t for t in vars(jin).values() if isinstance(t, type) and issubclass(t, tuple)
-                  and t.__module__ == jin.__name__ and t not in (jin.GBuffer, jin.Camera))
 
     @functools.wraps(evaluator)
     def make(params, config=None, **kwargs):
@@ -111,7 +107,7 @@ def checked_evaluator(evaluator: Callable, lighting: type) -> Callable:
         @functools.wraps(evaluate)
         def checked(inputs, lighting):
             if not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((inputs, lighting))):
-                if isinstance(lighting, types):
+                if isinstance(lighting, jin.LIGHTING_TYPES):
                     jin.validate_lighting(lighting, expected=lighting_type)
                 if isinstance(inputs, jin.GBuffer):
                     jin.validate_gbuffer(inputs)
@@ -119,7 +115,6 @@ def checked_evaluator(evaluator: Callable, lighting: type) -> Callable:
 
         return checked
 
-    lighting_type = lighting
     return make
 
 

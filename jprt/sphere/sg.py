@@ -156,12 +156,10 @@ def _lobe_gap_jvp(primals, tangents):
 
 def _lobe_pair(axis1, sharpness1, axis2, sharpness2):
     """(u_m, lambda_m, lambda_m - lambda1 - lambda2) of two lobes, broadcast to a common shape."""
-    axis1, axis2 = jnp.asarray(axis1), jnp.asarray(axis2)
-    sharpness1, sharpness2 = jnp.broadcast_arrays(jnp.asarray(sharpness1), jnp.asarray(sharpness2))
-    axis1, axis2 = jnp.broadcast_arrays(axis1, axis2)
-    shape = jnp.broadcast_shapes(sharpness1.shape, axis1.shape[:-1])
-    sharpness1, sharpness2 = jnp.broadcast_to(sharpness1, shape), jnp.broadcast_to(sharpness2, shape)
-    axis1, axis2 = jnp.broadcast_to(axis1, shape + (3,)), jnp.broadcast_to(axis2, shape + (3,))
+    shape = jnp.broadcast_shapes(jnp.shape(sharpness1), jnp.shape(sharpness2), jnp.shape(axis1)[:-1],
+                                 jnp.shape(axis2)[:-1])
+    sharpness1, sharpness2 = (jnp.broadcast_to(jnp.asarray(s), shape) for s in (sharpness1, sharpness2))
+    axis1, axis2 = (jnp.broadcast_to(jnp.asarray(a), shape + (3,)) for a in (axis1, axis2))
     um = sharpness1[..., None] * axis1 + sharpness2[..., None] * axis2
     lm = _safe_norm(um)
     return um / lm[..., None], lm, _lobe_gap(axis1, sharpness1, axis2, sharpness2)
@@ -239,8 +237,7 @@ def mixture_evaluate(v, axes, sharpness, amplitudes):
         amplitudes: (4, 3) in [0, 1e5]
         float32: value rtol 1e-5 atol 1e-30; grad rtol 1e-4 atol 1e-25
     """
-    v, axes = jnp.asarray(v), jnp.asarray(axes)
-    cos = -0.5 * jnp.sum(jnp.square(v[..., None, :] - axes.reshape((1,) * (v.ndim - 1) + axes.shape)), axis=-1)  # v . u - 1
+    cos = _cos_minus_one(jnp.asarray(v)[..., None, :], axes)  # (..., K)
     k = jnp.exp(jnp.broadcast_to(sharpness, cos.shape) * cos)
     return jnp.tensordot(k, amplitudes, axes=([-1], [0]))
 

@@ -6,7 +6,7 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from . import cases
-from .harness import Problem, check, parse, public_functions
+from .harness import Problem, check, draw_args, parse, public_functions
 
 FUNCTIONS = public_functions()
 SPECS = {name: parse(name, fn) for name, fn in FUNCTIONS if "Numerics:" in (fn.__doc__ or "")}
@@ -41,8 +41,6 @@ def test_float32_matches_float64(name):
         if spec.case is not None:
             problem = getattr(cases, spec.case)(data.draw, spec)
         else:
-            from .harness import draw_args
-
             args = draw_args(data.draw, spec)
             grad = spec.grad or [a.name for a in spec.args if a.kind in ("float", "unit")]
             problem = Problem(spec.fn, args, grad)
