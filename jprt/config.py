@@ -131,14 +131,46 @@ def merge(base: Mapping, overrides: Mapping, *, _prefix: str = "") -> dict:
     return out
 
 
+def _named_section(section: str, value: Any, current: Any) -> Any:
+    """A named section's new value from ``--set``: for a scene section (a key called ``scene``), a
+    string is a scene name or an .xml path (``jprt.render.scenes.section_from_string``), and a new
+    ``name`` brings that kind's keys with their defaults (``section_defaults``)."""
+    if section.split(".")[-1] != "scene" or not isinstance(current, Mapping):
+        return value
+    from jprt.render import scenes
+
+    try:
+        if isinstance(value, str):
+            return scenes.section_from_string(value)
+        if isinstance(value, Mapping) and "name" in value and value["name"] != current.get("name"):
+            return {**scenes.section_defaults(str(value["name"])), **value}
+    except (ValueError, FileNotFoundError) as e:
+        raise ConfigError(f"{section}: {e}") from None
+    return value
+
+
 def apply_overrides(config: Mapping, items: Iterable[str]) -> dict:
-    """Apply ``--set`` style items (``"a.b=value"``) in order to a copy of ``config``."""
+    """Apply ``--set`` style items (``"a.b=value"``) in order to a copy of ``config``. A scene
+    section takes a name or an .xml path as a string (``--set dataset.scene=/abs/room.xml``), and
+    switching its ``name`` makes that kind's keys valid for the items after it
+    (``--set scene.name=xml --set scene.path=/abs/room.xml``)."""
     out = copy.deepcopy(dict(config))
-    valid = flatten(config)
     for item in items:
+        valid = flatten(out)  # a switched scene section brings its own keys
         key, value = parse_override(item)
+        parts = key.split(".")
+        if key not in valid and len(parts) > 1 and parts[-2] == "scene" and isinstance(valid.get(".".join(parts[:-1])),
+                                                                                           Mapping):
+            section = ".".join(parts[:-1])
+            raise ConfigError(f"unknown config key {key!r} for a {valid[section].get('name')!r} scene; switch the "
+                              f"scene's kind first (--set {section}.name=xml, or --set {section}=/abs/scene.xml)")
         if key not in valid:
             raise ConfigError(f"unknown config key {key!r}; did you mean {_closest(key, valid)!r}?")
+        if parts[-1] == "name" and len(parts) > 1 and parts[-2] == "scene":  # scene.name=xml: the section switches kind
+            section = ".".join(parts[:-1])
+            key, value = section, _named_section(section, {"name": value}, valid[section])
+        else:
+            value = _named_section(key, value, valid[key])
         nested: dict = value
         for part in reversed(key.split(".")):
             nested = {part: nested}

@@ -9,8 +9,9 @@ names where they were defined before.
   pixel-centre rays).
 * ``PointLights``, ``SpotLights``, ``DirectionalLights``, ``EnvMap`` (jprt's equirect layout, see
   ``jprt.render.lights``), ``CubeMap`` ((6, n, n, 3), ``jprt.sphere.cubemap`` layout),
-  ``SHLighting`` (real SH coefficients), ``PointRadiance`` (direct radiance measured at points):
-  the lighting pytrees of the methods (``Method.lighting`` names one of them).
+  ``SHLighting`` (real SH coefficients), ``PointRadiance`` (direct radiance measured at points),
+  ``LightScale`` (a bake's lighting scaled), ``PreconvolvedEnvironment`` (an environment convolved
+  with GGX lobes): the lighting pytrees of the methods (``Method.lighting`` names one of them).
 * ``Camera``: a pinhole camera of floats (hashable, serialisable).
 """
 
@@ -21,7 +22,7 @@ from typing import NamedTuple, Union
 import numpy as np
 
 __all__ = ["GBuffer", "Camera", "PointLights", "SpotLights", "DirectionalLights", "EnvMap", "CubeMap",
-           "SHLighting", "PointRadiance", "LightScale", "Lighting", "validate_envmap", "validate_lighting",
+           "SHLighting", "PointRadiance", "LightScale", "PreconvolvedEnvironment", "Lighting", "validate_envmap", "validate_lighting",
            "validate_gbuffer", "LIGHTING_TYPES", "vec3"]
 
 
@@ -330,10 +331,43 @@ class LightScale(NamedTuple):
         return cls(a)
 
 
+class PreconvolvedEnvironment(NamedTuple):
+    """A distant environment pre-convolved with the GGX NDF at several roughnesses (Currius et
+    al. 2020 Eq. 6; the split-sum lighting of real-time engines): what an environment map becomes
+    once, when it changes, for SG environment visibility (``jprt.methods.sg_environment``, whose
+    ``model.preconvolved`` makes it from a map).
+
+    Fields:
+      u: (A, n, n, 3) float32 octahedral maps (``jprt.sphere.octahedral`` layout) of U(r), one
+        per GGX alpha.
+      alphas: (A,) float32 GGX alphas of the maps, increasing.
+    """
+
+    u: np.ndarray
+    alphas: np.ndarray
+
+    @classmethod
+    def create(cls, u, alphas) -> "PreconvolvedEnvironment":
+        """Validated constructor: u (A, n, n, 3) finite and >= 0, alphas (A,) increasing in (0, 1]."""
+        a = np.asarray(u, np.float32)
+        al = np.asarray(alphas, np.float32)
+        if a.ndim != 4 or a.shape[1] != a.shape[2] or a.shape[1] < 1 or a.shape[3] != 3:
+            raise ValueError(f"pre-convolved environment u must have shape (A, n, n, 3), got shape {a.shape}")
+        if al.shape != (a.shape[0],):
+            raise ValueError(f"pre-convolved environment alphas must have shape ({a.shape[0]},) (one per map), "
+                             f"got {_given(alphas)}")
+        _nonfinite("pre-convolved environment u", a)
+        _nonnegative("pre-convolved environment u", a, False)
+        if not (np.isfinite(al).all() and (al > 0).all() and (al <= 1).all() and (np.diff(al) > 0).all()):
+            raise ValueError(f"pre-convolved environment alphas must increase within (0, 1], got {_given(alphas)}")
+        return cls(a, al)
+
+
 Lighting = Union[PointLights, SpotLights, DirectionalLights, EnvMap, None]
 
 #: Every lighting type ``validate_lighting`` checks (the ``Method.lighting`` of some method).
-LIGHTING_TYPES = (PointLights, SpotLights, DirectionalLights, EnvMap, CubeMap, SHLighting, PointRadiance, LightScale)
+LIGHTING_TYPES = (PointLights, SpotLights, DirectionalLights, EnvMap, CubeMap, SHLighting, PointRadiance, LightScale,
+                  PreconvolvedEnvironment)
 
 
 def validate_envmap(radiance, *, signed: bool = False) -> np.ndarray:
@@ -372,6 +406,8 @@ def validate_lighting(lighting, *, signed: bool = False, expected: type | None =
         return PointRadiance.create(lighting.direct, signed=signed)
     if isinstance(lighting, LightScale):
         return LightScale.create(lighting.scale)
+    if isinstance(lighting, PreconvolvedEnvironment):
+        return PreconvolvedEnvironment.create(lighting.u, lighting.alphas)
     raise TypeError(f"lighting must be one of jprt.inputs' lighting types, got {type(lighting).__name__}")
 
 
@@ -416,7 +452,7 @@ def _register_export_serialization() -> None:
     import jax
 
     for t in (GBuffer, PointLights, SpotLights, DirectionalLights, EnvMap, CubeMap, SHLighting, PointRadiance,
-              LightScale):
+              LightScale, PreconvolvedEnvironment):
         jax.export.register_namedtuple_serialization(t, serialized_name=f"jprt.inputs.{t.__name__}")
 
 

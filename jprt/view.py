@@ -10,9 +10,10 @@ holds everything a frame needs and has no browser in it (tests use it directly):
 
 ``serve`` puts a ``viser`` page on top of it: the scene's camera (orbit with the mouse, for the
 methods that take a camera view), the method's lighting controls (point light position and colour
-for RRF, data-driven PRT, SH-PRT and MRT; environment map and rotation for neural-wavelet PRT; the
-bake's RGB scale for SG light-field textures, whose run folder holds one texture atlas under its
-own emitters), direct / indirect / both, the method's run-time knob (K wavelets, MRT's feedback
+for RRF, data-driven PRT, SH-PRT and MRT; environment map and rotation for neural-wavelet PRT and
+SG environment visibility (the SG light-field textures paper's §5); the bake's RGB scale for SG
+light-field textures, whose run folder holds one texture atlas under its own emitters),
+direct / indirect / both (a method that predicts direct light, SG environment visibility, shows it), the method's run-time knob (K wavelets, MRT's feedback
 iterations), the evaluator's measured frame time, and a compare mode (Mitsuba at a chosen spp, the
 difference image and its RMSE). Drags render at a preview resolution and refine when they stop;
 every render runs on a worker thread, so the page never waits on one (progress is shown).
@@ -80,7 +81,10 @@ class Session:
 
     ``kind`` is "point" (a point light), "environment" (an environment map and its rotation about
     +Y) or "scale" (the bake's lighting times an RGB factor: SG light-field textures, shown as
-    their texture atlas, which has no camera)."""
+    their texture atlas, which has no camera): the method's ``data.VIEW_LIGHTINGS``, else its
+    ``TASK_LIGHTINGS``. ``predicts`` is what the evaluator returns, "indirect" (every method but
+    one) or "direct" (SG environment visibility: the environment reflected once; ``data.PREDICTS``);
+    ``modes`` the display modes that make sense for it."""
 
     def __init__(self, folder: str, *, progress: bool = False):
         from jprt.methods import REGISTRY
@@ -97,13 +101,15 @@ class Session:
         kw = {"progress": progress} if "progress" in inspect.signature(self.method.make_dataset).parameters else {}
         self.dataset = self.method.make_dataset(self.method_config["scene"], self.method_config, **kw)
         self.adapter = self._adapter()
-        kinds = getattr(self.adapter, "TASK_LIGHTINGS", ())
+        kinds = getattr(self.adapter, "VIEW_LIGHTINGS", None) or getattr(self.adapter, "TASK_LIGHTINGS", ())
         self.kind = "point" if "point" in kinds else "environment" if "environment" in kinds else "scale"
+        self.predicts = getattr(self.adapter, "PREDICTS", "indirect")
+        self.modes = MODES if self.predicts == "indirect" else ("direct",)
         self.handle = SceneHandle(self.method_config["scene"])
         self.knob = KNOBS.get(self.method.name)
         self._evaluators: dict = {}
         self.environments = self._environments() if self.kind == "environment" else {}
-        self.state = {"mode": "direct + indirect", "exposure": 0.0, "env": next(iter(self.environments), None),
+        self.state = {"mode": self.modes[0], "exposure": 0.0, "env": next(iter(self.environments), None),
                       "env_rotation": 0.0, "scale": (1.0, 1.0, 1.0),
                       "knob": (int(self.method_config[self.knob[0]][self.knob[1]]) if self.knob else None),
                       **self._default_light()}
@@ -118,8 +124,11 @@ class Session:
         return importlib.import_module(f"jprt.methods.{self.method.name}.data")
 
     def _environments(self) -> dict:
-        """{name: (6, n, n, 3) cube map}: the run's held-out maps, then its training maps that
-        appear unrotated ("stem@0"; per-image lightings are turned by random angles)."""
+        """{name: (6, n, n, 3) cube map}: the method's ``data.view_environments`` where it has
+        one; else the run's held-out maps, then its training maps that appear unrotated ("stem@0";
+        per-image lightings are turned by random angles)."""
+        if hasattr(self.adapter, "view_environments"):
+            return dict(self.adapter.view_environments(self.dataset, self.method_config))
         names = list(getattr(self.dataset, "test_env_names", []))
         cubes = list(np.asarray(getattr(self.dataset, "test_envs", np.zeros((0,)))))
         for name, cube in zip(getattr(self.dataset, "env_names", []), np.asarray(getattr(self.dataset, "envs", []))):
@@ -173,8 +182,8 @@ class Session:
         unknown = sorted(set(changes) - set(self.state))
         if unknown:
             raise KeyError(f"unknown view settings {unknown}; known: {sorted(self.state)}")
-        if "mode" in changes and changes["mode"] not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {changes['mode']!r}")
+        if "mode" in changes and changes["mode"] not in self.modes:
+            raise ValueError(f"mode must be one of {self.modes}, got {changes['mode']!r}")
         if "env" in changes and changes["env"] not in self.environments:
             raise ValueError(f"unknown environment {changes['env']!r}; known: {list(self.environments)}")
         if changes.get("knob") is not None and self.knob and int(changes["knob"]) < self.knob[3]:
@@ -252,8 +261,9 @@ class Session:
         return self._evaluators[k]
 
     # -- frames --------------------------------------------------------------------------------
-    def indirect(self, size: int) -> np.ndarray:
-        """The evaluator's indirect radiance (H, W, 3) for the current state."""
+    def prediction(self, size: int) -> np.ndarray:
+        """The evaluator's radiance (H, W, 3) for the current state (indirect light, or direct
+        light where ``predicts`` says so)."""
         return np.asarray(self.evaluator()(self.inputs(size), self.method_lighting()))
 
     def frame_ms(self, size: int, repeats: int = 15, block_ms: float = 40.0) -> float:
@@ -303,8 +313,12 @@ class Session:
         return np.asarray(images.render(self.handle, self.camera(size), spp=spp, max_depth=2, seed=7), np.float32)
 
     def reference(self, size: int, spp: int, *, seed: int = 11, passes: int = 1, progress=None) -> np.ndarray:
-        """Mitsuba's indirect (full minus direct, same seed) of the same view and lighting, the
-        mean of ``passes`` renders of ``spp / passes`` each (``progress(i, passes)`` after each)."""
+        """Mitsuba's counterpart of the prediction for the same view and lighting: its indirect
+        (full minus direct, same seed), or its direct light (``max_depth = 2``) where the method
+        predicts direct light; the mean of ``passes`` renders of ``spp / passes`` each
+        (``progress(i, passes)`` after each). Pixels outside the model's G-buffer (``valid``:
+        geometry a lightmap atlas does not cover, the environment seen directly) are 0, as in the
+        prediction."""
         from jprt.render import images
 
         if self.kind == "scale":
@@ -313,27 +327,38 @@ class Session:
         passes = max(1, min(int(passes), int(spp)))
         acc = 0.0
         for i in range(passes):
-            r = images.direct_indirect(self.handle, self.camera(size), spp=max(1, int(spp) // passes), seed=seed + i)
-            acc = acc + np.asarray(r.indirect, np.float32)
+            n = max(1, int(spp) // passes)
+            if self.predicts == "direct":
+                r = images.render(self.handle, self.camera(size), spp=n, max_depth=2, seed=seed + i)
+            else:
+                r = images.direct_indirect(self.handle, self.camera(size), spp=n, seed=seed + i).indirect
+            acc = acc + np.asarray(r, np.float32)
             if progress is not None:
                 progress(i + 1, passes)
-        return acc / passes
+        valid = getattr(self.inputs(size), "valid", None)
+        return acc / passes if valid is None else np.where(np.asarray(valid, bool)[..., None], acc / passes, 0.0)
 
     def render(self, size: int, *, direct_spp: int = 4, time_repeats: int = 0) -> dict:
-        """One frame: {"indirect", "direct", "image" (linear, by mode), "display" (uint8 sRGB),
-        "eval_ms" (this call of the evaluator), "frame_ms" (``frame_ms`` over ``time_repeats``
-        blocks, None for 0), "stats"}."""
+        """One frame: {"prediction" (the evaluator's output), "indirect", "direct", "image"
+        (linear, by mode), "display" (uint8 sRGB), "eval_ms" (this call of the evaluator),
+        "frame_ms" (``frame_ms`` over ``time_repeats`` blocks, None for 0), "stats" (of the
+        prediction)}. A method that predicts direct light has no indirect term here (zeros)."""
         inputs, lighting = self.inputs(size), self.method_lighting()
         evaluate = self.evaluator()
         t0 = time.perf_counter()
-        indirect = np.asarray(jax.block_until_ready(evaluate(inputs, lighting)))
+        predicted = np.asarray(jax.block_until_ready(evaluate(inputs, lighting)))
         eval_ms = 1e3 * (time.perf_counter() - t0)
         frame_ms = self.frame_ms(size, time_repeats) if time_repeats else None
         mode = self.state["mode"]
-        direct = self.direct(size, direct_spp) if mode != "indirect" else np.zeros_like(indirect)
+        if self.predicts == "direct":
+            direct, indirect = predicted, np.zeros_like(predicted)
+        else:
+            indirect = predicted
+            direct = self.direct(size, direct_spp) if mode != "indirect" else np.zeros_like(indirect)
         image = {"indirect": indirect, "direct": direct, "direct + indirect": direct + indirect}[mode]
-        return {"indirect": indirect, "direct": direct, "image": image, "eval_ms": eval_ms, "frame_ms": frame_ms,
-                "display": io.preview_pixels(image, exposure=float(self.state["exposure"])), "stats": image_stats(indirect)}
+        return {"prediction": predicted, "indirect": indirect, "direct": direct, "image": image, "eval_ms": eval_ms,
+                "frame_ms": frame_ms, "display": io.preview_pixels(image, exposure=float(self.state["exposure"])),
+                "stats": image_stats(predicted)}
 
 
 def _frame_loop(evaluate, n: int):
@@ -375,15 +400,18 @@ def serve(folder: str, *, host: str = "127.0.0.1", port: int = 8080, preview: in
     m = session.method
     gui = server.gui
     gui.add_markdown(f"**{m.name}** — {m.paper}\n\nrun `{os.path.basename(os.path.abspath(folder))}`; "
-                     + ("direct light: Mitsuba at low spp (the source the method uses)" if session.kind != "scale"
-                        else "the texture atlas seen head-on: indirect only (no camera view to render direct light from)"))
+                     + ("the texture atlas seen head-on: indirect only (no camera view to render direct light from)"
+                        if session.kind == "scale" else
+                        "the prediction is direct light (the environment reflected once); compare renders Mitsuba's "
+                        "direct light" if session.predicts == "direct" else
+                        "direct light: Mitsuba at low spp (the source the method uses)"))
     status = gui.add_markdown("status: loading")
     stats_md = gui.add_markdown("stats: -")
     view_md = gui.add_markdown("state: -")
     timing = gui.add_markdown("frame: -")
     bar = gui.add_progress_bar(0.0)
     image = gui.add_image(np.zeros((size, size, 3), np.uint8), label="frame", format="png")
-    mode = gui.add_dropdown("mode", MODES, initial_value=session.state["mode"])
+    mode = gui.add_dropdown("mode", session.modes, initial_value=session.state["mode"])
     exposure = gui.add_number("exposure", 0.0, step=0.5)
     controls: dict[str, Any] = {}
     if session.kind == "point":
@@ -447,14 +475,14 @@ def serve(folder: str, *, host: str = "127.0.0.1", port: int = 8080, preview: in
     def show(frame, res, generation, state, note=""):
         image.image = frame.get("panels", frame["display"])
         server.scene.set_background_image(frame["display"], format="png")
-        h, w = frame["indirect"].shape[:2]
+        h, w = frame["prediction"].shape[:2]
         keys = ["exposure"] + ([] if session.kind == "scale" else ["origin", "target", "up", "fov", "aspect"]) \
             + {"point": ["light", "colour", "power"], "environment": ["env_rotation"], "scale": ["scale"]}[session.kind] \
             + (["knob"] if session.knob else [])
         view_md.content = "state: " + " ".join(  # what the frame was rendered with, at full precision
             f"{k}={','.join(repr(float(v)) for v in np.ravel(state[k]))}" for k in keys) \
             + (f" env={state['env']}" if session.kind == "environment" else "")
-        stats_md.content = (f"stats (indirect, {w}x{h}, generation {generation}): mean={_fmt(frame['stats']['mean'])} "
+        stats_md.content = (f"stats ({session.predicts}, {w}x{h}, generation {generation}): mean={_fmt(frame['stats']['mean'])} "
                             f"max={_fmt(frame['stats']['max'])} sum_mean={_fmt(frame['stats']['sum_mean'])}{note}")
 
     stop = stop_event or threading.Event()
@@ -485,12 +513,14 @@ def serve(folder: str, *, host: str = "127.0.0.1", port: int = 8080, preview: in
                         bar.value = 100.0 * i / n
                         status.content = f"status: Mitsuba {int(spp.value)} spp, pass {i} of {n}"
                     ref = session.reference(size, int(spp.value), passes=4, progress=progress)
-                    diff = frame["indirect"] - ref
+                    diff = frame["prediction"] - ref
                     rmse = float(np.sqrt(np.mean(np.square(diff))))
                     exposure_now = float(session.state["exposure"])
-                    frame["panels"] = np.concatenate([frame["display"], io.preview_pixels(ref + frame["direct"], exposure=exposure_now),
+                    shown = ref if session.predicts == "direct" else ref + frame["direct"]
+                    frame["panels"] = np.concatenate([frame["display"], io.preview_pixels(shown, exposure=exposure_now),
                                                       io.preview_pixels(np.abs(diff) * 4.0, exposure=exposure_now)], axis=1)
-                    note = f" | compare: model / Mitsuba {int(spp.value)} spp / 4x |difference|; indirect RMSE={rmse:.6g}"
+                    note = (f" | compare: model / Mitsuba {int(spp.value)} spp / 4x |difference|; "
+                            f"{session.predicts} RMSE={rmse:.6g}")
                 with lock:
                     if request["generation"] != generation:
                         continue
@@ -507,7 +537,7 @@ def serve(folder: str, *, host: str = "127.0.0.1", port: int = 8080, preview: in
                 # three measurements, the fastest: this VM has transient slow spells (one whole
                 # measurement came out 2x slower than the others)
                 ms = min(session.frame_ms(size) for _ in range(3))
-                timing.content = (f"frame: evaluator {ms:.4g} ms at {frame['indirect'].shape[1]}x{size} (generation "
+                timing.content = (f"frame: evaluator {ms:.4g} ms at {frame['prediction'].shape[1]}x{size} (generation "
                                   f"{generation}; fastest of 3 x 15 jitted loops of >= 40 ms; the method's lighting "
                                   f"transform and direct light not included)")
             except Exception as e:  # keep serving: show the error on the page

@@ -77,3 +77,28 @@ def test_hash_changes_with_values_and_is_stable_across_processes(tmp_path):
     digest = save_resolved(BASE, str(tmp_path))
     saved = json.load(open(os.path.join(tmp_path, "config.json")))
     assert saved == {"hash": digest, "config": BASE}
+
+
+def test_a_scene_section_takes_a_file_or_switches_kind(tmp_path):
+    """``--set dataset.scene=/abs/room.xml``, or ``scene.name=xml`` then ``scene.path=...``; a key
+    of another kind of scene says how to switch."""
+    from jprt.config import ConfigError, apply_overrides
+
+    room = tmp_path / "room.xml"
+    room.write_text("<scene version='3.0.0'/>")
+    config = {"dataset": {"scene": {"name": "cornell_box", "area_light": False}, "spp": 4}}
+    got = apply_overrides(config, [f"dataset.scene={room}"])
+    assert got["dataset"]["scene"] == {"name": "xml", "path": str(room), "keep_emitters": True}
+    got = apply_overrides(config, ["dataset.scene.name=xml", f"dataset.scene.path={room}",
+                                   "dataset.scene.keep_emitters=false"])
+    assert got["dataset"]["scene"] == {"name": "xml", "path": str(room), "keep_emitters": False}
+    assert got["dataset"]["spp"] == 4 and config["dataset"]["scene"]["name"] == "cornell_box"
+    with pytest.raises(ConfigError, match=r"for a 'cornell_box' scene; switch the scene's kind first \(--set "
+                                          r"dataset.scene.name=xml"):
+        apply_overrides(config, [f"dataset.scene.path={room}"])
+    with pytest.raises(ConfigError, match="scene file not found"):
+        apply_overrides(config, ["dataset.scene=/no/such/room.xml"])
+    with pytest.raises(ConfigError, match="unknown scene name 'attic'"):
+        apply_overrides(config, ["dataset.scene.name=attic"])
+    same = apply_overrides(config, ["dataset.scene.name=cornell_box"])  # the same kind keeps its keys
+    assert same == config

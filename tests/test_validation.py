@@ -66,6 +66,8 @@ CASES = {
     "point-radiance-negative": (lambda: jin.PointRadiance.create(-np.ones((4, 3))), ValueError, "point radiance direct must be >= 0"),
     "light-scale-shape": (lambda: jin.LightScale.create([1.0, 2.0]), ValueError, "light scale must have shape (3,)"),
     "light-scale-negative": (lambda: jin.LightScale.create([1.0, -2.0, 1.0]), ValueError, "light scale must be >= 0"),
+    "preconvolved-alphas": (lambda: jin.PreconvolvedEnvironment.create(np.ones((2, 4, 4, 3)), [0.5, 0.2]), ValueError,
+                            "alphas must increase within"),
     "gbuffer-shape": (lambda: jin.validate_gbuffer(_gbuffer(roughness=np.ones((2, 2), np.float32))), ValueError, "G-buffer roughness must have shape (2, 3)"),
     "gbuffer-finite": (lambda: jin.validate_gbuffer(_gbuffer(position=_nan_at_valid())), ValueError, "G-buffer position at valid pixels must be finite"),
     "gbuffer-unit": (lambda: jin.validate_gbuffer(_gbuffer(normal=np.full((2, 3, 3), 0.9, np.float32))), ValueError, "G-buffer normal must be unit vectors"),

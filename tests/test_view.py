@@ -105,12 +105,12 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
-_STATS = re.compile(r"stats \(indirect, \d+x(\d+), generation (\d+)\): mean=([-\d.e+,]+) max=([-\d.e+,]+) "
+_STATS = re.compile(r"stats \((?:in)?direct, \d+x(\d+), generation (\d+)\): mean=([-\d.e+,]+) max=([-\d.e+,]+) "
                     r"sum_mean=([-\d.e+]+)")
 
 
 def _stats(page):
-    text = page.get_by_text("stats (indirect").inner_text()
+    text = page.get_by_text("stats (").inner_text()
     match = _STATS.search(text)
     return None if match is None else (int(match[1]), int(match[2]), [float(v) for v in match[3].split(",")])
 
@@ -189,7 +189,9 @@ def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
     if _chromium() is None:
         pytest.skip("no Chromium (`make view-deps` installs Debian's chromium)")
     folder, m, config, result = _run_folder(tmp_path_factory, name)
-    port, size = _free_port(), 160  # frames of a millisecond or more: timing, not dispatch noise
+    # frames of a millisecond or more: timing, not dispatch noise (SG environment visibility's test
+    # model takes 0.5 ms at 160^2 alone, and 0.8-1.8 ms with the page and browser beside it)
+    port, size = _free_port(), {"sg_environment": 320}.get(name, 160)
     server = subprocess.Popen([sys.executable, "-m", "jprt.cli", "view", folder, "--port", str(port), "--size",
                                str(size), "--preview", "16"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                               text=True)
@@ -207,7 +209,7 @@ def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
             # the test's own session, compiled before the page is asked for anything: its work must
             # not overlap the page's timing (two processes on two cores)
             session = Session(folder)
-            session.indirect(size)
+            session.prediction(size)
             if session.kind == "point":
                 x = float(page.get_by_label("light x").input_value()) + 0.15
                 page.get_by_label("light x").fill(f"{x:.4f}")
@@ -224,9 +226,9 @@ def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
             changed = {"point": ("light", lambda v: abs(v[0] - x) < 1e-9), "environment": ("env_rotation",
                        lambda v: v == 90.0), "scale": ("scale", lambda v: v == (2.5, 1.0, 1.0))}[session.kind]
             assert changed[1](state[changed[0]]), state
-            session.set(**state, mode="indirect")
+            session.set(**state, mode=session.predicts)
             assert not np.allclose(after, before, rtol=1e-6, atol=0), "the frame did not change"
-            want = image_stats(session.indirect(size))["mean"]
+            want = image_stats(session.prediction(size))["mean"]
             np.testing.assert_allclose(after, want, rtol=2e-6, atol=1e-9)
             # the fastest of three measurements (each the fastest of 15 blocks), as the page does; a
             # measurement the page's own work overlapped (it started another frame meanwhile: a
@@ -243,11 +245,11 @@ def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
                 page.get_by_label("Mitsuba spp").fill("8")
                 page.get_by_label("Mitsuba spp").press("Enter")
                 page.get_by_label("compare with Mitsuba").check()
-                _until(page, lambda: "RMSE" in page.get_by_text("stats (indirect").inner_text() or None, 120,
+                _until(page, lambda: "RMSE" in page.get_by_text("stats (").inner_text() or None, 120,
                        "no compare frame")
                 _wait_ready(page)
-                rmse = re.search(r"indirect RMSE=([-\d.e+]+)", page.get_by_text("stats (indirect").inner_text())
-                assert rmse is not None and 0 < float(rmse[1]) < 10 * max(want), page.get_by_text("stats").inner_text()
+                rmse = re.search(rf"{session.predicts} RMSE=([-\d.e+]+)", page.get_by_text("stats (").inner_text())
+                assert rmse is not None and 0 < float(rmse[1]) < 10 * max(want), page.get_by_text("stats (").inner_text()
             notice = page.get_by_text("Software WebGL rendering detected")  # headless Chromium has no GPU
             if notice.count():
                 notice.locator("xpath=ancestor::div[.//button][1]//button").first.click()
@@ -264,3 +266,36 @@ def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
         if server.poll() is None:
             server.kill()
             server.wait()
+
+
+@pytest.mark.mitsuba
+def test_a_direct_light_method_is_shown_and_compared_as_direct_light(mi, tmp_path_factory):
+    """SG environment visibility predicts the environment's glossy reflection (direct light): the
+    session offers the bake's map and others, shows the evaluator's output in the one "direct"
+    mode, turning the map changes it and equals the evaluator under the pre-convolved turned map,
+    and its reference is Mitsuba's direct light."""
+    folder, m, config, result = _run_folder(tmp_path_factory, "sg_environment")
+    s = Session(folder)
+    assert (s.kind, s.predicts, s.modes) == ("environment", "direct", ("direct",))
+    assert len(s.environments) >= 2
+    first = s.render(12)
+    np.testing.assert_array_equal(first["image"], first["prediction"])
+    assert not first["indirect"].any()
+    s.set(env_rotation=90.0)
+    frame = s.render(12)
+    assert not np.allclose(frame["prediction"], first["prediction"])
+    from jprt.methods.sg_environment import data as adapter
+
+    want = np.asarray(m.evaluator(result.params, config)(
+        adapter.task_inputs(s.handle, s.dataset, s.camera(12)), s.method_lighting()))
+    np.testing.assert_allclose(frame["prediction"], want, rtol=1e-6, atol=1e-8)
+    from jprt.render import images
+
+    ref = s.reference(12, spp=4, seed=3)
+    s.handle.set_lighting(s.scene_lighting())
+    mitsuba = images.render(s.handle, s.camera(12), spp=4, max_depth=2, seed=3)
+    valid = s.inputs(12).valid[..., None]
+    np.testing.assert_allclose(ref, np.where(valid, mitsuba, 0.0), rtol=1e-5, atol=1e-6)
+    assert (~valid).any() and np.abs(mitsuba[~valid[..., 0]]).max() > 0  # the masked pixels had light
+    with pytest.raises(ValueError, match="mode must be one of"):
+        s.set(mode="indirect")

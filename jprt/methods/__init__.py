@@ -6,6 +6,7 @@
 * ``datadriven``: data-driven PRT (Belcour et al. 2022).
 * ``sh_prt``: classic SH PRT (Sloan et al. 2002), data-driven PRT's baseline.
 * ``sg_lightfield``: SG light-field textures, baked glossy GI seen from any view (Currius et al. 2020).
+* ``sg_environment``: the same paper's §5, glossy environment reflections with visibility, relit by any map.
 * ``mrt``: Modular Radiance Transfer, indirect light for layouts of canonical blocks (Loos et al. 2011).
 
 Each package has ``model.py`` (the paper's math in pure JAX, in the paper's order, no Mitsuba),
@@ -24,11 +25,12 @@ README runs this loop, ``tests/methods/test_contract.py`` checks it)::
 summary (``jprt.runner.SUMMARY_SCHEMA``), timing and equal error against Mitsuba, stages.
 """
 
-from jprt.methods import datadriven, mrt, rrf, sg_lightfield, sh_prt, wavelet_prt
+from jprt.methods import datadriven, mrt, rrf, sg_environment, sg_lightfield, sh_prt, wavelet_prt
 from jprt.methods.base import FitResult, Method
 
-__all__ = ["REGISTRY", "Method", "FitResult", "datadriven", "mrt", "rrf", "sg_lightfield", "sh_prt", "wavelet_prt"]
+__all__ = ["REGISTRY", "Method", "FitResult", "datadriven", "mrt", "rrf", "sg_environment", "sg_lightfield", "sh_prt", "wavelet_prt"]
 
 #: Every method by name, in the order of the mission statement.
 REGISTRY: dict[str, Method] = {m.name: m for m in (rrf.METHOD, wavelet_prt.METHOD, sg_lightfield.METHOD,
+                                                   sg_environment.METHOD,
                                                    datadriven.METHOD, mrt.METHOD, sh_prt.METHOD)}

@@ -261,7 +261,7 @@ def open_dataset(folder: str) -> Dataset:
 DEFAULT_DATASET_CONFIG: dict = {
     "scene": {"name": "cornell_box", "area_light": False},
     "cameras": {
-        "kind": "orbit",  # orbit | helix | random | list
+        "kind": "orbit",  # orbit | helix | random | list | file (the scene file's own sensor)
         "n": 3,
         "center": [0.0, 0.0, 0.0],
         "radius": 3.9,
@@ -292,10 +292,18 @@ DEFAULT_DATASET_CONFIG: dict = {
 }
 
 
-def cameras_from_config(cfg: dict) -> list[cams.Camera]:
-    """Cameras from the ``cameras`` section of a dataset config (see DEFAULT_DATASET_CONFIG)."""
+def cameras_from_config(cfg: dict, scene=None) -> list[cams.Camera]:
+    """Cameras from the ``cameras`` section of a dataset config (see DEFAULT_DATASET_CONFIG);
+    ``file`` is the first sensor of ``scene`` (an xml scene; the Cornell box's camera for the
+    built-in boxes) at ``width`` x ``height``, its field of view kept along the smaller axis."""
     kw = {"fov": cfg["fov"], "width": cfg["width"], "height": cfg["height"]}
     kind = cfg["kind"]
+    if kind == "file":
+        if scene is None:
+            raise ValueError("cameras.kind='file' needs the scene (the file's sensor)")
+        from jprt.render.scenes import SceneHandle
+
+        return [SceneHandle(scene).default_camera(int(cfg["width"]), int(cfg["height"]))]
     if kind == "orbit":
         return cams.orbit(cfg["center"], cfg["radius"], cfg["n"], elevation_deg=cfg["elevation_deg"],
                           start_deg=cfg["start_deg"], arc_deg=cfg["arc_deg"], **kw)
@@ -306,7 +314,7 @@ def cameras_from_config(cfg: dict) -> list[cams.Camera]:
         return cams.random_in_box(cfg["seed"], cfg["n"], cfg["box_lo"], cfg["box_hi"], cfg["center"], **kw)
     if kind == "list":
         return [cams.look_at(o, cfg["center"], **kw) for o in cfg["origins"]]
-    raise ValueError(f"unknown camera kind {kind!r} (use orbit, helix, random or list)")
+    raise ValueError(f"unknown camera kind {kind!r} (use orbit, helix, random, list or file)")
 
 
 def lightings_from_config(cfg: dict) -> list[Lighting]:
@@ -329,6 +337,6 @@ def lightings_from_config(cfg: dict) -> list[Lighting]:
 
 def from_config(cfg: dict, *, cache_dir: str | None = None, progress: bool = True) -> Dataset:
     """Render (or reuse) the dataset a config's ``dataset`` section describes."""
-    return render_dataset(cfg["scene"], cameras_from_config(cfg["cameras"]), lightings_from_config(cfg["lights"]),
+    return render_dataset(cfg["scene"], cameras_from_config(cfg["cameras"], cfg["scene"]), lightings_from_config(cfg["lights"]),
                           spp=cfg["spp"], seed=cfg["seed"], pairs=cfg["pairs"], gbuffers=cfg["gbuffers"],
                           cache_dir=cache_dir, progress=progress)

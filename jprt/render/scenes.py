@@ -48,6 +48,9 @@ __all__ = [
     "BLOCK_ALBEDO",
     "BLOCK_INSET",
     "describe",
+    "section_defaults",
+    "section_from_string",
+    "REFUSED_INTEGRATORS",
     "SceneHandle",
     "CORNELL_OBJECTS",
     "CORNELL_CAMERA",
@@ -215,6 +218,35 @@ def blocks(layout, *, size: float = 1.0, albedo: dict | None = None) -> dict:
     return {"name": "blocks", "layout": lay.as_dict(), "size": float(size), "albedo": alb}
 
 
+def section_defaults(name: str) -> dict:
+    """The config section of a scene of kind ``name`` with its defaults, what ``--set
+    scene.name=NAME`` switches a config's scene section to (so the kind's own keys can follow:
+    ``--set scene.name=xml --set scene.path=/abs/scene.xml``). Keys without a default (a file's
+    path, a mesh, a layout) are empty and must be set."""
+    sections = {
+        "empty": {"name": "empty"},
+        "cornell_box": {"name": "cornell_box", "area_light": True},
+        "glossy_cornell": {"name": "glossy_cornell", "floor_roughness": 0.15, "sphere_roughness": 0.02},
+        "xml": {"name": "xml", "path": "", "keep_emitters": True},
+        "asset_room": {"name": "asset_room", "mesh": "", "albedo": [0.75, 0.6, 0.45], "margin": 1.0, "size": 3.0,
+                       "walls": True},
+        "blocks": {"name": "blocks", "layout": {}, "size": 1.0},
+    }
+    if name not in sections:
+        raise ValueError(f"unknown scene name {name!r}: use one of {sorted(sections)}")
+    return copy.deepcopy(sections[name])
+
+
+def section_from_string(value: str) -> dict:
+    """A scene config section from a string: a scene name (``section_defaults``) or the path of a
+    Mitsuba .xml file (``--set scene=/abs/scene.xml``)."""
+    if value.lower().endswith(".xml"):
+        if not os.path.isfile(value):
+            raise FileNotFoundError(f"scene file not found: {value}")
+        return {"name": "xml", "path": os.path.abspath(value), "keep_emitters": True}
+    return section_defaults(value)
+
+
 def describe(scene: dict | str) -> dict:
     """Normalise a scene given as a description dict or a name ("cornell_box", "glossy_cornell",
     or a path to an .xml file) into a full description."""
@@ -248,6 +280,8 @@ def describe(scene: dict | str) -> dict:
             return desc
         return glossy_cornell(**kwargs)
     if name == "xml":
+        if not scene.get("path"):
+            raise ValueError("an xml scene needs its file: set scene.path (e.g. --set scene.path=/abs/scene.xml)")
         return xml(scene["path"], keep_emitters=scene.get("keep_emitters", True))
     if name == "asset_room":
         kwargs.pop("sha256", None)
@@ -325,6 +359,7 @@ def _base_dict(desc: dict, mi) -> dict:
         return _blocks_dict(desc, mi)
     if name == "xml":
         loaded = mi.load_file(desc["path"], optimize=False)
+        _check_file_scene(loaded, desc["path"], mi)
         base = {"type": "scene"}
         for k, shape in enumerate(loaded.shapes()):
             if shape.emitter() is not None and not desc["keep_emitters"]:
@@ -339,6 +374,31 @@ def _base_dict(desc: dict, mi) -> dict:
             base["jprt_sensor"] = loaded.sensors()[0]
         return base
     raise ValueError(f"unknown scene name {name!r}")
+
+
+#: Integrators of a scene file that do not estimate the radiance jprt renders its ground truth
+#: with (Mitsuba class name -> plugin name); refused. Any other (path, volpath, volpathmis, bdpt,
+#: ptracer, prb, ...) is unbiased for the same radiance on surfaces: the file's choice changes the
+#: noise, not the expectation, so jprt's own ``path`` renders stand in for it.
+REFUSED_INTEGRATORS = {"AOVIntegrator": "aov", "DepthIntegrator": "depth", "DirectIntegrator": "direct",
+                       "MomentIntegrator": "moment", "StokesIntegrator": "stokes"}
+
+
+def _check_file_scene(loaded, path: str, mi) -> None:
+    """Refuse, in one line naming them, what jprt's ground truth (Mitsuba ``path`` on surfaces)
+    cannot honour in a scene file: participating media (a glass's interior medium, fog) and an
+    integrator that does not estimate radiance (aov, depth, moment, ...)."""
+    media = sorted({f"{shape.id() or 'shape'} ({side})" for shape in loaded.shapes()
+                    for side, medium in (("interior", shape.interior_medium()), ("exterior", shape.exterior_medium()))
+                    if medium is not None})
+    if media:
+        raise ValueError(f"{os.path.basename(path)}: participating media are not supported (jprt renders surfaces "
+                         f"with the path integrator): {', '.join(media)}; remove the media from the file")
+    integrator = loaded.integrator()
+    kind = REFUSED_INTEGRATORS.get(integrator.class_name()) if integrator is not None else None
+    if kind is not None:
+        raise ValueError(f"{os.path.basename(path)}: integrator {kind!r} does not estimate the full radiance jprt "
+                         f"renders ground truth for (with 'path'); use path, volpath or bdpt in the file")
 
 
 def _asset_room_dict(desc: dict, mi) -> dict:

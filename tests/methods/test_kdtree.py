@@ -123,3 +123,43 @@ def test_bad_input():
     x[3, 1] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         kdtree.build(x, np.zeros(100, int), is_train, _linear_fitter(x, y))
+
+
+def test_the_leaf_budget_goes_to_nodes_that_can_split():
+    """Issue 21's case: a budget smaller than the nodes over threshold, whose worst nodes cannot
+    split (too few samples for ``min_samples``). Those used to take the whole budget and nothing
+    split; now the budget passes to the worst nodes that can."""
+    rng = np.random.default_rng(3)
+    tiny, big = 60, 4000  # three tiny objects with a step (the worst errors), one big one with a milder step
+    obj = np.r_[np.repeat([0, 1, 2], tiny), np.full(big, 3)]
+    x = rng.random((len(obj), 2))
+    y = (1.0 + np.where(x[:, 0] < 0.5, 0.0, np.where(obj == 3, 0.6, 3.0)))[:, None]
+    is_train = rng.random(len(obj)) < 0.7
+    tree, _, report = kdtree.build(x, obj, is_train, _linear_fitter(x, y), min_samples=200, max_leaves=6,
+                                   max_depth=1)
+    assert report.levels[0]["over_threshold"] == 4  # every object is over threshold; the tiny ones worst
+    assert tree.n_leaves == 5 and report.levels[0]["split"] == 1  # the big object's root split
+    owner, _, _ = kdtree.leaf_cells(tree)
+    assert np.bincount(owner).tolist() == [1, 1, 1, 2]
+
+
+def test_objects_with_one_or_no_training_sample_are_grouped_or_reported():
+    """An object with a single training sample, and one with only validation samples, do not stop
+    the build: with ``group_below`` they share one tree with the other small objects (every one of
+    them looks it up); without a group, the sample-less one has no tree and is named."""
+    rng = np.random.default_rng(4)
+    obj = np.r_[np.zeros(3000, int), [1], np.full(5, 2), np.full(40, 3)]
+    x = rng.random((len(obj), 2))
+    y = (1.0 + x[:, :1]) * (1.0 + obj[:, None])
+    is_train = np.r_[rng.random(3000) < 0.7, [True], np.zeros(5, bool), rng.random(40) < 0.7]
+    tree, payloads, report = kdtree.build(x, obj, is_train, _linear_fitter(x, y), group_below=50, min_samples=40)
+    assert set(report.grouped) == {1, 2, 3} and report.grouped[1] == 1 and report.grouped[2] == 0
+    assert report.skipped == {}
+    roots = np.asarray(tree.roots)
+    assert roots[1] == roots[2] == roots[3] >= 0 and roots[0] >= 0 and roots[0] != roots[1]
+    leaf = kdtree.traverse(tree, np.array([1, 2, 3]), np.full((3, 2), 0.5), xp=np)
+    assert np.all(np.asarray(leaf) >= 0)
+
+    tree, _, report = kdtree.build(x, obj, is_train, _linear_fitter(x, y), min_samples=40)
+    assert report.skipped == {2: 0} and report.grouped == {}
+    assert np.asarray(tree.roots)[2] == -1 and np.asarray(tree.roots)[1] >= 0

@@ -48,3 +48,46 @@ def test_open_top_glossy_cornell(mi):
     names = SceneHandle(desc).object_names()
     assert "ceiling" not in names and "floor" in names
     assert "ceiling" in SceneHandle(scenes.glossy_cornell()).object_names()
+
+
+def _xml(tmp_path, body: str, integrator: str = "path") -> str:
+    path = tmp_path / "room.xml"
+    path.write_text(f"""<scene version="3.0.0">
+  <integrator type="{integrator}"/>
+  <sensor type="perspective"><float name="fov" value="50"/>
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="24"/></film></sensor>
+  <shape type="rectangle" id="floor"><bsdf type="diffuse"/></shape>
+  {body}
+</scene>""")
+    return str(path)
+
+
+@pytest.mark.mitsuba
+def test_a_scene_file_with_media_or_a_non_radiance_integrator_is_refused_in_one_line(mi, tmp_path):
+    from jprt.render.scenes import SceneHandle
+
+    glass = _xml(tmp_path, """<shape type="sphere" id="glass"><bsdf type="dielectric"/>
+      <medium type="homogeneous" name="interior"><rgb name="albedo" value="0.5"/></medium></shape>""")
+    with pytest.raises(ValueError, match=r"participating media are not supported .*glass \(interior\)") as e:
+        SceneHandle({"name": "xml", "path": glass})
+    assert "\n" not in str(e.value)
+    depth = _xml(tmp_path, "", integrator="depth")
+    with pytest.raises(ValueError, match="integrator 'depth' does not estimate"):
+        SceneHandle({"name": "xml", "path": depth})
+    SceneHandle({"name": "xml", "path": _xml(tmp_path, "", integrator="volpath")})  # same radiance: accepted
+
+
+@pytest.mark.mitsuba
+def test_the_file_camera_is_the_scene_files_sensor(mi, tmp_path):
+    from jprt.render.dataset import DEFAULT_DATASET_CONFIG, cameras_from_config
+    from jprt.render.scenes import SceneHandle
+
+    path = _xml(tmp_path, "")
+    (camera,) = cameras_from_config({**DEFAULT_DATASET_CONFIG["cameras"], "kind": "file", "width": 32, "height": 24},
+                                    {"name": "xml", "path": path})
+    assert camera == SceneHandle({"name": "xml", "path": path}).default_camera(32, 24)
+    np.testing.assert_allclose(camera.origin, [0, 0, 4], atol=1e-5)
+    np.testing.assert_allclose(camera.target, [0, 0, 3], atol=1e-5)
+    with pytest.raises(ValueError, match="needs the scene"):
+        cameras_from_config({**DEFAULT_DATASET_CONFIG["cameras"], "kind": "file"})

@@ -7,7 +7,12 @@ training samples of its box expanded by ``expand`` (10 %) per dimension (Fig. 4 
 side), and split only while its training or validation (prediction) relative error exceeds
 ``threshold`` (5 %). The split axis is the one whose two fitted children have the smallest errors
 (every axis tried, the paper's default) or a random one (``axis="random"``, ~10 % worse in the
-paper). Guards: ``max_depth``, ``min_samples`` training samples per child, ``max_leaves`` in all.
+paper). Guards: ``max_depth``, ``min_samples`` training samples per child, ``max_leaves`` in all
+(the budget goes to the worst nodes that *can* split: a node whose children would be too small is
+passed over, not counted against the budget). Objects with fewer than ``group_below`` training
+samples (small or distant objects that the sampled rays barely reach) share one tree fitted on
+their samples pooled, rather than each failing on a handful; an object with none at all, and no
+group to join, has no tree (its pixels predict 0) and is named in the report.
 
 The builder is generic: it knows boxes and sample indices, and asks a ``fit_nodes`` callback to
 fit many nodes at once (the RRF trains them with the vmapped Levenberg–Marquardt solver). The
@@ -81,10 +86,14 @@ class NodeFit(NamedTuple):
 
 
 class BuildReport(NamedTuple):
-    """What the builder did: per level, the nodes tried and split; candidate fits performed."""
+    """What the builder did: per level, the nodes tried and split; candidate fits performed; the
+    objects pooled into one shared tree (``grouped``) and those left without a tree
+    (``skipped``), each as {object: training samples}."""
 
     levels: list
     n_fits: int
+    grouped: dict = {}
+    skipped: dict = {}
 
 
 def traverse(tree: KDTree, object_id, x, *, xp=jnp, column: Callable | None = None):
@@ -189,7 +198,7 @@ def cell_members(x, lo, hi, candidates: np.ndarray) -> np.ndarray:
 def build(x, object_id, is_train, fit_nodes: Callable[[Sequence[Problem], str], Sequence[NodeFit]], *,
           threshold: float = 0.05, axis: str = "all", expand: float = 0.1, max_depth: int = 8,
           min_samples: int = 200, max_leaves: int = 256, seed: int = 0, objects: Sequence[int] | None = None,
-          progress: Callable[[str], None] | None = None):
+          group_below: int = 0, progress: Callable[[str], None] | None = None):
     """Build one error-driven kd-tree per object (module docstring) and fit its leaves.
 
     Args:
@@ -206,6 +215,9 @@ def build(x, object_id, is_train, fit_nodes: Callable[[Sequence[Problem], str], 
       max_depth, min_samples, max_leaves: guards (a split needs both children to have at least
         ``min_samples`` training samples).
       objects: the objects to build trees for (default: every object with samples).
+      group_below: objects with fewer training samples than this share one tree (their samples
+        pooled; module docstring); 0 groups none. Objects with no training sample always join the
+        group when there is one, and are skipped (no tree, reported) otherwise.
       progress: optional callback for one-line progress messages.
 
     Returns:
@@ -231,6 +243,22 @@ def build(x, object_id, is_train, fit_nodes: Callable[[Sequence[Problem], str], 
         objects = sorted(int(o) for o in np.unique(object_id) if o >= 0)
     n_objects = int(max([*objects, int(object_id.max(initial=-1))]) + 1) if len(objects) else 0
     by_object = {o: np.flatnonzero(object_id == o) for o in objects}
+    counts = {o: int(is_train[by_object[o]].sum()) for o in objects}
+    small = [o for o in objects if counts[o] < int(group_below) or counts[o] == 0]
+    grouped, skipped, aliases = {}, {}, {}
+    if small and sum(counts[o] for o in small) > 0 and (len(small) > 1 or counts[small[0]] > 0):
+        key = small[0]
+        by_object[key] = np.sort(np.concatenate([by_object[o] for o in small]))
+        grouped = {o: counts[o] for o in small}
+        aliases = {o: key for o in small[1:]}
+        objects = [o for o in objects if o not in aliases]
+        say(f"kd-tree: {len(small)} object(s) with fewer than {int(group_below)} training samples share one tree "
+            f"({sum(grouped.values())} samples): {sorted(grouped)}")
+    else:
+        skipped = {o: counts[o] for o in small if counts[o] == 0}
+        objects = [o for o in objects if o not in skipped]
+    if skipped:
+        say(f"kd-tree: object(s) {sorted(skipped)} have no training samples: no tree, their pixels predict 0")
 
     def problem(obj, lo, hi, init=None):
         idx = by_object[obj]
@@ -243,10 +271,7 @@ def build(x, object_id, is_train, fit_nodes: Callable[[Sequence[Problem], str], 
         lo, hi = np.full(d, -np.inf), np.full(d, np.inf)
         roots.append(_Node(obj, 0, lo, hi))
     root_problems = [problem(n.obj, n.lo, n.hi) for n in roots]
-    for n, p in zip(roots, root_problems):
-        if len(p.train) == 0:
-            raise ValueError(f"object {n.obj} has no training samples")
-    fits = fit_nodes(root_problems, "root")
+    fits = fit_nodes(root_problems, "root") if root_problems else []
     n_fits = len(fits)
     for n, f, p in zip(roots, fits, root_problems):
         n.fit, n.train, n.val = f, len(p.train), len(p.val)
@@ -258,10 +283,13 @@ def build(x, object_id, is_train, fit_nodes: Callable[[Sequence[Problem], str], 
         want.sort(key=lambda n: -max(n.fit.train_error, n.fit.val_error))
         if not want or n_leaves >= max_leaves:
             break
-        want = want[: max_leaves - n_leaves]
-        # Candidate children: (node, axis, side) for every tried axis.
-        candidates, problems = [], []
+        # Candidate children: (node, axis, side) for every tried axis, of the worst nodes that have
+        # a split with enough samples on both sides, until the leaf budget is covered
+        candidates, problems, splittable = [], [], 0
         for n in want:
+            if splittable >= max_leaves - n_leaves:
+                break
+            before = len(candidates)
             idx = by_object[n.obj]
             sub = x[cell_members(x, n.lo, n.hi, idx)]
             box_lo = np.where(np.isfinite(n.lo), n.lo, 0.0)
@@ -280,6 +308,7 @@ def build(x, object_id, is_train, fit_nodes: Callable[[Sequence[Problem], str], 
                     continue
                 candidates.append((n, a, mid, (n.lo, hi_l), (lo_r, n.hi)))
                 problems += [pl, pr]
+            splittable += len(candidates) > before
         if not candidates:
             break
         say(f"kd-tree level {len(levels) + 1}: {len(want)} node(s) over threshold, fitting {len(problems)} "
@@ -314,10 +343,10 @@ def build(x, object_id, is_train, fit_nodes: Callable[[Sequence[Problem], str], 
         levels.append({"level": len(levels) + 1, "over_threshold": len(want), "candidates": len(problems),
                        "split": split, "leaves": n_leaves})
         frontier = new_frontier
-    return _flatten(roots, n_objects, d) + (BuildReport(levels, n_fits),)
+    return _flatten(roots, n_objects, d, aliases) + (BuildReport(levels, n_fits, grouped, skipped),)
 
 
-def _flatten(roots, n_objects: int, d: int):
+def _flatten(roots, n_objects: int, d: int, aliases: dict | None = None):
     axis, thr, left, right, leaf, lo, hi, depth, payloads = [], [], [], [], [], [], [], [], []
     root_index = np.full(n_objects, -1, np.int32)
 
@@ -341,6 +370,8 @@ def _flatten(roots, n_objects: int, d: int):
 
     for root in roots:
         root_index[root.obj] = add(root)
+    for obj, key in (aliases or {}).items():  # objects pooled into another's tree
+        root_index[obj] = root_index[key]
     tree = KDTree(
         axis=np.asarray(axis, np.int32), threshold=np.asarray(thr, np.float32),
         left=np.asarray(left, np.int32), right=np.asarray(right, np.int32), leaf=np.asarray(leaf, np.int32),

@@ -94,7 +94,8 @@ DEFAULT_CONFIG: dict = {
                      "view_origin": [0.0, 0.0, 3.9]},
     },
     "model": {"hidden": [20, 10], "attributes": "augmented"},
-    "tree": {"threshold": 0.05, "axis": "all", "expand": 0.1, "max_depth": 6, "min_samples": 1500, "max_leaves": 64},
+    "tree": {"threshold": 0.05, "axis": "all", "expand": 0.1, "max_depth": 6, "min_samples": 1500, "max_leaves": 64,
+             "group_below": 32},
     "train": {"max_iters": 40, "trial_iters": 10, "trial_samples": 1024, "max_fail": 6, "rtol": 1e-6, "damping": 1e-3, "chunk_size": 1024, "seed": 0,
               "subset": 1.0, "progress": True},
     # evaluator: lights outside the trained box ("error" | "clamp" | "allow", box grown by
@@ -478,7 +479,7 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None, ch
         xn, object_id, is_train, fit_nodes, threshold=float(tree_cfg["threshold"]), axis=tree_cfg["axis"],
         expand=float(tree_cfg["expand"]), max_depth=int(tree_cfg["max_depth"]),
         min_samples=int(tree_cfg["min_samples"]), max_leaves=int(tree_cfg["max_leaves"]), seed=int(t["seed"]),
-        progress=say)
+        group_below=int(tree_cfg["group_below"]), progress=say)
     params = _pack(tree, obj_lo, obj_hi, payloads)
     train_err, val_err = _leaf_errors(params, xn, x, y, object_id, is_train)
     info = {"train_s": time.perf_counter() - t0, "report": report, "leaf_train_error": train_err,

@@ -518,10 +518,14 @@ def lookup_lobes(params, uv) -> Lobes:
 
     Numerics: not differentiable (reads the float16 run-time storage; bilinear filtering in float32 by design).
     """
+    return _table_lobes(_lobe_table(params), uv, params["sharpness"].shape[-1])
+
+
+def _table_lobes(table, uv, n: int) -> Lobes:
+    """``lookup_lobes`` in a packed ``_lobe_table`` of ``n`` lobes per texel."""
     from jprt.methods.atlas import atlas_lookup
 
-    n = params["sharpness"].shape[-1]
-    p = _planes(atlas_lookup(_lobe_table(params), jnp.asarray(uv, jnp.float32)), n)
+    p = _planes(atlas_lookup(table, jnp.asarray(uv, jnp.float32)), n)
     axes = jnp.stack(p[0:3], axis=-1)
     axes = axes / jnp.sqrt(jnp.maximum(jnp.sum(axes * axes, axis=-1, keepdims=True), 1e-20))
     return Lobes(axes, p[3], jnp.stack(p[4:7], axis=-1))
