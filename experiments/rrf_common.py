@@ -70,7 +70,7 @@ def _test_pairs(config: dict):
     from jprt.render import cameras as cams
     from jprt.render.sampling import latin_hypercube
 
-    d, e = config["data"], config["eval"]
+    d, e = rrf_data.resolve_regions(config["data"], config["scene"]), config["eval"]
     rng = np.random.default_rng(int(e["seed"]))
     lights = latin_hypercube(rng, e["n_lights"], d["light_lo"], d["light_hi"])
     origins = latin_hypercube(rng, e["n_views"], d["view_lo"], d["view_hi"])
@@ -199,7 +199,7 @@ def four_lights(run) -> dict:
     from jprt.render.sampling import latin_hypercube
 
     rng = np.random.default_rng(5)
-    d = run.config["data"]
+    d = rrf_data.resolve_regions(run.config["data"], run.config["scene"])
     host = PointLights.create(latin_hypercube(rng, 4, d["light_lo"], d["light_hi"]), rng.uniform(0.5, 1.5, (4, 3)))
     gb, lights = jax.device_put((run.state["timing_gbuffer"], host))
     fast = jax.jit(run.evaluate)
@@ -386,7 +386,7 @@ def material_edit(run) -> dict:
     data = rrf_data.make_dataset(run.config["scene"], cfg)
     params, info = rrf.fit(data, cfg)
     evaluate = rrf.evaluator(params, cfg)
-    d, e = cfg["data"], run.config["eval"]
+    d, e = rrf_data.resolve_regions(cfg["data"], run.config["scene"]), run.config["eval"]
     mat = d["material"]
     camera = cams.look_at(mat["view_origin"], d["view_target"], fov=d["fov"], width=e["resolution"],
                           height=e["resolution"])

@@ -7,10 +7,16 @@ illumination in textures using the UV-space of the asset, thus each row of I is 
 Charts:
   * an object whose own UV layout does not overlap itself (Spot, Mitsuba's rectangles) is one
     chart, its UVs scaled to world units;
-  * an object whose UVs overlap (Mitsuba's cube maps all six faces onto [0, 1]^2) is split into
-    planar charts, one per face plane, each parameterised by two axes of its plane.
-Charts are packed on shelves at one common texel size (world units per texel), with a
-two-texel gutter, so texel density is uniform over the atlas.
+  * an object whose UVs overlap but that has few face planes (Mitsuba's cube maps all six faces
+    onto [0, 1]^2; stairs) is split into planar charts, one per face plane, each parameterised by
+    two axes of its plane;
+  * any other object (no UVs, UVs collapsed to a point, or overlapping UVs on a curved mesh that
+    would make thousands of planar charts) is unwrapped by xatlas (the lightmap unwrapper engines
+    use: charts cut and packed without overlap), its layout scaled to world units.
+Zero-area triangles are dropped (counted in a warning; a ray never hits them). Charts are
+packed on shelves at one common texel size (world units per texel), with a two-texel gutter, so
+texel density is uniform over the atlas, except that an object too small for ``min_texels``
+texels at that density is scaled up until it has them.
 
 Every triangle t then has an affine map ``uv = A_t [p, 1]`` from world position to atlas UV
 (exact inside the triangle, since the barycentric interpolation of its corner UVs is affine).
@@ -192,29 +198,65 @@ def _raster_triangle(corners: np.ndarray, res: int, eps: float = 1e-9):
     return (ys.ravel() * res + xs.ravel())[inside], bary[inside]
 
 
-def _charts(tris: np.ndarray, uv: np.ndarray | None, overlap_tol: float) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Split one object's triangles into charts: [(triangle indices, corner coords in world units)]."""
+#: At most this many planar charts per object; an object with more face planes is unwrapped by xatlas.
+MAX_PLANAR_CHARTS = 64
+
+
+def _uv_area(uv: np.ndarray) -> np.ndarray:
+    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+
+
+def _unwrap(tris: np.ndarray, texel: float) -> np.ndarray:
+    """xatlas charts of one object's triangles (F, 3, 3), packed without overlap with
+    ``_GUTTER``-texel padding at about ``texel`` world units per texel: corner coordinates
+    (F, 3, 2) in world units. Corners are welded by position first (xatlas cuts charts along the
+    mesh's connectivity; unshared corners would make every triangle a chart)."""
+    import xatlas
+
+    corners = tris.reshape(-1, 3)
+    scale = max(float(np.ptp(corners, axis=0).max()), 1e-30)
+    key = np.round(corners / (scale * 1e-6)).astype(np.int64)
+    _, first, faces = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(corners[first].astype(np.float32), faces.reshape(-1, 3).astype(np.uint32))
+    pack = xatlas.PackOptions()
+    pack.padding = _GUTTER
+    pack.texels_per_unit = float(1.0 / texel)
+    atlas.generate(pack_options=pack)
+    _, indices, uvs = atlas[0] if hasattr(atlas, "__getitem__") else atlas.get_mesh(0)
+    uv = np.asarray(uvs, np.float64)[np.asarray(indices, np.int64).reshape(-1, 3)]
+    return uv * np.array([atlas.width, atlas.height], np.float64) * texel
+
+
+def _charts(tris: np.ndarray, uv: np.ndarray | None, overlap_tol: float,
+            texel: float) -> tuple[list[tuple[np.ndarray, np.ndarray]], str]:
+    """Split one object's (non-degenerate) triangles into charts: ([(triangle indices, corner
+    coords in world units)], how: "uv" | "planar" | "xatlas"); ``texel`` is the expected world
+    size of a texel (xatlas pads its charts by ``_GUTTER`` of them)."""
     area3 = _areas(tris)
     if uv is not None:
-        e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
-        uv_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        uv_area = _uv_area(uv)
         if uv_area.sum() > 0 and _uv_overlaps(uv) <= overlap_tol:
             scale = np.sqrt(area3.sum() / uv_area.sum())
-            return [(np.arange(tris.shape[0]), uv * scale)]
+            return [(np.arange(tris.shape[0]), uv * scale)], "uv"
     # planar charts: group triangles by (normal, plane offset)
     n = _geometric_normals(tris)
     offset = np.einsum("fi,fi->f", n, tris[:, 0])
     key = np.round(np.column_stack([n * 1e3, offset[:, None] * 1e3])).astype(np.int64)
     _, group = np.unique(key, axis=0, return_inverse=True)
+    group = group.ravel()
+    if group.max() + 1 > MAX_PLANAR_CHARTS:
+        return [(np.arange(tris.shape[0]), _unwrap(tris, texel))], "xatlas"
     charts = []
     for g in range(group.max() + 1):
-        idx = np.nonzero(group.ravel() == g)[0]
+        idx = np.nonzero(group == g)[0]
         normal = n[idx[0]]
         a = np.cross(normal, [0.0, 1.0, 0.0] if abs(normal[1]) < 0.9 else [1.0, 0.0, 0.0])
         a /= np.linalg.norm(a)
         b = np.cross(normal, a)
         charts.append((idx, np.stack([tris[idx] @ a, tris[idx] @ b], axis=-1)))
-    return charts
+    return charts, "planar"
 
 
 def _pack(sizes: np.ndarray, res: int, texel: float) -> np.ndarray | None:
@@ -238,9 +280,17 @@ def _pack(sizes: np.ndarray, res: int, texel: float) -> np.ndarray | None:
 
 def _affine_maps(tris: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """(F, 2, 4) matrices A with A [p, 1] = the barycentric interpolation of ``uv`` at the
-    projection of p onto each triangle's plane."""
+    projection of p onto each triangle's plane; a zero-area triangle maps every point to its
+    first corner's UV."""
     e1, e2 = tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]
     n = np.cross(e1, e2)
+    flat = np.linalg.norm(n, axis=1) <= 1e-12 * max(float(np.linalg.norm(n, axis=1).max(initial=0.0)), 1e-300)
+    if flat.any():
+        out = np.zeros((tris.shape[0], 2, 4))
+        out[flat, :, 3] = uv[flat, 0]
+        if (~flat).any():
+            out[~flat] = _affine_maps(tris[~flat], uv[~flat])
+        return out
     # world->barycentric: solve [e1 e2 n] (l1, l2, h) = p - v0
     basis = np.stack([e1, e2, n], axis=2)  # (F, 3, 3) columns
     inv = np.linalg.inv(basis)[:, :2, :]  # rows giving l1, l2
@@ -250,54 +300,90 @@ def _affine_maps(tris: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return np.concatenate([lin, const[:, :, None]], axis=2)
 
 
+def _fit_texel(sizes: np.ndarray, res: int, start: float, n_charts: int) -> float:
+    """The smallest common texel size (bisection) at which chart rectangles ``sizes`` pack."""
+    low = high = start
+    while _pack(sizes, res, high) is None:
+        high *= 1.5
+        if high > 1e6 * low:
+            raise ValueError(f"{n_charts} lightmap charts (with {_GUTTER}-texel gutters) do not fit a "
+                             f"{res} x {res} atlas; raise the resolution")
+    for _ in range(30):
+        mid = 0.5 * (low + high)
+        low, high = (low, mid) if _pack(sizes, res, mid) is not None else (mid, high)
+    return high
+
+
 def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None, *, resolution: int = 64,
-                overlap_tol: float = 0.01, eps: float | None = None) -> Atlas:
+                overlap_tol: float = 0.01, eps: float | None = None, min_texels: int = 4) -> Atlas:
     """Lay out a lightmap atlas of ``objects`` (names or ids; None = all) at ``resolution``^2.
 
-    Charts are packed at the smallest common texel size (found by bisection) that fits the atlas;
-    texel centres covered by a triangle become lightmap texels (their position and geometric
-    normal interpolated from the triangle), and uncovered atlas pixels point at their nearest
-    covered texel (``fill_index``) so a bilinear lookup never reads an empty texel.
+    Charts (module docstring: the mesh's own UVs, planar charts, or xatlas) are packed at the
+    smallest common texel size (found by bisection) that fits the atlas; an object with fewer
+    than ``min_texels`` texels at that size is scaled up (its texel density raised) and the
+    packing redone. Texel centres covered by a triangle become lightmap texels (their position
+    and geometric normal interpolated from the triangle), and uncovered atlas pixels point at
+    their nearest covered texel (``fill_index``) so a bilinear lookup never reads an empty texel.
+    Zero-area triangles are left out of the charts, with a warning that counts them.
     """
+    import warnings
+
     from scipy import ndimage
 
     if int(resolution) < 8:
         raise ValueError(f"atlas resolution must be >= 8, got {resolution}")
     res = int(resolution)
     ids = _object_index(handle, objects)
-    per_object, charts = [], []
-    for oi, obj in enumerate(ids):
-        tris, uv = mesh_triangles(handle, obj)
-        per_object.append(tris)
-        for idx, coords in _charts(tris, uv, overlap_tol):
-            charts.append((oi, idx, coords))
-    lo = np.array([c[2].reshape(-1, 2).min(0) for c in charts])
-    sizes = np.array([c[2].reshape(-1, 2).max(0) for c in charts]) - lo
+    names = handle.object_names()
+    meshes = [mesh_triangles(handle, obj) for obj in ids]
+    per_object = [tris for tris, _ in meshes]
     total = sum(_areas(t).sum() for t in per_object)
-    low, high = np.sqrt(total) / res * 0.5, np.sqrt(total) / res * 0.5
-    while _pack(sizes, res, high) is None:
-        high *= 1.5
-        if high > 1e6 * low:
-            raise ValueError(f"{len(charts)} lightmap charts (with {_GUTTER}-texel gutters) do not fit a "
-                             f"{res} x {res} atlas; raise the resolution")
-    for _ in range(30):
-        mid = 0.5 * (low + high)
-        low, high = (low, mid) if _pack(sizes, res, mid) is not None else (mid, high)
-    texel = high
+    if not total > 0:
+        raise ValueError("the atlas's objects have no area")
+    guess = np.sqrt(total) / res * 1.3  # the texel size a well-packed atlas reaches
+    charts, dropped = [], {}
+    for oi, (tris, uv) in enumerate(meshes):
+        area = _areas(tris)
+        keep = np.flatnonzero(area > 1e-12 * max(float(area.max(initial=0.0)), 1e-300))
+        if len(keep) < len(tris):
+            dropped[names[ids[oi]]] = int(len(tris) - len(keep))
+        if len(keep) == 0:
+            raise ValueError(f"object {names[ids[oi]]!r} has no triangle of non-zero area")
+        found, _ = _charts(tris[keep], None if uv is None else uv[keep], overlap_tol, guess)
+        charts += [(oi, keep[idx], coords) for idx, coords in found]
+    if dropped:
+        warnings.warn(f"lightmap atlas: {sum(dropped.values())} zero-area triangles left out "
+                      f"({', '.join(f'{k}: {v}' for k, v in sorted(dropped.items()))})", stacklevel=2)
+    object_area = np.array([_areas(t).sum() for t in per_object])
+    scale = np.ones(len(ids))
+    for _ in range(4):  # raise the density of objects below min_texels until every one has them
+        coords = [c[2] * scale[c[0]] for c in charts]
+        lo = np.array([c.reshape(-1, 2).min(0) for c in coords])
+        sizes = np.array([c.reshape(-1, 2).max(0) for c in coords]) - lo
+        texel = _fit_texel(sizes, res, guess * 0.4, len(charts))
+        texels = object_area * scale ** 2 / texel ** 2
+        short = texels < 2.0 * int(min_texels)  # rasterised texel centres fall short of the area's count
+        if not short.any():
+            break
+        scale[short] *= np.sqrt(2.0 * int(min_texels) / np.maximum(texels[short], 1e-12))
     origin = _pack(sizes, res, texel)
 
     n_tri = [t.shape[0] for t in per_object]
     tri_offset = np.concatenate([[0], np.cumsum(n_tri)[:-1]]).astype(np.int32)
-    atlas_uv = np.zeros((sum(n_tri), 3, 2))
-    for ci, (oi, idx, coords) in enumerate(charts):
-        atlas_uv[tri_offset[oi] + idx] = ((coords - lo[ci]) / texel + origin[ci]) / res
+    atlas_uv = np.full((sum(n_tri), 3, 2), -1.0)
+    for ci, (oi, idx, _) in enumerate(charts):
+        atlas_uv[tri_offset[oi] + idx] = ((coords[ci] - lo[ci]) / texel + origin[ci]) / res
+    for oi in range(len(ids)):  # dropped triangles: a point of their object's first chart (never rasterised)
+        block = atlas_uv[tri_offset[oi]:tri_offset[oi] + n_tri[oi]]
+        missing = block[:, 0, 0] < 0
+        block[missing] = block[~missing][0, 0]
     all_tris = np.concatenate(per_object)
     tri_object = np.concatenate([np.full(n, ids[oi], np.int32) for oi, n in enumerate(n_tri)])
     affine = _affine_maps(all_tris, atlas_uv)
 
     owner = np.full(res * res, -1, np.int64)
     bary_of = np.zeros((res * res, 3))
-    for t in range(all_tris.shape[0]):
+    for t in np.flatnonzero(_areas(all_tris) > 0):
         idx, bary = _raster_triangle(atlas_uv[t] * res, res)
         free = owner[idx] < 0
         owner[idx[free]], bary_of[idx[free]] = t, bary[free]

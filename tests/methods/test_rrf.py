@@ -215,7 +215,8 @@ def test_make_dataset_tiny(mi, tmp_path):
     assert data.indirect.min() > -1e-4 and data.indirect.mean() > 0
     # Latin hypercube: one light per stratum along every axis of the light box.
     lights = np.unique(data.light, axis=0)
-    lo, hi = np.array(rrf.DEFAULT_CONFIG["data"]["light_lo"]), np.array(rrf.DEFAULT_CONFIG["data"]["light_hi"])
+    lo, hi = np.array(rrf_data.CORNELL_REGIONS["light_lo"]), np.array(rrf_data.CORNELL_REGIONS["light_hi"])
+    assert data.meta["regions"]["source"] == "cornell" and data.meta["light_lo"] == rrf_data.CORNELL_REGIONS["light_lo"]
     strata = np.floor((lights - lo) / (hi - lo) * 3).astype(int)
     assert all(sorted(strata[:, a]) == [0, 1, 2] for a in range(3))
     before = dict(RENDER_STATS)
@@ -314,3 +315,53 @@ def test_renderer_tanh_matches_float64():
     want = np.tanh(x.astype(np.float64))
     assert np.abs(got - want).max() <= 3.2e-7  # measured 3.13e-7 (jnp.tanh: 2.6e-7)
     assert np.all(np.abs(got) <= 1.0) and np.all(np.sign(got) == np.sign(want))
+
+
+def test_every_object_the_rays_hit_gets_its_floor_of_samples():
+    """``data.min_object_rays``: a tiny object hit by 3 of 1000 candidate rays keeps 2 of the 50
+    drawn (uniform drawing keeps none most of the time); without a floor the draw is unchanged."""
+    from types import SimpleNamespace
+
+    n = 1000
+    obj = np.zeros(n, np.int32)
+    obj[[10, 500, 900]] = 7
+    normal = np.tile([0.0, 1.0, 0.0], (n, 1))
+    gb = SimpleNamespace(valid=np.ones(n, bool), object_id=obj, normal=normal)
+    o, d = np.arange(n, dtype=np.float64)[:, None].repeat(3, 1), np.zeros((n, 3))
+    kept, _ = rrf_data._balanced(gb, o, d, 50, np.random.default_rng(0), floor=2)
+    assert len(kept) == 50 and len(np.unique(kept[:, 0])) == 50
+    assert np.isin(kept[:, 0], [10, 500, 900]).sum() >= 2
+    a, _ = rrf_data._balanced(gb, o, d, 50, np.random.default_rng(1))
+    b, _ = rrf_data._balanced(gb, o, d, 50, np.random.default_rng(1), floor=0)
+    np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.mitsuba
+def test_regions_come_from_the_scene_file(mi, tmp_path):
+    """Left None, the light and view regions of a scene file come from its bounds and its own
+    camera: lights in the upper part of the room and outside geometry, views about the file's
+    camera looking where it looks; the built-in box keeps its tuned regions."""
+    from jprt.render.lightmap import free_positions
+    from jprt.render.scenes import SceneHandle
+
+    room = tmp_path / "room.xml"
+    room.write_text("""<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="50"/>
+    <transform name="to_world"><lookat origin="0, 1, 3.5" target="0, 1, 0" up="0, 1, 0"/></transform></sensor>
+  <shape type="cube" id="room"><transform name="to_world"><scale x="4" y="2" z="4"/>
+    <translate y="2"/></transform><bsdf type="diffuse"/><boolean name="flip_normals" value="true"/></shape>
+  <shape type="cube" id="pillar"><transform name="to_world"><scale x="0.6" y="2" z="0.6"/><translate y="2"/>
+    </transform><bsdf type="diffuse"/></shape>
+</scene>""")
+    desc = {"name": "xml", "path": str(room), "keep_emitters": False}
+    regions = rrf_data.scene_regions(desc)
+    assert regions["source"] == "scene bounds"
+    lo, hi = np.array(regions["light_lo"]), np.array(regions["light_hi"])
+    np.testing.assert_allclose([lo[1], hi[1]], [0.55 * 4, 0.85 * 4], atol=1e-4)  # the room's upper part
+    assert np.all(np.array(regions["view_lo"]) <= [0, 1, 3.5]) and np.all([0, 1, 3.5] <= np.array(regions["view_hi"]))
+    np.testing.assert_allclose(regions["view_target"], [0, 1, 0], atol=1e-4)
+    cfg = {**rrf.DEFAULT_CONFIG["data"], "n_lights": 12}
+    lights = rrf_data._free_lights(desc, np.tile([0.0, 3.0, 0.0], (12, 1)), rrf_data.resolve_regions(cfg, desc),
+                                   np.random.default_rng(0))  # all inside the pillar to start with
+    assert free_positions(SceneHandle(desc), lights, clearance=0.1).all()
+    assert rrf_data.scene_regions({"name": "cornell_box", "area_light": False})["light_lo"] == [-0.6, 0.3, -0.6]

@@ -125,3 +125,74 @@ def test_vertex_interpolation_reproduces_surface_points(mi):
     assert err[sphere].max() < edge**2 / (8 * 0.4) * 2 + 1e-4  # sagitta of the chords at radius 0.4
     # vertices are shared: neighbouring pixels on one wall reuse them
     assert len(np.unique(idx[flat][:, :3])) < 3 * flat.sum()
+
+
+def _sphere_obj(path, center, radius, uv_mode, n=10, degenerate=0):
+    """A UV sphere as an OBJ: ``uv_mode`` "collapsed" (every corner at one UV), "overlap" (every
+    triangle on the same UV triangle) or "none"; ``degenerate`` zero-area triangles appended."""
+    lines, faces = [], []
+    for i in range(n + 1):
+        th = np.pi * i / n
+        for j in range(2 * n):
+            ph = np.pi * j / n
+            p = np.asarray(center) + radius * np.array([np.sin(th) * np.cos(ph), np.cos(th), np.sin(th) * np.sin(ph)])
+            lines.append("v %.6f %.6f %.6f" % tuple(p))
+    idx = lambda i, j: i * 2 * n + (j % (2 * n)) + 1  # noqa: E731
+    for i in range(n):
+        for j in range(2 * n):
+            if i < n - 1:  # not the pole row below (its corners coincide)
+                faces.append((idx(i, j), idx(i + 1, j), idx(i + 1, j + 1)))
+            if i > 0:
+                faces.append((idx(i, j), idx(i + 1, j + 1), idx(i, j + 1)))
+    faces += [(idx(n // 2, 0), idx(n // 2, 0), idx(n // 2, 1))] * degenerate
+    if uv_mode == "collapsed":
+        lines.append("vt 0.5 0.5")
+        lines += ["f %d/1 %d/1 %d/1" % f for f in faces]
+    elif uv_mode == "overlap":
+        lines += ["vt 0 0", "vt 1 0", "vt 0 1"]
+        lines += ["f %d/1 %d/2 %d/3" % f for f in faces]
+    else:
+        lines += ["f %d %d %d" % f for f in faces]
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.mark.mitsuba
+def test_atlas_of_meshes_with_collapsed_overlapping_and_degenerate_uvs(mi, tmp_path):
+    """Issue 21's meshes: UVs collapsed to a point, every triangle on the same UV triangle, no
+    UVs, zero-area triangles, and a tiny object beside big ones. xatlas charts them (a curved mesh
+    would otherwise make hundreds of planar charts), every object gets at least ``min_texels``
+    texels, the dropped triangles are counted, and the atlas G-buffer looks up texels of the
+    object under each pixel."""
+    import warnings
+
+    from jprt.render.cameras import look_at
+    from jprt.render.scenes import SceneHandle
+
+    shapes = []
+    for name, (center, radius, mode, bad) in {"collapsed": ((-1.2, 0, 0), 0.5, "collapsed", 3),
+                                               "overlap": ((0, 0, 0), 0.5, "overlap", 0),
+                                               "plain": ((1.2, 0, 0), 0.5, "none", 2),
+                                               "tiny": ((0, 0.9, 0), 0.03, "none", 0)}.items():
+        _sphere_obj(tmp_path / f"{name}.obj", center, radius, mode, degenerate=bad)
+        shapes.append(f'<shape type="obj" id="{name}"><string name="filename" value="{tmp_path / name}.obj"/>'
+                      f'<boolean name="face_normals" value="true"/><bsdf type="diffuse"/></shape>')
+    scene = tmp_path / "spheres.xml"
+    scene.write_text('<scene version="3.0.0">' + "".join(shapes) + "</scene>")
+    handle = SceneHandle({"name": "xml", "path": str(scene)})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        atlas = lightmap.build_atlas(handle, resolution=64, min_texels=4)
+    counted = [str(w.message) for w in caught if "zero-area" in str(w.message)]
+    assert counted and "5 zero-area triangles" in counted[0] and "collapsed: 3" in counted[0], counted
+    per_object = np.bincount(atlas.texel_object, minlength=4)
+    assert per_object.min() >= 4, per_object
+    assert per_object[:3].min() > 100  # the big spheres share the atlas by area
+    camera = look_at((0.0, 0.2, 4.0), (0.0, 0.2, 0.0), fov=45.0, width=48, height=32)
+    g = lightmap.atlas_gbuffer(handle, atlas, camera)
+    res = atlas.resolution
+    texel = np.clip((g.uv * res).astype(int), 0, res - 1)
+    fill = atlas.fill_index[texel[..., 1] * res + texel[..., 0]]
+    hit = g.valid
+    assert hit.sum() > 200
+    owner = atlas.texel_object[fill[hit]]
+    assert np.mean(owner == g.object_id[hit]) > 0.97  # pixels read texels of their own object

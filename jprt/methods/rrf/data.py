@@ -24,8 +24,10 @@ from jprt import cache
 from jprt.config import stable_hash
 from jprt.methods.base import resolve
 from jprt.methods.rrf.model import DEFAULT_CONFIG, RRFData, brdf_vector
+from jprt.render.sampling import CORNELL_REGIONS, REGION_KEYS, scene_regions  # noqa: F401 (re-exported)
 
-__all__ = ["make_dataset", "edit_description", "TASK_LIGHTINGS", "task_inputs", "task_lighting"]
+__all__ = ["make_dataset", "edit_description", "scene_regions", "resolve_regions", "REGION_KEYS", "CORNELL_REGIONS",
+           "TASK_LIGHTINGS", "task_inputs", "task_lighting"]
 
 
 def edit_description(desc: dict, obj: str, roughness: float, albedo: float) -> dict:
@@ -60,11 +62,17 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
     mode = data_cfg["mode"]
     if mode not in ("view", "material"):
         raise ValueError(f"data.mode must be 'view' or 'material', got {mode!r}")
+    data_cfg = resolve_regions(data_cfg, desc)
     check_box(data_cfg["light_lo"], data_cfg["light_hi"], "data.light_lo/light_hi")
     for key in ("n_lights", "n_views", "n_rays", "spp"):
         if int(data_cfg[key]) <= 0:
             raise ValueError(f"data.{key} must be positive, got {data_cfg[key]}")
+    # the regions as numbers (the cache key of the built-in boxes' data is what it was before None
+    # meant "from the scene"); where they came from travels beside the spec, not in it
+    regions_from = data_cfg.pop("regions_from")
     spec = {"format": 2, "scene": desc, "data": {k: v for k, v in data_cfg.items() if k != "val_fraction"}}
+    if not int(data_cfg["min_object_rays"]):  # the key is new: unset, the cache key is the old one
+        spec["data"].pop("min_object_rays")
     if mode == "view":
         spec["data"].pop("material")
 
@@ -72,6 +80,8 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
         t0 = time.perf_counter()
         rng = np.random.default_rng(int(data_cfg["seed"]))
         lights = latin_hypercube(rng, data_cfg["n_lights"], data_cfg["light_lo"], data_cfg["light_hi"])
+        if regions_from == "scene bounds":  # no light inside geometry or touching it
+            lights = _free_lights(desc, lights, data_cfg, rng)
         if mode == "view":
             check_box(data_cfg["view_lo"], data_cfg["view_hi"], "data.view_lo/view_hi")
             origins = latin_hypercube(rng, data_cfg["n_views"], data_cfg["view_lo"], data_cfg["view_hi"])
@@ -94,17 +104,37 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
         return arrays
 
     arrays, _ = cache.cached("rrf", spec, build, cache_dir=cache_dir)
-    return RRFData(**arrays, meta=_meta(spec, arrays))
+    return RRFData(**arrays, meta=_meta(spec, arrays, regions_from))
 
 
-def _meta(spec: dict, arrays: dict) -> dict:
+def resolve_regions(data_cfg: dict, scene) -> dict:
+    """``data_cfg`` (an RRF config's ``data`` section) with the regions it leaves None filled in
+    from ``scene_regions(scene)``, and ``regions_from``: "config" when it sets all of them, else
+    the regions' source ("cornell" or "scene bounds")."""
+    if all(data_cfg[k] is not None for k in REGION_KEYS):
+        return {**data_cfg, **{k: [float(v) for v in data_cfg[k]] for k in REGION_KEYS}, "regions_from": "config"}
+    regions = scene_regions(scene)
+    return {**data_cfg, **{k: regions[k] if data_cfg[k] is None else [float(v) for v in data_cfg[k]]
+                           for k in REGION_KEYS}, "regions_from": regions["source"]}
+
+
+def _free_lights(desc, lights: np.ndarray, data_cfg: dict, rng) -> np.ndarray:
+    """``jprt.render.sampling.free_lights`` in the config's light box."""
+    from jprt.render.sampling import free_lights
+
+    return free_lights(desc, lights, data_cfg["light_lo"], data_cfg["light_hi"], rng)
+
+
+def _meta(spec: dict, arrays: dict, regions_from: str = "config") -> dict:
     data = spec["data"]
     return {"light_lo": list(map(float, data["light_lo"])), "light_hi": list(map(float, data["light_hi"])),
+            "regions": {**{k: list(map(float, data[k])) for k in REGION_KEYS if data.get(k) is not None},
+                        "source": regions_from},
             "spp": int(data["spp"]), "mode": data["mode"], "scene": spec["scene"], "hash": stable_hash(spec),
             "material_object": data.get("material", {}).get("object")}
 
 
-def _balanced(gb, origins, directions, n: int, rng):
+def _balanced(gb, origins, directions, n: int, rng, floor: int = 0):
     """``n`` of the candidate rays (origins, directions), drawn without replacement with weights
     1 / sqrt(candidates hitting the same object with the same signed dominant normal axis).
     Every surface a view sees gets samples, however small it is on screen: a face seen at a
@@ -112,18 +142,28 @@ def _balanced(gb, origins, directions, n: int, rng):
     of its normal, which the renderer then extrapolates (the black line along the top edge of the
     tall box in ``make demo``). Large surfaces keep more than an equal share: weights 1 / count
     starved the walls (demo RMSE 0.0288 against 0.0255 with 1 / sqrt, measured before the
-    ``jprt.nn.ranges`` fix). Rays that miss the scene are never drawn."""
+    ``jprt.nn.ranges`` fix). Rays that miss the scene are never drawn. With ``floor``, up to
+    ``floor`` rays of every object the candidates hit are drawn first (uniformly among that
+    object's candidates), the rest as above: a small or distant object that a view sees gets
+    samples rather than one ray or none."""
     valid = np.flatnonzero(np.asarray(gb.valid))
     if len(valid) <= n:
         keep = valid
     else:
-        normal = np.asarray(gb.normal)[valid]
+        first = np.zeros(0, np.int64)
+        if floor > 0:
+            objects = np.asarray(gb.object_id)[valid]
+            first = np.concatenate([rng.choice(valid[objects == o], size=min(int(floor), int((objects == o).sum())),
+                                               replace=False) for o in np.unique(objects)])
+            first = first[rng.permutation(len(first))[:n]]
+        rest = np.setdiff1d(valid, first)
+        normal = np.asarray(gb.normal)[rest]
         axis = np.argmax(np.abs(normal), axis=1)
         side = np.take_along_axis(normal, axis[:, None], axis=1)[:, 0] > 0
-        group = np.asarray(gb.object_id)[valid] * 6 + axis * 2 + side
+        group = np.asarray(gb.object_id)[rest] * 6 + axis * 2 + side
         _, inverse, counts = np.unique(group, return_inverse=True, return_counts=True)
         w = 1.0 / np.sqrt(counts[inverse])
-        keep = np.sort(rng.choice(valid, size=n, replace=False, p=w / w.sum()))
+        keep = np.sort(np.concatenate([first, rng.choice(rest, size=n - len(first), replace=False, p=w / w.sum())]))
     return origins[keep], directions[keep]
 
 
@@ -137,12 +177,15 @@ def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
     from jprt.render.scenes import SceneHandle
 
     n_rays, spp, seed = int(data_cfg["n_rays"]), int(data_cfg["spp"]), int(data_cfg["seed"])
-    over = int(data_cfg["oversample"])
+    over, floor = int(data_cfg["oversample"]), int(data_cfg.get("min_object_rays", 0))
+    if floor > 0 and over == 1:  # a floor needs candidates to choose from
+        over = 4
     base = SceneHandle(base_desc, PointLights.create([lights[0]], [1.0, 1.0, 1.0]))
     # The same rays for each setup's G-buffer pass; fresh random rays for every (light, setup) pair.
     rays = [[cams.random_rays(cam, n_rays * over, rng) for _ in lights] for _, cam, _ in setups]
     if over > 1:  # keep n_rays of the candidates, balanced over the surfaces they hit
-        rays = [[_balanced(gbuffer_rays(base, o, d), o, d, n_rays, rng) for o, d in per_setup] for per_setup in rays]
+        rays = [[_balanced(gbuffer_rays(base, o, d), o, d, n_rays, rng, floor) for o, d in per_setup]
+                for per_setup in rays]
     out: dict[str, list] = {k: [] for k in ("position", "view", "light", "normal", "brdf", "edit", "object_id",
                                             "direct", "indirect", "pair")}
     bar = tqdm(total=len(setups) * len(lights), desc="rrf samples", unit="pair", disable=not progress, leave=False)

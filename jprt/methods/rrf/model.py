@@ -74,11 +74,13 @@ DEFAULT_CONFIG: dict = {
     "scene": {"name": "cornell_box", "area_light": False},
     "data": {
         "mode": "view",  # "view" (x_p, v, l, ...) or "material" (Appendix B: v replaced by an edit)
-        "light_lo": [-0.6, 0.3, -0.6],
-        "light_hi": [0.6, 0.9, 0.6],
-        "view_lo": [-0.6, -0.4, 2.8],
-        "view_hi": [0.6, 0.4, 3.9],
-        "view_target": [0.0, 0.0, 0.0],
+        # sampling regions of lights and views; None: from the scene (data.scene_regions: the
+        # built-in boxes' tuned regions, else the scene's bounds and free space)
+        "light_lo": None,
+        "light_hi": None,
+        "view_lo": None,
+        "view_hi": None,
+        "view_target": None,
         "target_jitter": 0.15,
         "fov": 39.3077,
         "n_lights": 20,
@@ -87,6 +89,9 @@ DEFAULT_CONFIG: dict = {
         # > 1: n_rays drawn from oversample x n_rays screen rays, balanced over the surfaces they hit
         # (data.py): for small budgets, where uniform rays miss faces seen at grazing angles
         "oversample": 1,
+        # at least this many of each view-light pair's rays on every object the candidate rays hit
+        # (drawn first; 0: none). Small objects then get samples (issue 21: one ray or none before)
+        "min_object_rays": 0,
         "spp": 512,
         "seed": 0,
         "val_fraction": 0.3,
