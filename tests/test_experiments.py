@@ -145,3 +145,35 @@ def test_mrt_test_preset(mi, tmp_path):
     values = [e["rmse_datadriven"], e["rmse_ambient"], e["rmse_no_interfaces"], e["rmse_no_enrichment"],
               *e["rmse_by_krlf"].values(), *e["rmse_by_kr"].values(), e["volume_sh_relative_rmse"]]
     assert np.isfinite(values).all() and min(values) > 0
+
+
+@pytest.mark.slow  # ~20 s (suite budget): the method's contract and evaluator are tested in tests/methods
+def test_sg_environment_test_preset(mi, tmp_path):
+    s, folder = _run("sg_environment", tmp_path)
+    by = s["extra"]["psnr_by_lighting"]
+    assert set(by) == {"bake", "bake turned 90 deg", "synthetic sky 0"} and all(np.isfinite(v) for v in by.values())
+    assert set(s["extra"]["rel_rmse_by_lighting"]) == set(by)
+    assert s["psnr_full"] is None  # the prediction is direct light: no separate direct term
+
+
+@pytest.mark.slow  # ~20 s: RRF and data-driven PRT on a Bitterli scene file with nothing set per scene
+def test_real_scenes_test_preset(mi, tmp_path):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("real_scenes", "experiments/real_scenes.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    path = os.path.join(module.SHARED_SCENES, "cornell_box_picture", "scene_picture.xml")
+    if not os.path.isfile(path):
+        pytest.skip(f"the Bitterli scenes of ../shared/assets are absent ({path})")
+    out = str(tmp_path / "out")
+    assert cli_main(["run", "experiments/real_scenes.py", "--preset", "test", "--set", f"output.dir={out}"]) == 0
+    (folder,) = os.listdir(out)
+    with open(os.path.join(out, folder, "report.json")) as f:
+        report = json.load(f)
+    entry = report["scenes"]["cornell_box_picture"]
+    assert entry["regions"]["source"] == "scene bounds" and set(entry["methods"]) == {"rrf", "datadriven"}
+    for m in entry["methods"].values():
+        assert m["per_object"] and all(np.isfinite(v["rel_rmse"]) for v in m["per_object"].values())
+        assert m["frame_ms"] > 0
+    assert os.path.isfile(os.path.join(out, folder, "cornell_box_picture_side_by_side.png"))

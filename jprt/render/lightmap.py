@@ -53,6 +53,7 @@ __all__ = [
     "indirect_at_points",
     "incident_delta_lights",
     "free_positions",
+    "enclosing_objects",
 ]
 
 _GUTTER = 2  # texels between charts
@@ -392,7 +393,7 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
         raise ValueError("the atlas covers no texel centre; raise the resolution")
     t_of = owner[texel_index]
     position = np.einsum("ti,tij->tj", bary_of[texel_index], all_tris[t_of])
-    normal = _geometric_normals(all_tris)[t_of]
+    normal = _face_inwards(handle, tri_object[t_of], position, _geometric_normals(all_tris)[t_of])
     _, nearest = ndimage.distance_transform_edt((owner < 0).reshape(res, res), return_indices=True)
     flat_nearest = (nearest[0] * res + nearest[1]).ravel()
     lookup = np.full(res * res, -1, np.int64)
@@ -462,11 +463,37 @@ def surface_samples(handle: SceneHandle, n: int, *, objects: Sequence[str | int]
     s = np.sqrt(r1)
     bary = np.column_stack([1 - s, s * (1 - r2), s * r2])
     position = np.einsum("ni,nij->nj", bary, all_tris[pick])
-    normal = _geometric_normals(all_tris)[pick]
+    normal = _face_inwards(handle, owner[pick], position, _geometric_normals(all_tris)[pick])
     eps = _eps(handle)
     gb = gbuffer_rays(handle, position + eps * normal, -normal)
     return SurfacePoints(position.astype(np.float32), normal.astype(np.float32), gb.diffuse_albedo,
                          owner[pick], float(area.sum()))
+
+
+def enclosing_objects(handle: SceneHandle) -> list[int]:
+    """Object ids of the shapes that enclose the scene: a bounding box spanning 90 % of the
+    scene's on every axis (a room modelled as one closed mesh)."""
+    box = handle.scene.bbox()
+    extent = np.asarray(box.max, np.float64) - np.asarray(box.min, np.float64)
+    out = []
+    for k, shape in enumerate(handle.shapes()):
+        b = shape.bbox()
+        if np.all(np.asarray(b.max, np.float64) - np.asarray(b.min, np.float64) >= 0.9 * extent):
+            out.append(k)
+    return out
+
+
+def _face_inwards(handle: SceneHandle, object_id, position, normal) -> np.ndarray:
+    """``normal`` (N, 3) with the normals of points on an enclosing shape (``enclosing_objects``)
+    turned towards the scene's centre: a room whose faces point outwards is lit and seen from
+    inside, and a texel's radiance is gathered on the side its normal points to."""
+    rooms = enclosing_objects(handle)
+    if not rooms:
+        return normal
+    box = handle.scene.bbox()
+    centre = 0.5 * (np.asarray(box.min, np.float64) + np.asarray(box.max, np.float64))
+    outwards = np.isin(np.asarray(object_id), rooms) & (np.sum(normal * (centre - position), axis=1) < 0)
+    return np.where(outwards[:, None], -normal, normal)
 
 
 def _eps(handle: SceneHandle) -> float:
@@ -525,7 +552,9 @@ def free_positions(handle: SceneHandle, points, *, clearance: float = 0.0, n_dir
     """(K,) bool: the points lie in free space (not inside a closed object: fewer than half of
     ``n_dirs`` rays in all directions hit a surface from its back side) and no surface is closer
     than ``clearance`` along those rays. Used to reject random light positions inside the
-    Cornell box's blocks, or touching a wall."""
+    Cornell box's blocks, or touching a wall. A shape that encloses the scene (its bounding box
+    spans 90 % of the scene's on every axis: a room modelled as one closed mesh, whose faces may
+    well point outwards; ``enclosing_objects``) is a room, not an object a point can be inside of."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     g = np.stack(np.meshgrid(*[np.array([-1.0, 0.0, 1.0])] * 3, indexing="ij"), -1).reshape(-1, 3)
     dirs = g[np.any(g != 0, axis=1)][:n_dirs]
@@ -538,6 +567,9 @@ def free_positions(handle: SceneHandle, points, *, clearance: float = 0.0, n_dir
     n = (n.T if n.shape[0] == 3 and n.ndim == 2 else n).reshape(-1, 3)
     t = np.where(valid, np.array(si.t, np.float64).reshape(-1), np.inf)
     back = valid & (np.sum(n * d, axis=1) > 0)
+    shapes = handle.shapes()
+    for k in enclosing_objects(handle):
+        back &= ~np.array(si.shape == handle.mi.ShapePtr(shapes[k]), bool).reshape(-1)
     inside = back.reshape(len(pts), -1).mean(axis=1) >= 0.5
     near = t.reshape(len(pts), -1).min(axis=1) < clearance
     return ~inside & ~near

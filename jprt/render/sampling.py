@@ -42,11 +42,11 @@ def latin_hypercube(rng: np.random.Generator, n: int, lo, hi) -> np.ndarray:
 
 
 #: The sampling regions ``scene_regions`` chooses when the config leaves them None.
-REGION_KEYS = ("light_lo", "light_hi", "view_lo", "view_hi", "view_target")
+REGION_KEYS = ("light_lo", "light_hi", "view_lo", "view_hi", "view_target", "fov")
 
 #: The built-in Cornell boxes' regions (tuned for them; the numbers of benchmarks/results/rrf_*).
 CORNELL_REGIONS = {"light_lo": [-0.6, 0.3, -0.6], "light_hi": [0.6, 0.9, 0.6], "view_lo": [-0.6, -0.4, 2.8],
-                   "view_hi": [0.6, 0.4, 3.9], "view_target": [0.0, 0.0, 0.0]}
+                   "view_hi": [0.6, 0.4, 3.9], "view_target": [0.0, 0.0, 0.0], "fov": 39.3077}
 
 
 def scene_regions(scene) -> dict:
@@ -57,11 +57,11 @@ def scene_regions(scene) -> dict:
     * any other scene (source "scene bounds"), from its bounding box B (extent e): lights in the
       upper part of the room, x and z within B shrunk by 0.2 e, y from 0.55 to 0.85 of its height
       (light samples inside geometry or within 0.02 e of a surface are drawn again:
-      ``_free_lights``); views from the scene file's own camera when it has one (a box of
-      0.1 e about its position, clipped into B shrunk by 0.05 e, looking where it looks: the
-      target is the point of its view ray nearest B's centre), else from inside B (shrunk by
-      0.3 e, at 0.35-0.65 of its height) towards B's centre. Views therefore stay inside the
-      room of an interior, where the file's camera is."""
+      ``free_lights``); views from the scene file's own camera when it has one (a box of 0.1 e
+      about its position, its field of view, looking where it looks: the target is the point of
+      its view ray nearest B's centre), else from inside B (shrunk by 0.3 e, at 0.35-0.65 of its
+      height) towards B's centre with a 60 degree field of view. Views therefore look at the
+      room as the file's author framed it."""
     from jprt.render.scenes import SceneHandle, describe
 
     desc = describe(scene)
@@ -81,16 +81,15 @@ def scene_regions(scene) -> dict:
         cam = handle.default_camera(64, 64)
         origin, forward = np.asarray(cam.origin, np.float64), np.asarray(cam.target, np.float64) - np.asarray(cam.origin)
         forward /= max(np.linalg.norm(forward), 1e-12)
-        inner_lo, inner_hi = lo + 0.05 * ext, hi - 0.05 * ext
-        view_lo = np.clip(origin - 0.05 * size, inner_lo, inner_hi)
-        view_hi = np.clip(origin + 0.05 * size, inner_lo, inner_hi)
+        view_lo, view_hi = origin - 0.05 * size, origin + 0.05 * size
         target = origin + max(float(np.dot(centre - origin, forward)), 0.1 * size) * forward
+        fov = float(cam.fov)
     else:
         view_lo, view_hi = lo + 0.3 * ext, hi - 0.3 * ext
         view_lo[1], view_hi[1] = lo[1] + 0.35 * ext[1], lo[1] + 0.65 * ext[1]
-        target = centre
+        target, fov = centre, 60.0
     return {"light_lo": light_lo.tolist(), "light_hi": light_hi.tolist(), "view_lo": view_lo.tolist(),
-            "view_hi": view_hi.tolist(), "view_target": target.tolist(), "source": "scene bounds"}
+            "view_hi": view_hi.tolist(), "view_target": target.tolist(), "fov": fov, "source": "scene bounds"}
 
 
 def free_lights(scene, lights: np.ndarray, light_lo, light_hi, rng, tries: int = 50) -> np.ndarray:

@@ -111,11 +111,14 @@ def resolve_regions(data_cfg: dict, scene) -> dict:
     """``data_cfg`` (an RRF config's ``data`` section) with the regions it leaves None filled in
     from ``scene_regions(scene)``, and ``regions_from``: "config" when it sets all of them, else
     the regions' source ("cornell" or "scene bounds")."""
+    def number(v):
+        return float(v) if np.ndim(v) == 0 else [float(x) for x in v]
+
     if all(data_cfg[k] is not None for k in REGION_KEYS):
-        return {**data_cfg, **{k: [float(v) for v in data_cfg[k]] for k in REGION_KEYS}, "regions_from": "config"}
+        return {**data_cfg, **{k: number(data_cfg[k]) for k in REGION_KEYS}, "regions_from": "config"}
     regions = scene_regions(scene)
-    return {**data_cfg, **{k: regions[k] if data_cfg[k] is None else [float(v) for v in data_cfg[k]]
-                           for k in REGION_KEYS}, "regions_from": regions["source"]}
+    return {**data_cfg, **{k: number(regions[k] if data_cfg[k] is None else data_cfg[k]) for k in REGION_KEYS},
+            "regions_from": regions["source"]}
 
 
 def _free_lights(desc, lights: np.ndarray, data_cfg: dict, rng) -> np.ndarray:
@@ -128,7 +131,7 @@ def _free_lights(desc, lights: np.ndarray, data_cfg: dict, rng) -> np.ndarray:
 def _meta(spec: dict, arrays: dict, regions_from: str = "config") -> dict:
     data = spec["data"]
     return {"light_lo": list(map(float, data["light_lo"])), "light_hi": list(map(float, data["light_hi"])),
-            "regions": {**{k: list(map(float, data[k])) for k in REGION_KEYS if data.get(k) is not None},
+            "regions": {**{k: data[k] for k in REGION_KEYS if data.get(k) is not None},
                         "source": regions_from},
             "spp": int(data["spp"]), "mode": data["mode"], "scene": spec["scene"], "hash": stable_hash(spec),
             "material_object": data.get("material", {}).get("object")}

@@ -82,7 +82,7 @@ DEFAULT_CONFIG: dict = {
         "view_hi": None,
         "view_target": None,
         "target_jitter": 0.15,
-        "fov": 39.3077,
+        "fov": None,  # None: from the scene, as the regions above (the built-in boxes' 39.3077)
         "n_lights": 20,
         "n_views": 20,
         "n_rays": 100,

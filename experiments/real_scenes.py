@@ -1,0 +1,214 @@
+"""Real scenes as users bring them (issue 21): Mitsuba XML interiors through the point-lit methods
+with no hand-set box, atlas or object list.
+
+    jprt run experiments/real_scenes.py                 # both Bitterli scenes, RRF + data-driven PRT
+    jprt run experiments/real_scenes.py --preset test   # tiny sizes, the Cornell picture scene only
+    python benchmarks/real_scenes.py                    # -> benchmarks/results/real_scenes.json
+
+For each scene file (``scenes``, under ``assets``; default ../shared/assets/scenes):
+
+* the file is loaded as it is, its own emitters removed (``keep_emitters = False``): RRF and
+  data-driven PRT relight with point lights, which Eq. 9 and the §4.1 scenario are linear in;
+* every region comes from the scene (``jprt.render.sampling.scene_regions``: lights in the upper
+  part of the room's bounds and outside geometry, views about the file's own camera); the atlas
+  covers every object (xatlas charts where a mesh's UVs do not serve); nothing is set per scene;
+* held-out: the file's camera at ``eval.resolution``, lit by ``eval.n_lights`` point lights drawn
+  in the same light region with another seed. References: Mitsuba's indirect light (full minus
+  direct, same seed) at ``eval.reference_spp``, and a second render of them with another seed
+  (the references' own noise);
+* per object covering at least ``eval.min_object_fraction`` of the image: the relative RMSE
+  ||prediction - reference|| / ||reference|| over its pixels and all held-out lights, beside the
+  noise floor ||reference' - reference|| / ||reference||. Predicting zero scores 1 by definition,
+  so the issue's target (below half of predicting zero) is a relative RMSE below 0.5;
+* the evaluator's frame time (inputs and lighting ready) and a side-by-side image per method.
+
+Environment-lit methods (neural-wavelet PRT, SH-PRT, SG environment visibility) and the SG
+light-field texture (baked under the file's emitters) are not run here yet (``not_run`` in the
+report says why); MRT is exempt (its scenes are block layouts).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from jprt import eval as jeval
+from jprt import io
+from jprt.config import config_hash, merge, save_resolved
+
+#: The Bitterli scenes of ../shared/assets (see its README), next to this checkout.
+SHARED_SCENES = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "shared", "assets", "scenes"))
+
+CONFIG = {
+    "assets": "",  # folder of the scene files; "" = SHARED_SCENES
+    "scenes": ["veach-bidir/scene.xml", "cornell_box_picture/scene_picture.xml"],
+    "methods": ["rrf", "datadriven"],
+    "eval": {"resolution": 64, "n_lights": 3, "reference_spp": 512, "seed": 7100, "min_object_fraction": 0.01,
+             "timing_repeats": 10, "target": 0.5},
+    # the methods' own sections (their defaults are scene-aware; these are sizes only)
+    "rrf": {"data": {"n_lights": 16, "n_views": 12, "n_rays": 256, "spp": 256, "min_object_rays": 8},
+            "tree": {"max_leaves": 32, "min_samples": 600}, "train": {"max_iters": 30}},
+    "datadriven": {"lightmap": {"resolution": 96}, "points": {"candidates": 8192, "count": 512},
+                   "data": {"n_train": 128, "n_test": 4, "spp": 64, "test_spp": 64}},
+    "output": {"dir": "results/real_scenes"},
+}
+
+PRESETS = {
+    "test": {"scenes": ["cornell_box_picture/scene_picture.xml"],
+             "eval": {"resolution": 16, "n_lights": 1, "reference_spp": 8, "timing_repeats": 2},
+             "rrf": {"data": {"n_lights": 4, "n_views": 3, "n_rays": 48, "spp": 8, "min_object_rays": 2},
+                     "tree": {"max_leaves": 8, "min_samples": 200}, "train": {"max_iters": 5}},
+             "datadriven": {"lightmap": {"resolution": 32}, "points": {"candidates": 512, "count": 16},
+                            "data": {"n_train": 12, "n_test": 2, "spp": 4, "test_spp": 4}}},
+}
+
+
+def _say(msg: str) -> None:
+    print(f"[real_scenes] {msg}", flush=True)
+
+
+def method_config(name: str, scene: dict, regions: dict, sizes: dict) -> dict:
+    """The method's config for a scene file: its defaults, the scene, the sizes of ``sizes``;
+    data-driven PRT's point lights in the scene's light region (its defaults are the Cornell
+    box's), at a clearance of 2 % of the region's scale."""
+    from jprt.methods import REGISTRY
+
+    m = REGISTRY[name]
+    cfg = m.resolve({"scene": scene, **sizes})
+    if name == "rrf":
+        cfg = merge(cfg, {"train": {"progress": False}})
+    if name == "datadriven":
+        lo, hi = np.asarray(regions["light_lo"]), np.asarray(regions["light_hi"])
+        scale = float(np.max(hi - lo))
+        cfg = merge(cfg, {"lights": {"kind": "point", "position_lo": regions["light_lo"],
+                                     "position_hi": regions["light_hi"], "clearance": 0.02 * scale}})
+    return m.resolve(cfg)
+
+
+def _held_out(desc: dict, regions: dict, e: dict):
+    """(camera, [PointLights], handle): the file's camera and the held-out lights."""
+    from jprt.inputs import PointLights
+    from jprt.render.sampling import free_lights, latin_hypercube
+    from jprt.render.scenes import SceneHandle
+
+    handle = SceneHandle(desc)
+    camera = handle.default_camera(int(e["resolution"]), int(e["resolution"]))
+    rng = np.random.default_rng(int(e["seed"]))
+    positions = latin_hypercube(rng, int(e["n_lights"]), regions["light_lo"], regions["light_hi"])
+    positions = free_lights(desc, positions, regions["light_lo"], regions["light_hi"], rng)
+    return camera, [PointLights.create([p], [1.0, 1.0, 1.0]) for p in positions], handle
+
+
+def _per_object(preds, refs, object_id, names, min_fraction: float) -> dict:
+    """{object name: {"pixels", "fraction", "rel_rmse"}} over all images, for objects covering at
+    least ``min_fraction`` of the image."""
+    out = {}
+    count = object_id.size
+    for k in np.unique(object_id[object_id >= 0]):
+        mask = object_id == k
+        fraction = float(mask.sum() / count)
+        if fraction < min_fraction:
+            continue
+        p = np.concatenate([np.asarray(x, np.float64)[mask] for x in preds])
+        r = np.concatenate([np.asarray(x, np.float64)[mask] for x in refs])
+        norm = float(np.sqrt(np.sum(r * r)))
+        out[names[int(k)]] = {"pixels": int(mask.sum()), "fraction": fraction,
+                              "rel_rmse": float(np.sqrt(np.sum((p - r) ** 2)) / max(norm, 1e-30))}
+    return out
+
+
+def run_scene(path: str, config: dict, out: str) -> dict:
+    """Every method of ``config['methods']`` on the scene file ``path``: its report entry."""
+    import jax
+
+    from jprt.methods import REGISTRY
+    from jprt.render.gbuffer import gbuffer
+    from jprt.render.images import direct_indirect
+    from jprt.render.sampling import scene_regions
+
+    e = config["eval"]
+    desc = {"name": "xml", "path": path, "keep_emitters": False}
+    regions = scene_regions(desc)
+    camera, lights, handle = _held_out(desc, regions, e)
+    names = handle.object_names()
+    gb = gbuffer(handle, camera)
+    refs, refs2 = [], []
+    t0 = time.perf_counter()
+    for i, light in enumerate(lights):
+        handle.set_lighting(light)
+        refs.append(np.asarray(direct_indirect(handle, camera, spp=int(e["reference_spp"]), seed=int(e["seed"]) + i).indirect))
+        refs2.append(np.asarray(direct_indirect(handle, camera, spp=int(e["reference_spp"]),
+                                                seed=int(e["seed"]) + 1000 + i).indirect))
+    _say(f"{os.path.basename(os.path.dirname(path))}: {len(names)} objects, references in {time.perf_counter() - t0:.1f} s")
+    entry = {"file": path, "objects": names, "regions": regions, "camera": camera._asdict(),
+             "lights": [np.asarray(x.position).tolist()[0] for x in lights],
+             "noise_floor": _per_object(refs2, refs, gb.object_id, names, float(e["min_object_fraction"])),
+             "methods": {}}
+    # one exposure for every panel of the scene: its first reference's 99th percentile shown at 0.8
+    exposure = float(np.log2(0.8 / max(float(np.percentile(refs[0], 99)), 1e-12)))
+    show = lambda image: io.preview_pixels(image, exposure=exposure)  # noqa: E731
+    panels = [np.concatenate([show(refs[0]), show(refs2[0])], axis=1)]
+    for name in config["methods"]:
+        m = REGISTRY[name]
+        adapter = __import__(f"jprt.methods.{name}.data", fromlist=["data"])
+        cfg = method_config(name, desc, regions, config[name])
+        t0 = time.perf_counter()
+        dataset = m.make_dataset(desc, cfg, progress=False)
+        t1 = time.perf_counter()
+        result = m.fit(dataset, cfg)
+        t2 = time.perf_counter()
+        evaluate = jax.jit(m.evaluator(result.params, cfg))
+        inputs = adapter.task_inputs(handle, dataset, camera)
+        lightings = [adapter.task_lighting(handle, dataset, result.params, cfg, light) for light in lights]
+        preds = [np.where(gb.valid[..., None], np.asarray(evaluate(inputs, lit)), 0.0) for lit in lightings]
+        timing = jeval.time_call(evaluate, inputs, lightings[0], repeats=int(e["timing_repeats"]))
+        scores = _per_object(preds, refs, gb.object_id, names, float(e["min_object_fraction"]))
+        worst = max(v["rel_rmse"] for v in scores.values())
+        info = {k: v for k, v in result.info.items() if isinstance(v, (int, float, str))}
+        report = getattr(result.info.get("report"), "_asdict", lambda: {})()
+        entry["methods"][name] = {
+            "per_object": scores, "worst_rel_rmse": worst,
+            "mean_rel_rmse": float(np.mean([v["rel_rmse"] for v in scores.values()])),
+            "target_met": bool(worst < float(e["target"])), "frame_ms": timing["median_ms"],
+            "frame_resolution": list(np.shape(preds[0])[:2]), "dataset_s": t1 - t0, "fit_s": t2 - t1,
+            "info": info, "grouped_objects": report.get("grouped", {}), "skipped_objects": report.get("skipped", {}),
+            "regions": getattr(dataset, "meta", {}).get("regions") if isinstance(getattr(dataset, "meta", None), dict)
+            else None}
+        _say(f"  {name}: worst object relative RMSE {worst:.3f}, mean {entry['methods'][name]['mean_rel_rmse']:.3f}, "
+             f"frame {timing['median_ms']:.2f} ms (data {t1 - t0:.0f} s, fit {t2 - t1:.0f} s)")
+        diff = np.abs(preds[0] - refs[0])
+        panels.append(np.concatenate([show(preds[0]), show(4.0 * diff)], axis=1))
+    stem = os.path.basename(os.path.dirname(path))
+    io.write_png(os.path.join(out, f"{stem}_side_by_side.png"), np.concatenate(panels, axis=0) / 255.0,
+                 tonemapped=True)
+    entry["side_by_side"] = f"{stem}_side_by_side.png (rows: reference | second reference, then per method: "
+    entry["side_by_side"] += "prediction | 4x |difference|; first held-out light)"
+    return entry
+
+
+def main(config: dict) -> dict:
+    """Run every scene; write ``report.json`` and the side-by-side images to
+    ``<output.dir>/<config hash>/``; returns the report."""
+    digest = config_hash(config)
+    out = os.path.abspath(os.path.join(config["output"]["dir"], digest))
+    os.makedirs(out, exist_ok=True)
+    save_resolved(config, out)
+    folder = config["assets"] or SHARED_SCENES
+    report = {"config_hash": digest, "scenes": {}, "not_run": {
+        "wavelet_prt, sh_prt, sg_environment": "environment-lit: needs an opening made in the interior; not run yet",
+        "sg_lightfield": "bakes the file's own emitters (LightScale); not run yet",
+        "mrt": "exempt (block layouts)"}}
+    t0 = time.perf_counter()
+    for rel in config["scenes"]:
+        path = os.path.join(folder, rel)
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"scene file not found: {path} (set assets= to the folder of the Bitterli scenes)")
+        report["scenes"][os.path.basename(os.path.dirname(path))] = run_scene(path, config, out)
+    report["target_met_everywhere"] = all(m["target_met"] for s in report["scenes"].values()
+                                          for m in s["methods"].values())
+    report["total_s"] = time.perf_counter() - t0
+    io.write_json(os.path.join(out, "report.json"), report)
+    print(f"real_scenes report (report.json, side-by-side images) written to {out}")
+    return report
