@@ -35,8 +35,10 @@ def main() -> int:
     for scene, entry in report["scenes"].items():
         result["scenes"][scene] = {
             "objects": len(entry["objects"]), "regions": entry["regions"],
-            "noise_floor_rel_rmse": {k: v["rel_rmse"] for k, v in entry["noise_floor"].items()},
-            "methods": {name: {"per_object_rel_rmse": {k: v["rel_rmse"] for k, v in m["per_object"].items()},
+            "noise_floor_rel_rmse": {kind: {k: v["rel_rmse"] for k, v in floor.items()}
+                                     for kind, floor in entry["noise_floor"].items()},
+            "methods": {name: {"lighting": m["lighting"],
+                               "per_object_rel_rmse": {k: v["rel_rmse"] for k, v in m["per_object"].items()},
                                "worst_rel_rmse": m["worst_rel_rmse"], "mean_rel_rmse": m["mean_rel_rmse"],
                                "target_met": m["target_met"], "frame_ms": m["frame_ms"],
                                "frame_resolution": m["frame_resolution"], "dataset_s": m["dataset_s"],

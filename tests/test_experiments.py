@@ -172,7 +172,8 @@ def test_real_scenes_test_preset(mi, tmp_path):
     with open(os.path.join(out, folder, "report.json")) as f:
         report = json.load(f)
     entry = report["scenes"]["cornell_box_picture"]
-    assert entry["regions"]["source"] == "scene bounds" and set(entry["methods"]) == {"rrf", "datadriven"}
+    assert entry["regions"]["source"] == "scene bounds"
+    assert set(entry["methods"]) == {"rrf", "datadriven", "sg_lightfield"}
     for m in entry["methods"].values():
         assert m["per_object"] and all(np.isfinite(v["rel_rmse"]) for v in m["per_object"].values())
         assert m["frame_ms"] > 0

@@ -268,6 +268,7 @@ def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
             server.wait()
 
 
+@pytest.mark.slow  # ~18 s (suite budget): fits the method's test preset; the browser test covers it too
 @pytest.mark.mitsuba
 def test_a_direct_light_method_is_shown_and_compared_as_direct_light(mi, tmp_path_factory):
     """SG environment visibility predicts the environment's glossy reflection (direct light): the

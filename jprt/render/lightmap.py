@@ -393,7 +393,7 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
         raise ValueError("the atlas covers no texel centre; raise the resolution")
     t_of = owner[texel_index]
     position = np.einsum("ti,tij->tj", bary_of[texel_index], all_tris[t_of])
-    normal = _face_inwards(handle, tri_object[t_of], position, _geometric_normals(all_tris)[t_of])
+    normal = _orient(handle, tri_object[t_of], position, _geometric_normals(all_tris)[t_of])
     _, nearest = ndimage.distance_transform_edt((owner < 0).reshape(res, res), return_indices=True)
     flat_nearest = (nearest[0] * res + nearest[1]).ravel()
     lookup = np.full(res * res, -1, np.int64)
@@ -463,7 +463,7 @@ def surface_samples(handle: SceneHandle, n: int, *, objects: Sequence[str | int]
     s = np.sqrt(r1)
     bary = np.column_stack([1 - s, s * (1 - r2), s * r2])
     position = np.einsum("ni,nij->nj", bary, all_tris[pick])
-    normal = _face_inwards(handle, owner[pick], position, _geometric_normals(all_tris)[pick])
+    normal = _orient(handle, owner[pick], position, _geometric_normals(all_tris)[pick])
     eps = _eps(handle)
     gb = gbuffer_rays(handle, position + eps * normal, -normal)
     return SurfacePoints(position.astype(np.float32), normal.astype(np.float32), gb.diffuse_albedo,
@@ -483,17 +483,64 @@ def enclosing_objects(handle: SceneHandle) -> list[int]:
     return out
 
 
-def _face_inwards(handle: SceneHandle, object_id, position, normal) -> np.ndarray:
-    """``normal`` (N, 3) with the normals of points on an enclosing shape (``enclosing_objects``)
-    turned towards the scene's centre: a room whose faces point outwards is lit and seen from
-    inside, and a texel's radiance is gathered on the side its normal points to."""
+def _hemisphere_directions(n: int = 16) -> np.ndarray:
+    """``n`` fixed cosine-distributed unit directions about +z (a Fibonacci spiral)."""
+    k = np.arange(n) + 0.5
+    r = np.sqrt(k / n)
+    phi = k * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1.0 - r * r)], axis=1)
+
+
+def _orient(handle: SceneHandle, object_id, position, normal, n_dirs: int = 16) -> np.ndarray:
+    """``normal`` (N, 3) turned towards the side of the surface that the rest of the scene is on,
+    where that is ambiguous: on a shape that encloses the scene (``enclosing_objects``: a room
+    modelled as one closed mesh) towards the scene's centre; on other two-sided surfaces (a
+    ``twosided`` BSDF) away from the authored side where fewer than half of ``n_dirs``
+    cosine-distributed rays from it hit *another* object farther than 2 % of the scene's size
+    (it escapes the scene, as outside a room's wall) and the other side's rays do so at least 25
+    points more often; otherwise the geometric normal stays (a picture on a wall, whose back sees
+    only the wall, keeps its front; the inside of a closed box sees only itself). A texel's radiance is
+    gathered, and a measurement point's direct light measured, on the side its normal points to,
+    so a wall whose face points outwards would otherwise read the dark outside. One-sided
+    surfaces keep their normal: Mitsuba shades only that side."""
+    shapes = handle.shapes()
     rooms = enclosing_objects(handle)
-    if not rooms:
-        return normal
+    object_id = np.asarray(object_id)
     box = handle.scene.bbox()
-    centre = 0.5 * (np.asarray(box.min, np.float64) + np.asarray(box.max, np.float64))
-    outwards = np.isin(np.asarray(object_id), rooms) & (np.sum(normal * (centre - position), axis=1) < 0)
-    return np.where(outwards[:, None], -normal, normal)
+    out = np.array(normal, np.float64, copy=True)
+    if rooms:
+        centre = 0.5 * (np.asarray(box.min, np.float64) + np.asarray(box.max, np.float64))
+        outwards = np.isin(object_id, rooms) & (np.sum(out * (centre - np.asarray(position)), axis=1) < 0)
+        out[outwards] *= -1.0
+    twosided = [k for k, shape in enumerate(shapes) if k not in rooms and shape.bsdf() is not None
+                and shape.bsdf().class_name() == "TwoSidedBRDF"]
+    sel = np.flatnonzero(np.isin(object_id, twosided))
+    if sel.size == 0:
+        return out.astype(np.asarray(normal).dtype)
+    size = float(np.max(np.asarray(box.max, np.float64) - np.asarray(box.min, np.float64)))
+    local = _hemisphere_directions(n_dirs)
+    p, nrm = np.asarray(position, np.float64)[sel], np.asarray(normal, np.float64)[sel]
+    score = []
+    for side in (1.0, -1.0):
+        z = side * nrm
+        helper = np.where(np.abs(z[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        x = np.cross(helper, z)
+        x /= np.linalg.norm(x, axis=1, keepdims=True)
+        y = np.cross(z, x)
+        d = local[None, :, 0:1] * x[:, None] + local[None, :, 1:2] * y[:, None] + local[None, :, 2:3] * z[:, None]
+        o = np.repeat(p + _eps(handle) * z, n_dirs, axis=0)
+        si = _intersect(handle, o, d.reshape(-1, 3))
+        t = np.where(np.array(si.is_valid(), bool).reshape(-1), np.array(si.t, np.float64).reshape(-1), np.inf)
+        hit = np.full(t.shape, -1, np.int64)
+        for k, shape in enumerate(shapes):
+            hit[np.array(si.shape == handle.mi.ShapePtr(shape), bool).reshape(-1)] = k
+        other = (hit >= 0) & (hit != np.repeat(object_id[sel], n_dirs))
+        score.append(((t > 0.02 * size) & np.isfinite(t) & other).reshape(-1, n_dirs).mean(axis=1))
+    # flip only where the authored side mostly sees nothing and the other side clearly more (a
+    # picture on a wall sees the room through an opening on its front, the wall behind it on its
+    # back: the front keeps)
+    out[sel[(score[0] < 0.5) & (score[1] > score[0] + 0.25)]] *= -1.0
+    return out.astype(np.asarray(normal).dtype)
 
 
 def _eps(handle: SceneHandle) -> float:
@@ -554,7 +601,9 @@ def free_positions(handle: SceneHandle, points, *, clearance: float = 0.0, n_dir
     than ``clearance`` along those rays. Used to reject random light positions inside the
     Cornell box's blocks, or touching a wall. A shape that encloses the scene (its bounding box
     spans 90 % of the scene's on every axis: a room modelled as one closed mesh, whose faces may
-    well point outwards; ``enclosing_objects``) is a room, not an object a point can be inside of."""
+    well point outwards; ``enclosing_objects``) is a room, not an object a point can be inside of.
+    Two-sided surfaces (a ``twosided`` BSDF: walls whose faces point outwards are common in scene
+    files) have no back side: a point is inside one when at least 90 % of the rays hit it."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     g = np.stack(np.meshgrid(*[np.array([-1.0, 0.0, 1.0])] * 3, indexing="ij"), -1).reshape(-1, 3)
     dirs = g[np.any(g != 0, axis=1)][:n_dirs]
@@ -568,9 +617,19 @@ def free_positions(handle: SceneHandle, points, *, clearance: float = 0.0, n_dir
     t = np.where(valid, np.array(si.t, np.float64).reshape(-1), np.inf)
     back = valid & (np.sum(n * d, axis=1) > 0)
     shapes = handle.shapes()
-    for k in enclosing_objects(handle):
-        back &= ~np.array(si.shape == handle.mi.ShapePtr(shapes[k]), bool).reshape(-1)
-    inside = back.reshape(len(pts), -1).mean(axis=1) >= 0.5
+    rooms = enclosing_objects(handle)
+    hit = np.full(len(o), -1, np.int64)
+    for k, shape in enumerate(shapes):
+        hit[np.array(si.shape == handle.mi.ShapePtr(shape), bool).reshape(-1)] = k
+    twosided = np.array([k not in rooms and shape.bsdf() is not None and shape.bsdf().class_name() == "TwoSidedBRDF"
+                         for k, shape in enumerate(shapes)] + [False])
+    one_sided = np.array([k not in rooms and not twosided[k] for k in range(len(shapes))] + [False])
+    # one-sided surfaces: seen from their back side; two-sided ones have no back, so a point is
+    # inside one when (nearly) every ray hits that same object
+    inside = (back & one_sided[hit]).reshape(len(pts), -1).mean(axis=1) >= 0.5
+    per = hit.reshape(len(pts), -1)
+    for k in np.flatnonzero(twosided[:-1]):
+        inside |= (per == k).mean(axis=1) >= 0.9
     near = t.reshape(len(pts), -1).min(axis=1) < clearance
     return ~inside & ~near
 

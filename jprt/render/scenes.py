@@ -145,14 +145,20 @@ def glossy_cornell(*, floor_roughness: float = 0.15, sphere_roughness: float = 0
     return desc
 
 
+#: How jprt reads scene files (materials per pixel, two-sided surfaces' orientation, xatlas
+#: charts: 2); part of every file's description, so data cached under an older reading is not reused.
+XML_READER = 2
+
+
 def xml(path: str, *, keep_emitters: bool = True) -> dict:
-    """Description of a Mitsuba XML scene file (content-hashed, so an edited file re-renders)."""
+    """Description of a Mitsuba XML scene file (content-hashed, so an edited file re-renders; with
+    ``XML_READER``, so a changed reading does too)."""
     path = os.path.abspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"scene file not found: {path}")
     with open(path, "rb") as f:
         digest = hashlib.sha256(f.read()).hexdigest()
-    return {"name": "xml", "path": path, "sha256": digest, "keep_emitters": bool(keep_emitters)}
+    return {"name": "xml", "path": path, "sha256": digest, "keep_emitters": bool(keep_emitters), "reader": XML_READER}
 
 
 _ROOM_MATERIALS = {
