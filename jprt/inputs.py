@@ -22,7 +22,8 @@ from typing import NamedTuple, Union
 import numpy as np
 
 __all__ = ["GBuffer", "Camera", "PointLights", "SpotLights", "DirectionalLights", "EnvMap", "CubeMap",
-           "SHLighting", "PointRadiance", "LightScale", "PreconvolvedEnvironment", "Lighting", "validate_envmap", "validate_lighting",
+           "SHLighting", "PointRadiance", "LightScale", "PreconvolvedEnvironment", "Lighting", "validate_envmap",
+           "validate_lighting",
            "validate_gbuffer", "LIGHTING_TYPES", "vec3"]
 
 

@@ -13,8 +13,9 @@ methods that take a camera view), the method's lighting controls (point light po
 for RRF, data-driven PRT, SH-PRT and MRT; environment map and rotation for neural-wavelet PRT and
 SG environment visibility (the SG light-field textures paper's §5); the bake's RGB scale for SG
 light-field textures, whose run folder holds one texture atlas under its own emitters),
-direct / indirect / both (a method that predicts direct light, SG environment visibility, shows it), the method's run-time knob (K wavelets, MRT's feedback
-iterations), the evaluator's measured frame time, and a compare mode (Mitsuba at a chosen spp, the
+direct / indirect / both (a method that predicts direct light, SG environment visibility, shows
+that alone), the method's run-time knob (K wavelets, MRT's feedback iterations), the
+evaluator's measured frame time, and a compare mode (Mitsuba at a chosen spp, the
 difference image and its RMSE). Drags render at a preview resolution and refine when they stop;
 every render runs on a worker thread, so the page never waits on one (progress is shown).
 """

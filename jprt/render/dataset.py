@@ -337,6 +337,7 @@ def lightings_from_config(cfg: dict) -> list[Lighting]:
 
 def from_config(cfg: dict, *, cache_dir: str | None = None, progress: bool = True) -> Dataset:
     """Render (or reuse) the dataset a config's ``dataset`` section describes."""
-    return render_dataset(cfg["scene"], cameras_from_config(cfg["cameras"], cfg["scene"]), lightings_from_config(cfg["lights"]),
+    return render_dataset(cfg["scene"], cameras_from_config(cfg["cameras"], cfg["scene"]),
+                          lightings_from_config(cfg["lights"]),
                           spp=cfg["spp"], seed=cfg["seed"], pairs=cfg["pairs"], gbuffers=cfg["gbuffers"],
                           cache_dir=cache_dir, progress=progress)

@@ -79,7 +79,8 @@ def scene_regions(scene) -> dict:
     sensors = handle.scene.sensors()
     if desc["name"] == "xml" and sensors:
         cam = handle.default_camera(64, 64)
-        origin, forward = np.asarray(cam.origin, np.float64), np.asarray(cam.target, np.float64) - np.asarray(cam.origin)
+        origin = np.asarray(cam.origin, np.float64)
+        forward = np.asarray(cam.target, np.float64) - origin
         forward /= max(np.linalg.norm(forward), 1e-12)
         view_lo, view_hi = origin - 0.05 * size, origin + 0.05 * size
         target = origin + max(float(np.dot(centre - origin, forward)), 0.1 * size) * forward
@@ -109,4 +110,4 @@ def free_lights(scene, lights: np.ndarray, light_lo, light_hi, rng, tries: int =
         if not bad.any():
             return lights
         lights[bad] = lo + (hi - lo) * rng.random((int(bad.sum()), 3))
-    raise ValueError(f"no free space for lights in data.light_lo/light_hi = {lo.tolist()} / {hi.tolist()}: set the light box")
+    raise ValueError(f"no free space for lights in the light box {lo.tolist()} / {hi.tolist()}: set the light box")

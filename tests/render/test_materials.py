@@ -90,7 +90,8 @@ def test_twosided_textured_diffuse_is_read_per_pixel(mi, tmp_path):
 def test_twosided_rough_conductor_with_textured_alpha(mi, tmp_path):
     _write_texture(mi, tmp_path / "alpha.exr", 1, 2, 0.1, 0.6)
     rel, gb = _compare(mi, _scene_file(tmp_path, f"""<bsdf type="twosided"><bsdf type="roughconductor">
-      <string name="distribution" value="ggx"/><string name="material" value="none"/><rgb name="specular_reflectance" value="0.9, 0.7, 0.4"/>
+      <string name="distribution" value="ggx"/><string name="material" value="none"/>
+      <rgb name="specular_reflectance" value="0.9, 0.7, 0.4"/>
       <texture type="bitmap" name="alpha"><string name="filename" value="{tmp_path / 'alpha.exr'}"/>
       <boolean name="raw" value="true"/></texture></bsdf></bsdf>"""))
     # exact but for Fresnel: Mitsuba's is 1 x specular_reflectance at every angle, the model's
@@ -152,7 +153,8 @@ def test_rough_plastic(mi, tmp_path):
     transmissions and the internal reflections): read as Lambert with its effective albedo at
     normal incidence + GGX with the coating's F0. Measured: median 7 %, 90th percentile 16 % (the
     (1 - F) transmissions fall away from the normal; Lambert stays flat)."""
-    rel, gb = _compare(mi, _scene_file(tmp_path, """<bsdf type="roughplastic"><string name="distribution" value="ggx"/><float name="alpha" value="0.2"/>
+    rel, gb = _compare(mi, _scene_file(tmp_path, """<bsdf type="roughplastic">
+      <string name="distribution" value="ggx"/><float name="alpha" value="0.2"/>
       <rgb name="diffuse_reflectance" value="0.5, 0.3, 0.2"/><boolean name="nonlinear" value="false"/></bsdf>"""))
     np.testing.assert_allclose(gb.specular_albedo[0], ((1.48959 - 1) / (1.48959 + 1)) ** 2, rtol=1e-4)
     assert np.median(rel) < 0.12 and np.percentile(rel, 90) < 0.25

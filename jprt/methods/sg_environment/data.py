@@ -29,7 +29,8 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
     from jprt.methods.sg_lightfield.data import make_environment_dataset
 
     cfg = _cfg(config)
-    parts = {"objects": list(cfg["objects"]), "lightmap": dict(cfg["lightmap"]), "capture": {"block": cfg["capture"]["block"]}}
+    parts = {"objects": list(cfg["objects"]), "lightmap": dict(cfg["lightmap"]),
+             "capture": {"block": cfg["capture"]["block"]}}
     return make_environment_dataset(parts, cfg["environment"], scene=scene if scene is not None else cfg["scene"],
                                     cache_dir=cache_dir, progress=progress)
 

@@ -146,7 +146,8 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
         def flat(a):  # (tiles, size, ...), zero-padded (a zero normal shades to a finite, discarded value)
             a = jnp.asarray(a, jnp.float32)
             a = a.reshape((count,) + a.shape[len(shape):])
-            a = jnp.concatenate([a, jnp.zeros((tiles * size - count,) + a.shape[1:], a.dtype)]) if tiles * size > count else a
+            if tiles * size > count:
+                a = jnp.concatenate([a, jnp.zeros((tiles * size - count,) + a.shape[1:], a.dtype)])
             return a.reshape((tiles, size) + a.shape[1:])
 
         fields = tuple(flat(a) for a in (inputs.uv, inputs.normal, inputs.view, inputs.roughness,
