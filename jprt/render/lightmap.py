@@ -199,8 +199,8 @@ def _raster_triangle(corners: np.ndarray, res: int, eps: float = 1e-9):
     return (ys.ravel() * res + xs.ravel())[inside], bary[inside]
 
 
-#: At most this many planar charts per object; an object with more face planes is unwrapped by xatlas.
-MAX_PLANAR_CHARTS = 64
+#: At most this many planar charts per object (a box has 6); an object with more face planes is unwrapped by xatlas.
+MAX_PLANAR_CHARTS = 16
 
 
 def _uv_area(uv: np.ndarray) -> np.ndarray:
