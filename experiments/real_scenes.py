@@ -54,7 +54,7 @@ CONFIG = {
             "tree": {"max_leaves": 32, "min_samples": 600}, "train": {"max_iters": 30}},
     "datadriven": {"lightmap": {"resolution": 96}, "points": {"candidates": 8192, "count": 512},
                    "data": {"n_train": 128, "n_test": 4, "spp": 64, "test_spp": 64}},
-    "sg_lightfield": {"objects": [], "lightmap": {"resolution": 64}, "capture": {"size": 16, "spp": 64},
+    "sg_lightfield": {"objects": [], "lightmap": {"resolution": 128}, "capture": {"size": 16, "spp": 64},
                       "model": {"n_lobes": 8, "channels": [16, 32, 64]}, "train": {"steps": 1000, "batch": 64}},
     "output": {"dir": "results/real_scenes"},
 }

@@ -146,8 +146,8 @@ def glossy_cornell(*, floor_roughness: float = 0.15, sphere_roughness: float = 0
 
 
 #: How jprt reads scene files (materials per pixel, two-sided surfaces' orientation, xatlas
-#: charts: 2); part of every file's description, so data cached under an older reading is not reused.
-XML_READER = 2
+#: charts: 3); part of every file's description, so data cached under an older reading is not reused.
+XML_READER = 3
 
 
 def xml(path: str, *, keep_emitters: bool = True) -> dict:
