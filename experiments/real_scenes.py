@@ -180,11 +180,9 @@ def run_scene(path: str, config: dict, out: str) -> dict:
              "lights": [np.asarray(x.position).tolist()[0] for x in lights], "noise_floor": {}, "methods": {}}
     for kind, (g, refs, refs2, objects) in per_setup.items():
         entry["noise_floor"][kind] = _per_object(refs2, refs, g.object_id, objects, float(e["min_object_fraction"]))
-    # one exposure for every panel of the scene: its first reference's 99th percentile shown at 0.8
-    g, refs, refs2, _ = per_setup["point"]
-    exposure = float(np.log2(0.8 / max(float(np.percentile(refs[0], 99)), 1e-12)))
-    show = lambda image: io.preview_pixels(image, exposure=exposure)  # noqa: E731
-    panels = [np.concatenate([show(refs[0]), show(refs2[0])], axis=1)]
+    # one exposure per lighting setup: its first reference's 99th percentile shown at 0.8
+    exposure = {kind: float(np.log2(0.8 / max(float(np.percentile(v[1][0], 99)), 1e-12))) for kind, v in per_setup.items()}
+    panels = []
     for name in config["methods"]:
         kind = "file emitters" if name in BAKED else "point"
         desc, h, lightings = setups[kind]
@@ -227,12 +225,12 @@ def run_scene(path: str, config: dict, out: str) -> dict:
         _say(f"  {name} ({kind}): worst object relative RMSE {worst:.3f}, mean "
              f"{entry['methods'][name]['mean_rel_rmse']:.3f}, frame {timing['median_ms']:.2f} ms (data {t1 - t0:.0f} s, "
              f"fit {t2 - t1:.0f} s)")
-        panels.append(np.concatenate([show(preds[0]), show(4.0 * np.abs(preds[0] - refs[0]))], axis=1))
+        show = lambda image: io.preview_pixels(image, exposure=exposure[kind])  # noqa: E731
+        panels.append(np.concatenate([show(preds[0]), show(refs[0]), show(4.0 * np.abs(preds[0] - refs[0]))], axis=1))
     io.write_png(os.path.join(out, f"{stem}_side_by_side.png"), np.concatenate(panels, axis=0) / 255.0,
                  tonemapped=True)
-    entry["side_by_side"] = (f"{stem}_side_by_side.png (rows: reference | second reference under the first point "
-                             "light, then per method: prediction | 4x |difference| under its first held-out lighting; "
-                             "one exposure)")
+    entry["side_by_side"] = (f"{stem}_side_by_side.png (a row per method, in config order: prediction | reference "
+                             "| 4x |difference| under its first held-out lighting, one exposure per lighting setup)")
     return entry
 
 
