@@ -66,7 +66,7 @@ def scene_regions(scene) -> dict:
 
     desc = describe(scene)
     if desc["name"] in ("cornell_box", "glossy_cornell"):
-        return {**{k: list(v) for k, v in CORNELL_REGIONS.items()}, "source": "cornell"}
+        return {**{k: (list(v) if isinstance(v, list) else v) for k, v in CORNELL_REGIONS.items()}, "source": "cornell"}
     handle = SceneHandle(desc)
     box = handle.scene.bbox()
     lo, hi = np.asarray(box.min, np.float64), np.asarray(box.max, np.float64)
