@@ -26,6 +26,8 @@ Glossy reflection of a distant environment L_E with visibility V (Eq. 3) is appr
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -67,6 +69,7 @@ def _grid(size: int):
             jnp.asarray(octahedral.texel_solid_angles(size)).reshape(-1))
 
 
+@functools.partial(jax.jit, static_argnames=("size", "chunk"))  # one program (eager, ~100 small compiles)
 def preconvolve(env, alphas, size: int, *, chunk: int = 512) -> jax.Array:
     """Eq. 6: U(r) = sum_i D(h_i; n = r) L_E(w_i) dOmega_i over w_i . r > 0, h_i = (w_i + r) /
     |w_i + r|, for the octahedral environment ``env`` (m, m, 3), at the centres of a ``size``^2
@@ -89,6 +92,7 @@ def preconvolve(env, alphas, size: int, *, chunk: int = 512) -> jax.Array:
     return jnp.stack([one(jnp.float32(a)) for a in alphas]).reshape(len(alphas), size, size, 3)
 
 
+@functools.partial(jax.jit, static_argnames=("size", "chunk"))
 def weighted_visibility(visible, normal, roughness, env, size: int, *, chunk: int = 8):
     """Eq. 7 for every texel: W_E(r) = sum_i D V L dOmega / sum_i D L dOmega with D the texel's
     GGX NDF (its ``normal`` (T, 3), ``roughness`` (T,)) at the half vector of w_i and the view
