@@ -149,6 +149,20 @@ def _references(handle, camera, lightings, e) -> tuple[list, list]:
     return refs, refs2
 
 
+def _pathtrace_ms(handle, camera, lighting, e) -> dict:
+    """The peer: Mitsuba's time for one reference frame (full + direct renders, the indirect light
+    at the references' spp) of the held-out view, after a 1-spp warm-up (Dr.Jit compiles per film)."""
+    from jprt.render.images import direct_indirect
+
+    handle.set_lighting(lighting)
+    spp = int(e["reference_spp"] if lighting is not None else e["reference_spp_file_emitters"])
+    direct_indirect(handle, camera, spp=1, seed=3)
+    t0 = time.perf_counter()
+    direct_indirect(handle, camera, spp=spp, seed=3)
+    return {"spp": spp, "ms": 1e3 * (time.perf_counter() - t0),
+            "note": "Mitsuba llvm_ad_rgb, full (max_depth -1) + direct (max_depth 2) renders at the references' spp"}
+
+
 def run_scene(path: str, config: dict, out: str) -> dict:
     """Every method of ``config['methods']`` on the scene file ``path``: its report entry."""
     import jax
@@ -169,15 +183,17 @@ def run_scene(path: str, config: dict, out: str) -> dict:
         lit = {**dark, "keep_emitters": True}
         setups["file emitters"] = (lit, SceneHandle(lit), [None])
     t0 = time.perf_counter()
-    per_setup = {}
+    per_setup, peers = {}, {}
     for kind, (desc, h, lightings) in setups.items():
         g = gbuffer(h, camera)
         refs, refs2 = _references(h, camera, lightings, e)
         per_setup[kind] = (g, refs, refs2, h.object_names())
+        peers[kind] = _pathtrace_ms(h, camera, lightings[0], e)
     names = handle.object_names()
     _say(f"{stem}: {len(names)} objects, references in {time.perf_counter() - t0:.1f} s")
     entry = {"file": path, "objects": names, "regions": regions, "camera": camera._asdict(),
-             "lights": [np.asarray(x.position).tolist()[0] for x in lights], "noise_floor": {}, "methods": {}}
+             "lights": [np.asarray(x.position).tolist()[0] for x in lights], "noise_floor": {}, "methods": {},
+             "pathtracer": peers}
     for kind, (g, refs, refs2, objects) in per_setup.items():
         entry["noise_floor"][kind] = _per_object(refs2, refs, g.object_id, objects, float(e["min_object_fraction"]))
     # one exposure per lighting setup: its first reference's 99th percentile shown at 0.8
@@ -206,6 +222,9 @@ def run_scene(path: str, config: dict, out: str) -> dict:
             task = [adapter.task_lighting(h, dataset, result.params, cfg, light) for light in lightings]
         preds = [np.where(g.valid[..., None], np.asarray(evaluate(inputs, lit)), 0.0) for lit in task]
         timing = jeval.time_call(evaluate, inputs, task[0], repeats=int(e["timing_repeats"]))
+        own = m.frame_flops(result.params, cfg, inputs, task[0]) if m.frame_flops else None
+        roof = jeval.roofline(evaluate, inputs, task[0], frame_ms=timing["median_ms"], flops=own,
+                              peak_gflops=config["_peak_gflops"])
         scores = _per_object(preds, refs, g.object_id, objects, float(e["min_object_fraction"]))
         for obj, v in scores.items():  # the error against the truth, the reference's own noise taken out:
             # E|p - r|^2 = |p - truth|^2 + |n|^2 and the two references differ by 2 |n|^2 (independent seeds)
@@ -219,6 +238,9 @@ def run_scene(path: str, config: dict, out: str) -> dict:
             "lighting": kind, "per_object": scores, "worst_rel_rmse": worst,
             "mean_rel_rmse": float(np.mean([v["rel_rmse"] for v in scores.values()])),
             "target_met": bool(worst < float(e["target"])), "frame_ms": timing["median_ms"],
+            "frame_flops": roof["frame_flops"], "frame_flops_source": "method" if own else "xla",
+            "flops_fraction_of_peak": roof["flops_fraction_of_peak"],
+            "speedup_vs_reference_render": peers[kind]["ms"] / timing["median_ms"],
             "frame_resolution": list(np.shape(preds[0])[:2]), "dataset_s": t1 - t0, "fit_s": t2 - t1,
             "info": info, "grouped_objects": report.get("grouped", {}), "skipped_objects": report.get("skipped", {}),
             "regions": meta.get("regions") if isinstance(meta, dict) else None}
@@ -242,7 +264,8 @@ def main(config: dict) -> dict:
     os.makedirs(out, exist_ok=True)
     save_resolved(config, out)
     folder = config["assets"] or SHARED_SCENES
-    report = {"config_hash": digest, "scenes": {}, "not_run": {
+    config = {**config, "_peak_gflops": jeval.matmul_peak_gflops()}  # measured once, in this run
+    report = {"config_hash": digest, "matmul_peak_gflops": None, "scenes": {}, "not_run": {
         "wavelet_prt, sh_prt, sg_environment": "environment-lit: needs an opening made in the interior; not run yet",
         "mrt": "exempt (block layouts)"}}
     t0 = time.perf_counter()
@@ -251,6 +274,7 @@ def main(config: dict) -> dict:
         if not os.path.isfile(path):
             raise FileNotFoundError(f"scene file not found: {path} (set assets= to the folder of the Bitterli scenes)")
         report["scenes"][os.path.basename(os.path.dirname(path))] = run_scene(path, config, out)
+    report["matmul_peak_gflops"] = config["_peak_gflops"]
     report["target_met_everywhere"] = all(m["target_met"] for s in report["scenes"].values()
                                           for m in s["methods"].values())
     report["total_s"] = time.perf_counter() - t0
