@@ -165,10 +165,11 @@ def read_materials(handle: SceneHandle, si, valid, n: int) -> dict:
         return (a.T if a.ndim == 2 else a).reshape(n, 3), zero3, one
 
     for k, shape in enumerate(handle.shapes()):
-        hit = np.array(valid & (si.shape == mi.ShapePtr(shape)), dtype=bool).reshape(n)
+        active = valid & (si.shape == mi.ShapePtr(shape))
+        hit = np.array(active, dtype=bool).reshape(n)
         if not hit.any() or shape.bsdf() is None:
             continue
-        d, s, a = read(shape.bsdf(), valid & (si.shape == mi.ShapePtr(shape)))
+        d, s, a = read(shape.bsdf(), active)
         has_spec = np.asarray(s).max(axis=1) > 0
         out["diffuse_albedo"][hit] = np.maximum(d[hit], 0.0)
         out["specular_albedo"][hit] = np.clip(s[hit], 0.0, 1.0)

@@ -491,6 +491,20 @@ def _hemisphere_directions(n: int = 16) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1.0 - r * r)], axis=1)
 
 
+def _hit_objects(handle: SceneHandle, si) -> np.ndarray:
+    """(N,) object id of each hit of a surface-interaction batch, -1 where the ray escaped."""
+    hit = np.full(np.array(si.is_valid(), bool).reshape(-1).shape, -1, np.int64)
+    for k, shape in enumerate(handle.shapes()):
+        hit[np.array(si.shape == handle.mi.ShapePtr(shape), bool).reshape(-1)] = k
+    return hit
+
+
+def _two_sided(handle: SceneHandle, rooms) -> np.ndarray:
+    """(S,) bool: shapes with a ``twosided`` BSDF that do not enclose the scene (``rooms``)."""
+    return np.array([k not in rooms and shape.bsdf() is not None and shape.bsdf().class_name() == "TwoSidedBRDF"
+                     for k, shape in enumerate(handle.shapes())], bool)
+
+
 def _orient(handle: SceneHandle, object_id, position, normal, n_dirs: int = 16) -> np.ndarray:
     """``normal`` (N, 3) turned towards the side of the surface that the rest of the scene is on,
     where that is ambiguous: on a shape that encloses the scene (``enclosing_objects``: a room
@@ -503,7 +517,6 @@ def _orient(handle: SceneHandle, object_id, position, normal, n_dirs: int = 16) 
     gathered, and a measurement point's direct light measured, on the side its normal points to,
     so a wall whose face points outwards would otherwise read the dark outside. One-sided
     surfaces keep their normal: Mitsuba shades only that side."""
-    shapes = handle.shapes()
     rooms = enclosing_objects(handle)
     object_id = np.asarray(object_id)
     box = handle.scene.bbox()
@@ -512,9 +525,7 @@ def _orient(handle: SceneHandle, object_id, position, normal, n_dirs: int = 16) 
         centre = 0.5 * (np.asarray(box.min, np.float64) + np.asarray(box.max, np.float64))
         outwards = np.isin(object_id, rooms) & (np.sum(out * (centre - np.asarray(position)), axis=1) < 0)
         out[outwards] *= -1.0
-    twosided = [k for k, shape in enumerate(shapes) if k not in rooms and shape.bsdf() is not None
-                and shape.bsdf().class_name() == "TwoSidedBRDF"]
-    sel = np.flatnonzero(np.isin(object_id, twosided))
+    sel = np.flatnonzero(np.isin(object_id, np.flatnonzero(_two_sided(handle, rooms))))
     if sel.size == 0:
         return out.astype(np.asarray(normal).dtype)
     size = float(np.max(np.asarray(box.max, np.float64) - np.asarray(box.min, np.float64)))
@@ -531,9 +542,7 @@ def _orient(handle: SceneHandle, object_id, position, normal, n_dirs: int = 16) 
         o = np.repeat(p + _eps(handle) * z, n_dirs, axis=0)
         si = _intersect(handle, o, d.reshape(-1, 3))
         t = np.where(np.array(si.is_valid(), bool).reshape(-1), np.array(si.t, np.float64).reshape(-1), np.inf)
-        hit = np.full(t.shape, -1, np.int64)
-        for k, shape in enumerate(shapes):
-            hit[np.array(si.shape == handle.mi.ShapePtr(shape), bool).reshape(-1)] = k
+        hit = _hit_objects(handle, si)
         other = (hit >= 0) & (hit != np.repeat(object_id[sel], n_dirs))
         score.append(((t > 0.02 * size) & np.isfinite(t) & other).reshape(-1, n_dirs).mean(axis=1))
     # flip only where the authored side mostly sees nothing and the other side clearly more (a
@@ -616,19 +625,15 @@ def free_positions(handle: SceneHandle, points, *, clearance: float = 0.0, n_dir
     n = (n.T if n.shape[0] == 3 and n.ndim == 2 else n).reshape(-1, 3)
     t = np.where(valid, np.array(si.t, np.float64).reshape(-1), np.inf)
     back = valid & (np.sum(n * d, axis=1) > 0)
-    shapes = handle.shapes()
     rooms = enclosing_objects(handle)
-    hit = np.full(len(o), -1, np.int64)
-    for k, shape in enumerate(shapes):
-        hit[np.array(si.shape == handle.mi.ShapePtr(shape), bool).reshape(-1)] = k
-    twosided = np.array([k not in rooms and shape.bsdf() is not None and shape.bsdf().class_name() == "TwoSidedBRDF"
-                         for k, shape in enumerate(shapes)] + [False])
-    one_sided = np.array([k not in rooms and not twosided[k] for k in range(len(shapes))] + [False])
+    hit = _hit_objects(handle, si)
+    twosided = _two_sided(handle, rooms)
+    one_sided = np.append(~twosided & ~np.isin(np.arange(len(twosided)), rooms), False)  # [-1]: no hit
     # one-sided surfaces: seen from their back side; two-sided ones have no back, so a point is
     # inside one when (nearly) every ray hits that same object
     inside = (back & one_sided[hit]).reshape(len(pts), -1).mean(axis=1) >= 0.5
     per = hit.reshape(len(pts), -1)
-    for k in np.flatnonzero(twosided[:-1]):
+    for k in np.flatnonzero(twosided):
         inside |= (per == k).mean(axis=1) >= 0.9
     near = t.reshape(len(pts), -1).min(axis=1) < clearance
     return ~inside & ~near

@@ -361,7 +361,8 @@ def test_regions_come_from_the_scene_file(mi, tmp_path):
     assert np.all(np.array(regions["view_lo"]) <= [0, 1, 3.5]) and np.all([0, 1, 3.5] <= np.array(regions["view_hi"]))
     np.testing.assert_allclose(regions["view_target"], [0, 1, 0], atol=1e-4)
     cfg = {**rrf.DEFAULT_CONFIG["data"], "n_lights": 12}
-    lights = rrf_data._free_lights(desc, np.tile([0.0, 3.0, 0.0], (12, 1)), rrf_data.resolve_regions(cfg, desc),
-                                   np.random.default_rng(0))  # all inside the pillar to start with
+    box = rrf_data.resolve_regions(cfg, desc)
+    lights = rrf_data.free_lights(desc, np.tile([0.0, 3.0, 0.0], (12, 1)), box["light_lo"], box["light_hi"],
+                                  np.random.default_rng(0))  # all inside the pillar to start with
     assert free_positions(SceneHandle(desc), lights, clearance=0.1).all()
     assert rrf_data.scene_regions({"name": "cornell_box", "area_light": False})["light_lo"] == [-0.6, 0.3, -0.6]

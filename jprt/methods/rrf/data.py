@@ -24,7 +24,7 @@ from jprt import cache
 from jprt.config import stable_hash
 from jprt.methods.base import resolve
 from jprt.methods.rrf.model import DEFAULT_CONFIG, RRFData, brdf_vector
-from jprt.render.sampling import CORNELL_REGIONS, REGION_KEYS, scene_regions  # noqa: F401 (re-exported)
+from jprt.render.sampling import CORNELL_REGIONS, REGION_KEYS, free_lights, scene_regions  # noqa: F401 (re-exported)
 
 __all__ = ["make_dataset", "edit_description", "scene_regions", "resolve_regions", "REGION_KEYS", "CORNELL_REGIONS",
            "TASK_LIGHTINGS", "task_inputs", "task_lighting"]
@@ -81,7 +81,7 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
         rng = np.random.default_rng(int(data_cfg["seed"]))
         lights = latin_hypercube(rng, data_cfg["n_lights"], data_cfg["light_lo"], data_cfg["light_hi"])
         if regions_from == "scene bounds":  # no light inside geometry or touching it
-            lights = _free_lights(desc, lights, data_cfg, rng)
+            lights = free_lights(desc, lights, data_cfg["light_lo"], data_cfg["light_hi"], rng)
         if mode == "view":
             check_box(data_cfg["view_lo"], data_cfg["view_hi"], "data.view_lo/view_hi")
             origins = latin_hypercube(rng, data_cfg["n_views"], data_cfg["view_lo"], data_cfg["view_hi"])
@@ -119,13 +119,6 @@ def resolve_regions(data_cfg: dict, scene) -> dict:
     regions = scene_regions(scene)
     return {**data_cfg, **{k: number(regions[k] if data_cfg[k] is None else data_cfg[k]) for k in REGION_KEYS},
             "regions_from": regions["source"]}
-
-
-def _free_lights(desc, lights: np.ndarray, data_cfg: dict, rng) -> np.ndarray:
-    """``jprt.render.sampling.free_lights`` in the config's light box."""
-    from jprt.render.sampling import free_lights
-
-    return free_lights(desc, lights, data_cfg["light_lo"], data_cfg["light_hi"], rng)
 
 
 def _meta(spec: dict, arrays: dict, regions_from: str = "config") -> dict:

@@ -26,7 +26,6 @@ paper adds it to the light-field texture's indirect light). This module imports 
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import jax
@@ -72,11 +71,7 @@ def fit(data, config: dict | None = None, *, progress: bool = True) -> FitResult
     cfg = _cfg(config)
     t0 = time.perf_counter()
     _, lobes, losses = sgm.fit_cnn(data.images, data.below, cfg, progress=progress)
-    lobes = sgm.Lobes(lobes.axes, jnp.minimum(jnp.asarray(lobes.sharpness), float(cfg["model"]["max_sharpness"])),
-                      lobes.amplitude)
-    stored = sgm.to_storage(lobes)
-    params = {"axes": stored.axes, "sharpness": stored.sharpness, "amplitude": stored.amplitude,
-              "fill_index": np.asarray(data.atlas["fill_index"], np.int32)}
+    params = sgm.storage_params(lobes, data, max_sharpness=float(cfg["model"]["max_sharpness"]))
     nbytes = sum(np.asarray(params[k]).nbytes for k in ("axes", "sharpness", "amplitude"))
     return FitResult(params, {"losses": losses, "train_s": time.perf_counter() - t0,
                               "fit_log_l2": float(losses[-1]) if len(losses) else None,
@@ -99,11 +94,7 @@ def preconvolved(radiance, config: dict | None = None) -> PreconvolvedEnvironmen
     return PreconvolvedEnvironment.create(np.asarray(u), np.asarray(e["alphas"], np.float32))
 
 
-#: Pixels per tile of the evaluator's loop (as ``sg_lightfield.model.TILE``).
-TILE = 4096
-
-
-def evaluator(params, config: dict | None = None, *, tile: int = TILE):
+def evaluator(params, config: dict | None = None, *, tile: int = sgm.TILE):
     """``evaluate(inputs, lighting) -> (H, W, 3)``: a G-buffer with atlas ``uv``
     (``jprt.render.lightmap.atlas_gbuffer``) shaded by Eq. 8: at each pixel the reflected view
     direction w_r, W_E(w_r) from the texel's lobes (bilinear in the atlas, axes renormalised), U(w_r)
@@ -139,21 +130,9 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
 
     @jax.jit
     def _evaluate(table, inputs, u, alphas):
-        shape = jnp.shape(inputs.uv)[:-1]
-        count = math.prod(shape)
-        tiles, size = max(1, -(-count // tile)), min(tile, count)
-
-        def flat(a):  # (tiles, size, ...), zero-padded (a zero normal shades to a finite, discarded value)
-            a = jnp.asarray(a, jnp.float32)
-            a = a.reshape((count,) + a.shape[len(shape):])
-            if tiles * size > count:
-                a = jnp.concatenate([a, jnp.zeros((tiles * size - count,) + a.shape[1:], a.dtype)])
-            return a.reshape((tiles, size) + a.shape[1:])
-
-        fields = tuple(flat(a) for a in (inputs.uv, inputs.normal, inputs.view, inputs.roughness,
-                                         inputs.specular_albedo))
-        out = jax.lax.map(lambda f: shade(table, u, alphas, *f), fields).reshape((tiles * size, 3))[:count]
-        return jnp.where(jnp.asarray(inputs.valid, bool)[..., None], out.reshape(shape + (3,)), 0.0)
+        out = sgm.map_tiles(lambda *f: shade(table, u, alphas, *f),
+                            (inputs.uv, inputs.normal, inputs.view, inputs.roughness, inputs.specular_albedo), tile)
+        return jnp.where(jnp.asarray(inputs.valid, bool)[..., None], out, 0.0)
 
     def evaluate(inputs, lighting: PreconvolvedEnvironment):
         return _evaluate(table, inputs, lighting.u, lighting.alphas)

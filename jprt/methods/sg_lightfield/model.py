@@ -50,7 +50,7 @@ from jprt.sphere import sg
 
 __all__ = ["DEFAULT_CONFIG", "GLOSSY_RECEIVERS", "SGData", "Lobes", "fit", "evaluator", "example", "lookup_lobes", "PARAMS_PER_LOBE", "constrain", "lobe_radiance", "jittered_directions",
            "log_l2_loss", "pixel_weights", "fit_cnn", "encode", "initial_amplitude", "texel_irradiance", "shade", "to_storage",
-           "ggx_ndf", "ggx_brdf_cos", "shade_quadrature", "storage_params"]
+           "ggx_ndf", "ggx_brdf_cos", "shade_quadrature", "storage_params", "map_tiles"]
 
 #: Raw numbers per lobe the encoder outputs: axis (3), sharpness (1), RGB amplitude (3).
 PARAMS_PER_LOBE = 7
@@ -478,17 +478,20 @@ def fit(data: SGData, config: dict | None = None, *, progress: bool = True):
 
 
 def storage_params(lobes: Lobes, data: SGData, dtype=jnp.float16, max_sharpness: float = 1.0e4) -> dict:
-    """The evaluator's parameters for any lobes of ``data``'s texels: lobes and irradiance in
-    ``dtype`` (float16, as the paper stores them), the atlas's fill index. Sharpness is clipped
-    to ``max_sharpness`` (the CNN's bound; float16 overflows at 65504), which binds only for
-    baselines fitted without that bound.
+    """The evaluator's parameters for any lobes of ``data``'s texels: lobes and irradiance (when
+    ``data`` has one: the environment-visibility texture has none) in ``dtype`` (float16, as the
+    paper stores them), the atlas's fill index. Sharpness is clipped to ``max_sharpness`` (the
+    CNN's bound; float16 overflows at 65504), which binds only for baselines fitted without it.
 
     Numerics: not differentiable (packing into the float16 run-time storage).
     """
     lobes = Lobes(lobes.axes, jnp.minimum(jnp.asarray(lobes.sharpness), max_sharpness), lobes.amplitude)
     stored = to_storage(lobes, dtype)
-    return {"axes": stored.axes, "sharpness": stored.sharpness, "amplitude": stored.amplitude,
-            "irradiance": jnp.asarray(data.irradiance, dtype), "fill_index": np.asarray(data.atlas["fill_index"], np.int32)}
+    params = {"axes": stored.axes, "sharpness": stored.sharpness, "amplitude": stored.amplitude,
+              "fill_index": np.asarray(data.atlas["fill_index"], np.int32)}
+    if getattr(data, "irradiance", None) is not None:
+        params["irradiance"] = jnp.asarray(data.irradiance, dtype)
+    return params
 
 
 def _lobe_table(params):
@@ -568,6 +571,30 @@ def _shade_planes(at, normal, view, roughness, specular, diffuse_albedo):
 TILE = 4096
 
 
+def map_tiles(fn, fields, tile: int):
+    """``fn`` over the pixels of image-shaped ``fields`` (each (..., C) or (...) with the leading
+    shape of the first, the uv), ``tile`` pixels at a time (a ``lax.map``): each field flattened
+    to pixels, zero-padded to whole tiles (a zero normal shades to a finite value, discarded),
+    ``fn(*tile_fields) -> (tile, 3)``; returns (..., 3). A tile's working set stays in cache,
+    where XLA would otherwise stream the whole frame through each fusion (the evaluators' timings).
+
+    Numerics: not differentiable (the run-time tiling; the arithmetic is ``fn``'s).
+    """
+    shape = jnp.shape(fields[0])[:-1]
+    count = math.prod(shape)
+    tiles, size = max(1, -(-count // int(tile))), min(int(tile), count)
+
+    def flat(a):
+        a = jnp.asarray(a, jnp.float32)
+        a = a.reshape((count,) + a.shape[len(shape):])
+        if tiles * size > count:
+            a = jnp.concatenate([a, jnp.zeros((tiles * size - count,) + a.shape[1:], a.dtype)])
+        return a.reshape((tiles, size) + a.shape[1:])
+
+    out = jax.lax.map(lambda t: fn(*t), tuple(flat(a) for a in fields))
+    return out.reshape((tiles * size, 3))[:count].reshape(shape + (3,))
+
+
 def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     """``evaluate(inputs, lighting) -> (H, W, 3)``: a G-buffer with atlas ``uv`` (``jprt.render.
     lightmap.atlas_gbuffer``) shaded from its texels' lobes (``shade``); ``lighting`` is a
@@ -594,27 +621,13 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
 
     @jax.jit
     def _evaluate(table, inputs, scale):
-        shape = jnp.shape(inputs.uv)[:-1]
-        fields = (inputs.uv, inputs.normal, inputs.view, inputs.roughness, inputs.specular_albedo,
-                  inputs.diffuse_albedo)
-        count = math.prod(shape)
-        tiles = max(1, -(-count // tile))
-        size = min(tile, count)
-
-        def flat(a):
-            a = jnp.asarray(a, jnp.float32)
-            a = a.reshape((count,) + a.shape[len(shape):])
-            a = jnp.concatenate([a, jnp.zeros((tiles * size - count,) + a.shape[1:], a.dtype)]) if tiles * size > count else a
-            return a.reshape((tiles, size) + a.shape[1:])
-
-        def shade_tile(t):
-            uv, normal, view, roughness, specular, diffuse = t
+        def shade_tile(uv, normal, view, roughness, specular, diffuse):
             at = _planes(atlas_lookup(table, uv), n)
-            # a zero-padded pixel has a zero normal: its (discarded) shading is finite
             return _shade_planes(at, normal, view, roughness, specular, diffuse)
 
-        out = jax.lax.map(shade_tile, tuple(flat(a) for a in fields)).reshape((tiles * size, 3))[:count]
-        out = out.reshape(shape + (3,)) * jnp.asarray(scale, jnp.float32).reshape((1,) * len(shape) + (3,))
+        out = map_tiles(shade_tile, (inputs.uv, inputs.normal, inputs.view, inputs.roughness, inputs.specular_albedo,
+                                     inputs.diffuse_albedo), tile)
+        out = out * jnp.asarray(scale, jnp.float32).reshape((1,) * (out.ndim - 1) + (3,))
         return jnp.where(jnp.asarray(inputs.valid, bool)[..., None], out, 0.0)
 
     def evaluate(inputs, lighting):
