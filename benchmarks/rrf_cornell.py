@@ -21,6 +21,7 @@ ROOT = os.path.dirname(HERE)
 KEYS = ("indirect_rmse", "indirect_rel_rmse", "p999_abs_error", "psnr_indirect", "ssim_indirect", "psnr_full",
         "reference_spp", "equal_error_spp", "pathtrace_ms_equal_error", "frame_ms", "frame_ms_min", "frame_resolution",
         "frame_ms_4lights", "frame_ms_4lights_min", "frame_ms_4lights_over_1light", "frame_flops",
+        "frame_flops_4lights_over_1light",
         "frame_flops_4lights", "matmul_peak_gflops",
         "flops_fraction_of_peak", "flops_fraction_of_peak_4lights", "gbuffer_ms", "speedup_equal_error",
         "speedup_equal_error_with_gbuffer", "n_leaves", "model_bytes", "train_s", "dataset_s", "rmse_basic_attributes",

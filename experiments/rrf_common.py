@@ -211,6 +211,9 @@ def four_lights(run) -> dict:
     out = {"frame_ms_4lights": ms, "frame_ms_4lights_min": timed["min_ms"],
            "frame_ms_4lights_over_1light": ms / s["frame_ms"],
            "frame_flops_4lights": flops, "flops_fraction_of_peak_4lights": roof["flops_fraction_of_peak"],
+           # the floor under the time ratio: the trees split on the light too, so the shared part
+           # of the first layer is shared only between lights in one leaf (``rrf.frame_flops``)
+           "frame_flops_4lights_over_1light": flops / s["frame_flops"] if s.get("frame_flops") else None,
            "gbuffer_ms": g}
     if s.get("pathtrace_ms_equal_error"):
         out["speedup_equal_error_with_gbuffer"] = s["pathtrace_ms_equal_error"] / (s["frame_ms"] + g)

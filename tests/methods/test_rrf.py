@@ -135,6 +135,38 @@ def test_no_recompile_for_same_light_count(model):
     assert len(traces) == 2
 
 
+def test_frame_flops_count_the_shared_layer_once_per_distinct_leaf():
+    """Eq. 9 shares the light-free part of the first layer between lights only within one kd-tree
+    cell: the count has it once per (pixel, distinct leaf), found here by the brute-force lookup,
+    and every light's own part once per pixel. The target steps with the light's x, so the tree
+    splits on it."""
+    rng = np.random.default_rng(4)
+    n = 300
+    x = np.concatenate([rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3)), rng.uniform([-0.5, 0.3, -0.5],
+                        [0.5, 0.9, 0.5], (n, 3)), rng.normal(size=(n, 3)), rng.random((n, 7))], axis=1)
+    y = np.repeat(1.0 + (x[:, 6:7] >= 0), 3, axis=1).astype(np.float32)
+    cfg = {"model": {"hidden": [3]}, "train": {"max_iters": 10, "trial_iters": 10, "progress": False},
+           "tree": {"threshold": 0.01, "max_depth": 1, "min_samples": 30, "expand": 0.0}}
+    params, _ = rrf.fit_arrays(x, y, np.zeros(n, np.int32), cfg)
+    tree = kdtree.KDTree(**{k: np.asarray(v) for k, v in params["tree"].items()})
+    assert tree.axis[tree.roots[0]] == 6
+    gb = _fake_gbuffer(h=8, w=9, seed=2, n_objects=1)
+    lights = PointLights.create([[0.2, 0.5, 0.0], [0.2, 0.5, 0.0], [-0.3, 0.8, 0.3]], np.ones((3, 3)))
+    obj = np.where(gb.valid, gb.object_id, -1).reshape(-1)
+    leaves = []
+    for p in np.asarray(lights.position):
+        x = np.asarray(rrf.features("augmented", gb.position, gb.view, np.broadcast_to(p, gb.position.shape), gb.normal,
+                                    rrf.brdf_vector(gb.diffuse_albedo, gb.specular_albedo, gb.roughness))).reshape(-1, 19)
+        lo, hi = np.asarray(params["obj_lo"])[0], np.asarray(params["obj_hi"])[0]
+        leaves.append(kdtree.brute_force_lookup(tree, obj, (x - lo) / np.where(hi - lo > 1e-8, hi - lo, 1.0)))
+    leaves = np.stack(leaves)
+    live = leaves[0] >= 0
+    distinct = sum(len(set(leaves[:, i])) for i in np.flatnonzero(live))
+    assert distinct == 2 * live.sum()  # the third light is in the other leaf at every pixel
+    shared, per_light = 2 * 16 * 3, 2 * 3 * 3 + 2 * 3 + (2 * 3 * 3 + 3) + 2 * 3
+    assert rrf.frame_flops(params, cfg, gb, lights) == distinct * shared + live.sum() * 3 * per_light
+
+
 def test_traversal_in_evaluator_matches_brute_force(model):
     params, _ = model
     rng = np.random.default_rng(3)

@@ -106,7 +106,7 @@ DEFAULT_CONFIG: dict = {
     # evaluator: lights outside the trained box ("error" | "clamp" | "allow", box grown by
     # `tolerance` of its size); the tiled networks and their input / output clamps (evaluator
     # docstring)
-    "render": {"extrapolation": "error", "tolerance": 0.02, "tile": 16, "chunk": 16,
+    "render": {"extrapolation": "error", "tolerance": 0.02, "tile": 8, "chunk": 64,
                "clamp_inputs": True, "nonnegative": True},
 }
 
@@ -655,26 +655,42 @@ def _predict_sorted(params, x, object_id, block: int = 512, clamp: bool = True):
     return jnp.zeros((n, y.shape[-1]), y.dtype).at[order].set(y[dest])
 
 
+def _tile_leaves(leaf, n_leaves: int):
+    """Which leaves occur in each tile: ``leaf`` (K, th, tile, tw, tile) leaf ids (-1: none) ->
+    (n_leaves, th, tw) bool. Each id is one bit of a 32-bit word, OR-reduced over the tile's
+    pixels and the lights: one pass over the pixels per 32 leaves (a one-hot comparison against
+    every leaf is one pass per leaf, and was a sixth of a one-light frame)."""
+    words = []
+    for w in range(-(-n_leaves // 32)):
+        mine = (leaf >= 32 * w) & (leaf < 32 * (w + 1))
+        bits = jnp.where(mine, jnp.left_shift(jnp.uint32(1), (leaf - 32 * w).astype(jnp.uint32) & 31), jnp.uint32(0))
+        words.append(jax.lax.reduce(bits, jnp.uint32(0), jax.lax.bitwise_or, (0, 2, 4)))  # (th, tw)
+    bit = jnp.arange(n_leaves, dtype=jnp.uint32)
+    word = jnp.stack(words)[bit // 32]  # (L, th, tw)
+    return (jnp.right_shift(word, (bit % 32)[:, None, None]) & 1) == 1
+
+
 def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols: tuple, tile: int, chunk: int,
                    clamp: bool, nonnegative: bool):
     """Eq. 9, sum over lights k of c_k Phi(x_p, l_k) (each term max(., 0) with ``nonnegative``),
-    for the pixels of an H x W image without a sort or a scatter: (H, W, R).
+    for the pixels of an H x W image without a sort or a per-pixel scatter: (H, W, R).
 
     ``parts`` is a list of (H, W, c_i) arrays whose concatenation is every input of x but the
     light position, in x's column order; the light's columns in x are ``light_cols``;
     ``object_id`` (H, W) (-1: no network, output 0). The image is cut into ``tile`` x ``tile``
     pixel tiles (neighbouring pixels' leaves agree almost everywhere). Every (leaf, tile) pair
-    that some pixel of the tile needs under some light is one work item: the tile's pixels
-    through that leaf's network, masked to the pixels whose leaf it is. Items are listed leaf by
-    leaf, each leaf's list padded to whole chunks of ``chunk`` items, so a chunk is one network
-    applied to ``chunk`` x tile^2 pixels: one dense product per layer, features x pixels (the
-    layout XLA's CPU dot runs fastest for layers 20 wide), in cache. A loop runs over exactly the
-    chunks there are; each finds its items by cumulative sums and a binary search, reads its
-    tiles straight from the G-buffer (one gather of tile-sized slices per field: the frame is
-    never copied into another layout) and adds its result into them. The light is constant over
-    a frame, so its part of the first layer is one bias per (leaf, light), and the rest of the
-    first layer, the widest product, is computed once for all K lights (Eq. 9's sum shares the
-    position / view / normal / BRDF part)."""
+    that some pixel of the tile needs under some light is one work item (``_tile_leaves``).
+    Items are listed leaf by leaf, each leaf's list padded to whole chunks of ``chunk`` items, so
+    a chunk is one network applied to ``chunk`` x tile^2 pixels: one dense product per layer,
+    features x pixels (the layout XLA's CPU dot runs fastest for layers 20 wide), in cache. A
+    loop runs over exactly the chunks there are; each finds its items by cumulative sums and a
+    binary search, reads its tiles straight from the G-buffer parts (one gather of tile-sized
+    slices per part, fused with the clip to the leaf's range), and adds its result into the
+    output, kept as (tiles, tile^2, R), by one indexed add of whole tiles (the chunk's items are
+    distinct tiles). The light is constant over a frame, so its part of the first layer is one
+    bias per (leaf, light), as is the input scaling (folded into the weights), and the rest of
+    the first layer, the widest product, is computed once for all the lights whose inputs fall
+    in the leaf (Eq. 9's sum shares the position / view / normal / BRDF part)."""
     hh, ww = object_id.shape
     k = light_pos.shape[0]
     leaves = params["leaves"]
@@ -715,9 +731,8 @@ def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols
 
         return kdtree.traverse(_tree(params), object_id, None, column=value)
 
-    leaf = jax.vmap(leaf_under)(light_pos)  # (K, H, W)
-    seen = leaf.reshape(k, th, tile, tw, tile)[..., None] == jnp.arange(n_leaves)[None, None, None, None, None, :]
-    present = jnp.any(seen, axis=(0, 2, 4)).reshape(n_tiles, n_leaves).T  # (L, T)
+    leaf = jnp.stack([leaf_under(light_pos[kk]) for kk in range(k)])  # (K, H, W)
+    present = _tile_leaves(leaf.reshape(k, th, tile, tw, tile), n_leaves).reshape(n_leaves, n_tiles)  # (L, T)
     rank = jnp.cumsum(present.astype(jnp.int32), axis=1)  # (L, T): 1 + the item's rank in its leaf's list
     count = rank[:, -1]
     padded = (count + chunk - 1) // chunk * chunk
@@ -725,6 +740,13 @@ def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols
     start = end - padded
     # the r-th present tile of leaf l: leaf l's ranks offset by l (T + 1) are one increasing list
     keys = (rank + (jnp.arange(n_leaves) * (n_tiles + 1))[:, None]).reshape(-1)
+
+    def tiled(a):  # (H, W, ...) -> (T, tile^2, ...): each tile's pixels contiguous, tiles in raster order
+        rest_shape = a.shape[2:]
+        a = a.reshape((th, tile, tw, tile) + rest_shape)
+        return jnp.swapaxes(a, 1, 2).reshape((n_tiles, tp) + rest_shape)
+
+    leaf_t = jax.vmap(tiled)(leaf)  # (K, T, tile^2)
 
     def tiles_of(a, y0, x0):  # the tiles at (y0, x0) of an (H, W, ...) array: (chunk, tile, tile, ...)
         size = (tile, tile) + a.shape[2:]
@@ -737,20 +759,22 @@ def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols
         live = r < count[lf]
         tl = jnp.searchsorted(keys, lf * (n_tiles + 1) + r + 1, side="left", method="scan_unrolled") - lf * n_tiles
         tl = jnp.where(live, jnp.clip(tl, 0, n_tiles - 1), 0)
-        y0, x0 = tl // tw * tile, tl % tw * tile
-        mine = jax.vmap(lambda lk: tiles_of(lk, y0, x0))(leaf).reshape(k, chunk * tp)
-        mine = (mine == lf) & jnp.repeat(live, tp)[None, :]
+        mine = (leaf_t[:, tl] == lf) & live[None, :, None]  # (K, chunk, tile^2)
+        mine = mine.reshape(k, chunk * tp)
         s = jax.tree_util.tree_map(lambda a: a[lf], leaves["scaling"])
+        y0, x0 = tl // tw * tile, tl % tw * tile
         z = jnp.concatenate([tiles_of(q, y0, x0) for q in parts], axis=-1).reshape(chunk * tp, ds).T  # (Ds, N)
         zl = light_pos  # (K, 3)
         if clamp:
             z = jnp.clip(z, s["in_min"][rest][:, None], s["in_max"][rest][:, None])
             zl = jnp.clip(zl, s["in_min"][lc][None, :], s["in_max"][lc][None, :])
-        z = (z - s["in_center"][rest][:, None]) / s["in_halfrange"][rest][:, None]
         zl = (zl - s["in_center"][lc][None, :]) / s["in_halfrange"][lc][None, :]
         w0 = layers[0]["w"][lf]
-        h0 = w0[rest].T @ z  # (H1, N): the light-free part, once for all lights
-        bias = zl @ w0[lc] + layers[0]["b"][lf][None, :]  # (K, H1)
+        # the input scaling folded into the first layer: W^T (z - c) / h = (W / h)^T z - (W / h)^T c
+        w_rest = w0[rest] / s["in_halfrange"][rest][:, None]  # (Ds, H1)
+        h0 = w_rest.T @ z  # (H1, N): the light-free part, once for all lights
+        bias = zl @ w0[lc] + layers[0]["b"][lf][None, :] - (s["in_center"][rest] @ w_rest)[None, :]  # (K, H1)
+
         def light_term(kk, y_sum):  # light kk's term of Eq. 9 on the chunk's pixels of this leaf
             h = _tanh(h0 + bias[kk][:, None])
             for i, layer in enumerate(layers[1:], start=1):
@@ -764,14 +788,12 @@ def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols
         for kk in range(k):  # Eq. 9's sum; the trees split on the light too: skip lights not in this leaf
             y_sum = light_term(kk, y_sum) if k == 1 else jax.lax.cond(
                 jnp.any(mine[kk]), functools.partial(light_term, kk), lambda v: v, y_sum)
-        y_sum = y_sum.T.reshape(chunk, tile, tile, n_out)
-        for i in range(chunk):  # into each item's tile (padding items add zeros to tile 0)
-            cur = jax.lax.dynamic_slice(out, (y0[i], x0[i], 0), (tile, tile, n_out))
-            out = jax.lax.dynamic_update_slice(out, cur + y_sum[i], (y0[i], x0[i], 0))
-        return out
+        # into each item's tile, one indexed add for the chunk (padding items add zeros to tile 0)
+        return out.at[tl].add(y_sum.T.reshape(chunk, tp, n_out))
 
-    out = jnp.zeros((th * tile, tw * tile, n_out), light_rgb.dtype)
+    out = jnp.zeros((n_tiles, tp, n_out), light_rgb.dtype)
     out = jax.lax.fori_loop(0, end[-1] // chunk, chunk_body, out)
+    out = jnp.swapaxes(out.reshape(th, tw, tile, tile, n_out), 1, 2).reshape(th * tile, tw * tile, n_out)
     return out[:hh, :ww]
 
 
@@ -885,25 +907,46 @@ def evaluator(params, config: dict | None = None):
 
 def frame_flops(params, config: dict | None, inputs, lights) -> float:
     """FLOPs one ``evaluator`` call needs (``Method.frame_flops``): per valid pixel of an object
-    with networks, the light-free part of the first layer once and, per light, its light part,
-    the other layers and the colour weighting (2 per multiply-add, 1 per bias add); the input
-    and output scaling and the tanh are not counted. What the networks must compute, not what the
-    tiles execute (masked pixels of shared tiles, padding items).
+    with networks, the light-free part of the first layer once per distinct leaf its lights reach
+    (Eq. 9's sum shares it only between lights whose inputs fall in the same kd-tree cell: the
+    trees split on the light position too) and, per light, the light part, the other layers and
+    the colour weighting (2 per multiply-add, 1 per bias add); the input and output scaling and
+    the tanh are not counted. What the networks must compute, not what the tiles execute (masked
+    pixels of shared tiles, padding items).
 
     Numerics: not differentiable (a FLOP count).
     """
     cfg = _cfg(config)
-    gb = inputs.gbuffer if cfg["data"]["mode"] == "material" else inputs
+    material = cfg["data"]["mode"] == "material"
+    gb = inputs.gbuffer if material else inputs
     sizes = _sizes(params["leaves"]["layers"])
-    n_obj = int(np.asarray(params["tree"]["roots"]).shape[0])
-    obj = np.asarray(gb.object_id)
-    has_tree = np.asarray(params["tree"]["roots"])[np.clip(obj, 0, n_obj - 1)] >= 0
-    pixels = int(np.sum(np.asarray(gb.valid, bool) & (obj >= 0) & (obj < n_obj) & has_tree))
-    k = int(np.asarray(lights.position).reshape(-1, 3).shape[0])
+    roots = np.asarray(params["tree"]["roots"])
+    obj = np.asarray(gb.object_id).reshape(-1)
+    ok = np.asarray(gb.valid, bool).reshape(-1) & (obj >= 0) & (obj < roots.shape[0])
+    ok &= roots[np.clip(obj, 0, roots.shape[0] - 1)] >= 0
+    light_pos = np.asarray(lights.position, np.float32).reshape(-1, 3)
+    k = light_pos.shape[0]
+    idx = np.flatnonzero(ok)
+    leaf = np.zeros((k, idx.size), np.int64)
+    if idx.size:
+        view = (np.broadcast_to(np.asarray(inputs.edit, np.float32), (idx.size, 2)) if material
+                else np.asarray(gb.view, np.float32).reshape(-1, 3)[idx])
+        brdf = brdf_vector(np.asarray(gb.diffuse_albedo, np.float32).reshape(-1, 3)[idx],
+                           np.asarray(gb.specular_albedo, np.float32).reshape(-1, 3)[idx],
+                           np.asarray(gb.roughness, np.float32).reshape(-1)[idx])
+        tree = kdtree.KDTree(*(np.asarray(a) for a in _tree(params)))
+        for kk in range(k):
+            x = np.asarray(features(cfg["model"]["attributes"], np.asarray(gb.position, np.float32).reshape(-1, 3)[idx],
+                                    view, np.broadcast_to(light_pos[kk], (idx.size, 3)),
+                                    np.asarray(gb.normal, np.float32).reshape(-1, 3)[idx], brdf,
+                                    view if material else None))
+            xn = _normalise(x, obj[idx], params["obj_lo"], params["obj_hi"])
+            leaf[kk] = kdtree.traverse(tree, obj[idx], xn, xp=np)
+    distinct = int(np.sum(1 + np.sum(np.diff(np.sort(leaf, axis=0), axis=0) != 0, axis=0))) if idx.size else 0
     shared = 2 * (sizes[0] - 3) * sizes[1]
     later = sum(2 * a * b + b for a, b in zip(sizes[1:-1], sizes[2:]))
     per_light = 2 * 3 * sizes[1] + 2 * sizes[1] + later + 2 * sizes[-1]
-    return float(pixels * (shared + k * per_light))
+    return float(distinct * shared + idx.size * k * per_light)
 
 
 def check_inputs(params, gbuffer, lights, *, extrapolation: str = "error", tolerance: float = 0.02) -> None:
