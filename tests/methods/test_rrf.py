@@ -135,36 +135,38 @@ def test_no_recompile_for_same_light_count(model):
     assert len(traces) == 2
 
 
-def test_frame_flops_count_the_shared_layer_once_per_distinct_leaf():
+def test_frame_flops_count_the_shared_layer_once_per_distinct_leaf(model):
     """Eq. 9 shares the light-free part of the first layer between lights only within one kd-tree
     cell: the count has it once per (pixel, distinct leaf), found here by the brute-force lookup,
-    and every light's own part once per pixel. The target steps with the light's x, so the tree
-    splits on it."""
-    rng = np.random.default_rng(4)
-    n = 300
-    x = np.concatenate([rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3)), rng.uniform([-0.5, 0.3, -0.5],
-                        [0.5, 0.9, 0.5], (n, 3)), rng.normal(size=(n, 3)), rng.random((n, 7))], axis=1)
-    y = np.repeat(1.0 + (x[:, 6:7] >= 0), 3, axis=1).astype(np.float32)
-    cfg = {"model": {"hidden": [3]}, "train": {"max_iters": 10, "trial_iters": 10, "progress": False},
-           "tree": {"threshold": 0.01, "max_depth": 1, "min_samples": 30, "expand": 0.0}}
-    params, _ = rrf.fit_arrays(x, y, np.zeros(n, np.int32), cfg)
-    tree = kdtree.KDTree(**{k: np.asarray(v) for k, v in params["tree"].items()})
-    assert tree.axis[tree.roots[0]] == 6
+    and every light's own part once per pixel. The tree (two of the fixture's leaf networks)
+    splits on the light's x."""
+    fitted, _ = model
+    d = 19
+    lo, hi = np.full((3, d), -np.inf, np.float32), np.full((3, d), np.inf, np.float32)  # root, left, right cells
+    hi[1, 6], lo[2, 6] = 0.5, 0.5
+    tree = kdtree.KDTree(axis=np.asarray([6, -1, -1], np.int32), threshold=np.asarray([0.5, 0, 0], np.float32),
+                         left=np.asarray([1, 1, 2], np.int32), right=np.asarray([2, 1, 2], np.int32),
+                         leaf=np.asarray([-1, 0, 1], np.int32), roots=np.asarray([0], np.int32), cell_lo=lo,
+                         cell_hi=hi, depth=np.asarray([0, 1, 1], np.int32))
+    params = {**fitted, "tree": {k: jnp.asarray(v) for k, v in tree._asdict().items()},
+              "obj_lo": fitted["obj_lo"][:1], "obj_hi": fitted["obj_hi"][:1],
+              "leaves": jax.tree_util.tree_map(lambda a: a[:2], fitted["leaves"])}
     gb = _fake_gbuffer(h=8, w=9, seed=2, n_objects=1)
     lights = PointLights.create([[0.2, 0.5, 0.0], [0.2, 0.5, 0.0], [-0.3, 0.8, 0.3]], np.ones((3, 3)))
     obj = np.where(gb.valid, gb.object_id, -1).reshape(-1)
+    o_lo, o_hi = np.asarray(params["obj_lo"])[0], np.asarray(params["obj_hi"])[0]
     leaves = []
     for p in np.asarray(lights.position):
         x = np.asarray(rrf.features("augmented", gb.position, gb.view, np.broadcast_to(p, gb.position.shape), gb.normal,
-                                    rrf.brdf_vector(gb.diffuse_albedo, gb.specular_albedo, gb.roughness))).reshape(-1, 19)
-        lo, hi = np.asarray(params["obj_lo"])[0], np.asarray(params["obj_hi"])[0]
-        leaves.append(kdtree.brute_force_lookup(tree, obj, (x - lo) / np.where(hi - lo > 1e-8, hi - lo, 1.0)))
+                                    rrf.brdf_vector(gb.diffuse_albedo, gb.specular_albedo, gb.roughness))).reshape(-1, d)
+        leaves.append(kdtree.brute_force_lookup(tree, obj, (x - o_lo) / np.where(o_hi - o_lo > 1e-8, o_hi - o_lo, 1.0)))
     leaves = np.stack(leaves)
     live = leaves[0] >= 0
     distinct = sum(len(set(leaves[:, i])) for i in np.flatnonzero(live))
     assert distinct == 2 * live.sum()  # the third light is in the other leaf at every pixel
-    shared, per_light = 2 * 16 * 3, 2 * 3 * 3 + 2 * 3 + (2 * 3 * 3 + 3) + 2 * 3
-    assert rrf.frame_flops(params, cfg, gb, lights) == distinct * shared + live.sum() * 3 * per_light
+    h1, h2 = 6, 4
+    shared, per_light = 2 * 16 * h1, 2 * 3 * h1 + 2 * h1 + (2 * h1 * h2 + h2) + (2 * h2 * 3 + 3) + 2 * 3
+    assert rrf.frame_flops(params, None, gb, lights) == distinct * shared + live.sum() * 3 * per_light
 
 
 def test_traversal_in_evaluator_matches_brute_force(model):
