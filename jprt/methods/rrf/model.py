@@ -929,17 +929,15 @@ def frame_flops(params, config: dict | None, inputs, lights) -> float:
     idx = np.flatnonzero(ok)
     leaf = np.zeros((k, idx.size), np.int64)
     if idx.size:
-        view = (np.broadcast_to(np.asarray(inputs.edit, np.float32), (idx.size, 2)) if material
-                else np.asarray(gb.view, np.float32).reshape(-1, 3)[idx])
-        brdf = brdf_vector(np.asarray(gb.diffuse_albedo, np.float32).reshape(-1, 3)[idx],
-                           np.asarray(gb.specular_albedo, np.float32).reshape(-1, 3)[idx],
-                           np.asarray(gb.roughness, np.float32).reshape(-1)[idx])
+        pixels = lambda a, c: np.asarray(a, np.float32).reshape(-1, c)[idx]  # noqa: E731 (the counted pixels)
+        position, normal = pixels(gb.position, 3), pixels(gb.normal, 3)
+        view = None if material else pixels(gb.view, 3)
+        edit = np.broadcast_to(np.asarray(inputs.edit, np.float32), (idx.size, 2)) if material else None
+        brdf = brdf_vector(pixels(gb.diffuse_albedo, 3), pixels(gb.specular_albedo, 3), pixels(gb.roughness, 1)[:, 0])
         tree = kdtree.KDTree(*(np.asarray(a) for a in _tree(params)))
-        for kk in range(k):
-            x = np.asarray(features(cfg["model"]["attributes"], np.asarray(gb.position, np.float32).reshape(-1, 3)[idx],
-                                    view, np.broadcast_to(light_pos[kk], (idx.size, 3)),
-                                    np.asarray(gb.normal, np.float32).reshape(-1, 3)[idx], brdf,
-                                    view if material else None))
+        for kk in range(k):  # each light's leaf per pixel (the light is x's only per-light column)
+            x = np.asarray(features(cfg["model"]["attributes"], position, view,
+                                    np.broadcast_to(light_pos[kk], (idx.size, 3)), normal, brdf, edit))
             xn = _normalise(x, obj[idx], params["obj_lo"], params["obj_hi"])
             leaf[kk] = kdtree.traverse(tree, obj[idx], xn, xp=np)
     distinct = int(np.sum(1 + np.sum(np.diff(np.sort(leaf, axis=0), axis=0) != 0, axis=0))) if idx.size else 0
