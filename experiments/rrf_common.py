@@ -192,15 +192,21 @@ def tree_stats(run) -> dict:
             "test_pairs": [len(run.state["cameras"]), len(run.state["lightings"])]}
 
 
+def four_light_inputs(config: dict) -> PointLights:
+    """The four lights of the timing frame: Latin hypercube in the light box (seed 5), RGB
+    intensities in [0.5, 1.5]."""
+    from jprt.render.sampling import latin_hypercube
+
+    rng = np.random.default_rng(5)
+    d = rrf_data.resolve_regions(config["data"], config["scene"])
+    return PointLights.create(latin_hypercube(rng, 4, d["light_lo"], d["light_hi"]), rng.uniform(0.5, 1.5, (4, 3)))
+
+
 def four_lights(run) -> dict:
     """Eq. 9 with four lights at the timing resolution (the first layer's light-free part is
     shared, so four lights cost far less than four frames), with its roofline; and the G-buffer's
     time (Mitsuba), with the speedup at equal error counted with it (the paper counts without)."""
-    from jprt.render.sampling import latin_hypercube
-
-    rng = np.random.default_rng(5)
-    d = rrf_data.resolve_regions(run.config["data"], run.config["scene"])
-    host = PointLights.create(latin_hypercube(rng, 4, d["light_lo"], d["light_hi"]), rng.uniform(0.5, 1.5, (4, 3)))
+    host = four_light_inputs(run.config)
     gb, lights = jax.device_put((run.state["timing_gbuffer"], host))
     fast = jax.jit(run.evaluate)
     timed = jeval.time_call(fast, gb, lights, repeats=int(run.config["eval"]["timing_repeats"]))

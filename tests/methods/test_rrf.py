@@ -319,6 +319,17 @@ def test_blocked_prediction_matches_per_leaf_numpy(model):
         np.testing.assert_allclose(np.asarray(tiled).reshape(n, 3), ref, rtol=1e-4, atol=1e-5)
 
 
+def test_render_layout_by_backend_and_config():
+    """None: the backend's measured layout (the GPU's for backends not listed); set values win;
+    sizes below 1 are refused."""
+    assert rrf.render_layout({"tile": None, "chunk": None}, "cpu") == rrf.RENDER_LAYOUTS["cpu"]
+    assert rrf.render_layout({"tile": None, "chunk": None}, "tpu") == rrf.RENDER_LAYOUTS["gpu"]
+    assert rrf.render_layout({"tile": 4, "chunk": None}, "cpu") == (4, rrf.RENDER_LAYOUTS["cpu"][1])
+    assert rrf.render_layout({"tile": None, "chunk": 3}, "gpu") == (rrf.RENDER_LAYOUTS["gpu"][0], 3)
+    with pytest.raises(ValueError, match="render.tile and render.chunk"):
+        rrf.render_layout({"tile": 0, "chunk": 8})
+
+
 def test_discontinuity_splits_only_near_it():
     """An affine target with a step at x0 = 0.3: the RRF kd-tree splits only cells that contain
     the step (along x0), and the other leaves fit below the 1 % threshold."""

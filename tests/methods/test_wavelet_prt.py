@@ -129,6 +129,14 @@ def test_render_pixels_skips_chunks_without_valid_pixels():
     np.testing.assert_array_equal(out[:4], full[:4])
 
 
+def test_auto_chunk_by_backend():
+    """render.chunk 0: rows per step by backend (GPU's for backends not listed), at least one pixel."""
+    assert wp.auto_chunk(64, "cpu") == 8192 // 64
+    assert wp.auto_chunk(64, "gpu") == 2 ** 22 // 64 == wp.auto_chunk(64, "tpu")
+    assert wp.auto_chunk(10 ** 6, "cpu") == 1
+    assert wp.auto_chunk(16) == wp.auto_chunk(16, jax.default_backend())
+
+
 @pytest.mark.parametrize("overrides", [{}, pytest.param({"model": {"layers": 3, "hidden": 64}, "render": {"k": 32}},
                                                      marks=pytest.mark.slow)])  # the second for the suite's budget
 def test_frame_flops_is_xla_count_of_one_chunk(overrides):

@@ -60,7 +60,7 @@ from jprt.solve.lm import LMSettings, solve_batched
 
 __all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features",
            "split_samples", "input_size", "fit", "fit_arrays", "evaluator", "frame_flops", "check_inputs", "example",
-           "refit_leaves", "parameter_count", "light_box"]
+           "refit_leaves", "parameter_count", "light_box", "RENDER_LAYOUTS", "render_layout"]
 
 #: Inputs of Phi for each attribute set (Ren et al. Fig. 3: basic vs augmented attributes).
 ATTRIBUTE_SETS = {
@@ -104,11 +104,34 @@ DEFAULT_CONFIG: dict = {
     "train": {"max_iters": 40, "trial_iters": 10, "trial_samples": 1024, "max_fail": 6, "rtol": 1e-6, "damping": 1e-3, "chunk_size": 1024, "seed": 0,
               "subset": 1.0, "progress": True},
     # evaluator: lights outside the trained box ("error" | "clamp" | "allow", box grown by
-    # `tolerance` of its size); the tiled networks and their input / output clamps (evaluator
-    # docstring)
-    "render": {"extrapolation": "error", "tolerance": 0.02, "tile": 8, "chunk": 64,
+    # `tolerance` of its size); the tiled networks (None: by JAX's default backend, ``RENDER_LAYOUTS``)
+    # and their input / output clamps (evaluator docstring)
+    "render": {"extrapolation": "error", "tolerance": 0.02, "tile": None, "chunk": None,
                "clamp_inputs": True, "nonnegative": True},
 }
+
+
+#: ``render.tile`` x ``render.chunk`` by JAX backend when the config leaves them None, each the
+#: fastest one-light 512^2 frame of ``benchmarks/device_evaluators.py`` on that kind of device
+#: (benchmarks/results/device_evaluators.json): on a 2-core CPU small tiles and chunks keep a
+#: chunk's activations in cache (8 x 64: 17 ms; 32 x 64: 23 ms); on an H200 each loop step is a
+#: few kernel launches, so fewer, larger steps win (8 x 64: 3.1 ms; 32 x 64: 0.7-0.9 ms, and the
+#: fastest four-light frame, 3.8 ms).
+RENDER_LAYOUTS = {"cpu": (8, 64), "gpu": (32, 64)}
+
+
+def render_layout(render: dict, backend: str | None = None) -> tuple[int, int]:
+    """(tile, chunk) of the tiled renderer: ``render["tile"]`` and ``render["chunk"]`` where set,
+    else ``RENDER_LAYOUTS`` of ``backend`` (default: JAX's default backend; others take the GPU's).
+
+    Numerics: not differentiable (a layout choice; every layout gives the same image).
+    """
+    auto = RENDER_LAYOUTS.get(backend or jax.default_backend(), RENDER_LAYOUTS["gpu"])
+    tile = auto[0] if render.get("tile") is None else int(render["tile"])
+    chunk = auto[1] if render.get("chunk") is None else int(render["chunk"])
+    if tile < 1 or chunk < 1:
+        raise ValueError(f"render.tile and render.chunk must be >= 1 (or None: automatic), got {tile}, {chunk}")
+    return tile, chunk
 
 
 def _cfg(config: dict | None) -> dict:
@@ -838,8 +861,9 @@ def _render(params, gb: dict, light_pos, light_rgb, edit, *, attributes: str, ma
     # x of ``features`` without its light columns, as (H, W, c) parts: every pixel's own inputs
     shared = [jnp.asarray(parts[n], jnp.float32) for n in names if n != "light"]
     obj = jnp.where(gb["valid"], gb["object_id"], -1)
-    return _predict_tiles(params, shared, light_pos, light_rgb, obj, light_cols=light_cols, tile=int(render["tile"]),
-                          chunk=int(render["chunk"]), clamp=bool(render["clamp_inputs"]),
+    tile, chunk = render_layout(render)
+    return _predict_tiles(params, shared, light_pos, light_rgb, obj, light_cols=light_cols, tile=tile,
+                          chunk=chunk, clamp=bool(render["clamp_inputs"]),
                           nonnegative=bool(render["nonnegative"]))
 
 
@@ -866,7 +890,8 @@ def evaluator(params, config: dict | None = None):
       size): "error" raises ValueError (default), "clamp" moves them onto the box, "allow"
       evaluates anyway (RRFs extrapolate poorly, Ren et al. §7).
     * ``tile``, ``chunk``: the sort-free networks (``_predict_tiles``): ``tile`` x ``tile`` pixel
-      tiles, ``chunk`` (leaf, tile) work items of one leaf per dense product.
+      tiles, ``chunk`` (leaf, tile) work items of one leaf per dense product; None: chosen for
+      JAX's default backend (``render_layout``). The image does not depend on them.
     * ``clamp_inputs``: each leaf network sees its inputs clipped to the range of its training
       samples (a tanh network extrapolated outside it goes anywhere: the black line along the
       top edge of the tall box in ``make demo`` was its top face, which no training ray hit, so
