@@ -23,7 +23,6 @@ from __future__ import annotations
 import json
 import os
 import sys
-import time
 import traceback
 
 import numpy as np
@@ -85,16 +84,10 @@ def export(run_dir: str, out: str) -> None:
 
 
 def _time(fn, *args, repeats: int = 20) -> dict:
-    import jax
+    from jprt.eval import time_call
 
-    for _ in range(3):
-        jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t)
-    return {"median_ms": float(np.median(times) * 1e3), "min_ms": float(np.min(times) * 1e3)}
+    t = time_call(fn, *args, repeats=repeats, warmup=3)
+    return {"median_ms": t["median_ms"], "min_ms": t["min_ms"]}
 
 
 def _rates(n: int) -> dict:

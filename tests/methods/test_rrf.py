@@ -381,6 +381,34 @@ def test_every_object_the_rays_hit_gets_its_floor_of_samples():
     np.testing.assert_array_equal(a, b)
 
 
+def test_every_face_the_rays_hit_gets_its_floor_and_the_rest_stays_uniform():
+    """``data.min_face_rays``: a face (same object, another normal axis) hit by 2 of 1600
+    candidates keeps both of the 100 drawn with a floor of 2; the other faces keep their screen
+    share (no reweighting: a face with 3 / 4 of the candidates keeps 3 / 4 of the rays not forced)."""
+    from types import SimpleNamespace
+
+    n = 1600
+    normal = np.tile([0.0, 0.0, 1.0], (n, 1))
+    normal[:1200] = [1.0, 0.0, 0.0]  # three quarters on the +x face
+    normal[[7, 800]] = [0.0, 1.0, 0.0]  # the grazing top face
+    gb = SimpleNamespace(valid=np.ones(n, bool), object_id=np.zeros(n, np.int32), normal=normal)
+    o, d = np.arange(n, dtype=np.float64)[:, None].repeat(3, 1), np.zeros((n, 3))
+    shares = []
+    for seed in range(200):
+        kept, _ = rrf_data._face_floor(gb, o, d, 100, np.random.default_rng(seed), floor=2)
+        idx = kept[:, 0].astype(int)
+        assert len(idx) == 100 and len(np.unique(idx)) == 100 and np.isin([7, 800], idx).all()
+        shares.append(np.mean(normal[idx, 0] == 1.0))
+    want = (2 + 94 * 1196 / 1594) / 100  # 2 forced, 94 uniform among the 1594 others (std of the mean 0.003)
+    assert abs(np.mean(shares) - want) < 0.012, (np.mean(shares), want)
+
+
+def test_face_floor_refuses_the_balanced_draws():
+    with pytest.raises(ValueError, match="min_face_rays"):
+        rrf_data.make_dataset({"name": "cornell_box", "area_light": False},
+                              {"data": {"min_face_rays": 1, "oversample": 4}}, progress=False)
+
+
 @pytest.mark.mitsuba
 def test_regions_come_from_the_scene_file(mi, tmp_path):
     """Left None, the light and view regions of a scene file come from its bounds and its own

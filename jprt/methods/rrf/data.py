@@ -7,7 +7,9 @@ radiance (full minus direct, same seed). Option, not in the paper: with ``data.o
 the N_r rays are drawn from oversample x N_r uniform screen rays, balanced over the surfaces they
 hit (``_balanced``), so that faces seen at grazing angles are in the training data too (the
 ``demo`` preset of experiments/rrf_cornell.py; at the ``small`` sizes uniform rays reach those
-faces and were more accurate: benchmarks/results/rrf_cornell.json, ``sampling_ablation``).
+faces and were more accurate: benchmarks/results/rrf_cornell.json, ``sampling_ablation``). With
+``data.min_face_rays`` > 0 every face that 16 x N_r candidate rays hit gets that many rays first
+and the rest stay uniform (``_face_floor``).
 Material mode (Appendix B): one viewpoint, the edited object's roughness and albedo drawn by
 Latin hypercube sampling instead of views.
 """
@@ -67,12 +69,16 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
     for key in ("n_lights", "n_views", "n_rays", "spp"):
         if int(data_cfg[key]) <= 0:
             raise ValueError(f"data.{key} must be positive, got {data_cfg[key]}")
+    if int(data_cfg["min_face_rays"]) > 0 and (int(data_cfg["oversample"]) > 1 or int(data_cfg["min_object_rays"]) > 0):
+        raise ValueError("data.min_face_rays keeps the other rays uniform: it cannot be combined with "
+                         "data.oversample > 1 or data.min_object_rays")
     # the regions as numbers (the cache key of the built-in boxes' data is what it was before None
     # meant "from the scene"); where they came from travels beside the spec, not in it
     regions_from = data_cfg.pop("regions_from")
     spec = {"format": 2, "scene": desc, "data": {k: v for k, v in data_cfg.items() if k != "val_fraction"}}
-    if not int(data_cfg["min_object_rays"]):  # the key is new: unset, the cache key is the old one
-        spec["data"].pop("min_object_rays")
+    for key in ("min_object_rays", "min_face_rays"):  # newer keys: unset, the cache key is the old one
+        if not int(data_cfg[key]):
+            spec["data"].pop(key)
     if mode == "view":
         spec["data"].pop("material")
 
@@ -130,6 +136,30 @@ def _meta(spec: dict, arrays: dict, regions_from: str = "config") -> dict:
             "material_object": data.get("material", {}).get("object")}
 
 
+def _faces(gb, idx):
+    """Face group of candidate rays ``idx``: object x 6 + signed dominant normal axis."""
+    normal = np.asarray(gb.normal)[idx]
+    axis = np.argmax(np.abs(normal), axis=1)
+    side = np.take_along_axis(normal, axis[:, None], axis=1)[:, 0] > 0
+    return np.asarray(gb.object_id)[idx] * 6 + axis * 2 + side
+
+
+def _face_floor(gb, origins, directions, n: int, rng, floor: int):
+    """``n`` of the candidate rays: up to ``floor`` rays of every face group the candidates hit
+    (``_faces``), drawn first, the rest uniformly among the other candidates that hit the scene,
+    so that outside the floor the rays stay uniform over the screen."""
+    valid = np.flatnonzero(np.asarray(gb.valid))
+    if len(valid) <= n:
+        return origins[valid], directions[valid]
+    group = _faces(gb, valid)
+    first = np.concatenate([rng.choice(valid[group == g], size=min(int(floor), int((group == g).sum())), replace=False)
+                            for g in np.unique(group)])
+    first = first[rng.permutation(len(first))[:n]]
+    rest = np.setdiff1d(valid, first)
+    keep = np.sort(np.concatenate([first, rng.choice(rest, size=n - len(first), replace=False)]))
+    return origins[keep], directions[keep]
+
+
 def _balanced(gb, origins, directions, n: int, rng, floor: int = 0):
     """``n`` of the candidate rays (origins, directions), drawn without replacement with weights
     1 / sqrt(candidates hitting the same object with the same signed dominant normal axis).
@@ -153,10 +183,7 @@ def _balanced(gb, origins, directions, n: int, rng, floor: int = 0):
                                                replace=False) for o in np.unique(objects)])
             first = first[rng.permutation(len(first))[:n]]
         rest = np.setdiff1d(valid, first)
-        normal = np.asarray(gb.normal)[rest]
-        axis = np.argmax(np.abs(normal), axis=1)
-        side = np.take_along_axis(normal, axis[:, None], axis=1)[:, 0] > 0
-        group = np.asarray(gb.object_id)[rest] * 6 + axis * 2 + side
+        group = _faces(gb, rest)
         _, inverse, counts = np.unique(group, return_inverse=True, return_counts=True)
         w = 1.0 / np.sqrt(counts[inverse])
         keep = np.sort(np.concatenate([first, rng.choice(rest, size=n - len(first), replace=False, p=w / w.sum())]))
@@ -174,12 +201,18 @@ def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
 
     n_rays, spp, seed = int(data_cfg["n_rays"]), int(data_cfg["spp"]), int(data_cfg["seed"])
     over, floor = int(data_cfg["oversample"]), int(data_cfg.get("min_object_rays", 0))
+    face_floor = int(data_cfg.get("min_face_rays", 0))
     if floor > 0 and over == 1:  # a floor needs candidates to choose from
         over = 4
+    if face_floor > 0:
+        over = 16
     base = SceneHandle(base_desc, PointLights.create([lights[0]], [1.0, 1.0, 1.0]))
     # The same rays for each setup's G-buffer pass; fresh random rays for every (light, setup) pair.
     rays = [[cams.random_rays(cam, n_rays * over, rng) for _ in lights] for _, cam, _ in setups]
-    if over > 1:  # keep n_rays of the candidates, balanced over the surfaces they hit
+    if face_floor > 0:  # every face the candidates see first, the rest uniform
+        rays = [[_face_floor(gbuffer_rays(base, o, d), o, d, n_rays, rng, face_floor) for o, d in per_setup]
+                for per_setup in rays]
+    elif over > 1:  # keep n_rays of the candidates, balanced over the surfaces they hit
         rays = [[_balanced(gbuffer_rays(base, o, d), o, d, n_rays, rng, floor) for o, d in per_setup]
                 for per_setup in rays]
     out: dict[str, list] = {k: [] for k in ("position", "view", "light", "normal", "brdf", "edit", "object_id",

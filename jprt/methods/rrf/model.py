@@ -92,6 +92,10 @@ DEFAULT_CONFIG: dict = {
         # at least this many of each view-light pair's rays on every object the candidate rays hit
         # (drawn first; 0: none). Small objects then get samples (issue 21: one ray or none before)
         "min_object_rays": 0,
+        # at least this many of each view-light pair's rays on every face (object x signed dominant
+        # normal axis) that 16 x n_rays candidate screen rays hit, drawn first, the rest uniform
+        # (0: none): a face seen only at grazing angles (the tall box's top) gets samples
+        "min_face_rays": 0,
         "spp": 512,
         "seed": 0,
         "val_fraction": 0.3,
