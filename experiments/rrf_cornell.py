@@ -30,7 +30,9 @@ from jprt.methods import REGISTRY
 # lights (80k samples): 0.0072 / 0.055 / 7.7 (60 leaves; the top face then half the tail); 200
 # lights and min_samples 400: 0.0073 / 0.059 / 8.0 (64 leaves, the cap); data.min_face_rays 1 (every
 # face the candidate rays see gets a ray, the rest uniform): 0.0065 / 0.054 / 8.4, the top face's
-# share of the tail 51 -> 12 of 195 channels, the corners' share up by as much.
+# share of the tail 51 -> 12 of 195 channels, the corners' share up by as much; 200 lights and
+# min_face_rays 1: 0.0089 / 0.098 / 11.0 (61 leaves; the whole tail on the back wall: one badly
+# fitted leaf).
 CONFIG = config("results/rrf_cornell", {"scene": {"name": "cornell_box", "area_light": False},
                                         "data": {"n_lights": 100, "n_rays": 20}, "tree": {"min_samples": 800},
                                         "eval": {"equal_error_spp": [1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024,
