@@ -24,7 +24,8 @@ from jprt.methods import REGISTRY
 # The 99.9th percentile (8x the RMSE; issue 17 asks 6x): of the worst 0.1 % of pixel channels, a
 # quarter are the tall box's top face, seen at grazing angles (24 of the 39k training rays hit it),
 # the rest bright ceiling, back-wall and left-wall corners near the light, predicted 8-15 % low.
-# Measured against that (2026-11-30, one fit each, RMSE / p99.9 / ratio): this config 0.0064 / 0.053
+# Measured against that (2026-11-30, one fit each, `python experiments/rrf_tail.py '{...}'`, RMSE /
+# p99.9 / ratio): this config 0.0064 / 0.053
 # / 8.3 (27 leaves); train.max_iters 100: 0.0065 / 0.053 / 8.3; data.oversample 2 (rays balanced
 # over faces): 0.0068 / 0.061 / 9.0; tree.min_samples 400: 0.0066 / 0.057 / 8.6 (58 leaves); 200
 # lights (80k samples): 0.0072 / 0.055 / 7.7 (60 leaves; the top face then half the tail); 200

@@ -1,0 +1,94 @@
+"""Where the RRF's worst pixels are, and what training settings do to them (issue 17's seam item).
+
+Fits the ``small`` config of experiments/rrf_cornell.py with each named override and scores it on
+that experiment's held-out pairs (64^2, references along the pixel-centre rays at its
+``eval.reference_spp``; rendered once, cached beside the output): indirect RMSE, the 99.9th
+percentile of |error| over every valid pixel and channel, their ratio, and which surfaces the
+worst 0.1 % lie on ("object/normal axis": 1/1 the ceiling, 2/2 the back wall, 6/1 the tall box's
+top face in the built-in Cornell box).
+
+    python experiments/rrf_tail.py '{"small": {}, "face1": {"data": {"min_face_rays": 1}}}'
+
+One JSON line per variant on stdout. The numbers of 2026-11-30 are in experiments/rrf_cornell.py.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+
+
+def held_out(config: dict, cache: str):
+    """(testset, references, valid masks) of rrf_cornell's held-out pairs; references cached in ``cache``."""
+    import rrf_common
+
+    from jprt.render.dataset import render_dataset
+    from jprt.render.scenes import SceneHandle
+
+    cameras, lights = rrf_common._test_pairs(config)
+    e = config["eval"]
+    testset = render_dataset(config["scene"], cameras, lights, spp=1, seed=int(e["seed"]), gbuffers=True)
+    valid = [np.asarray(testset.gbuffer(item.camera).valid, bool) for item in testset.items]
+    if os.path.exists(cache):
+        return testset, list(np.load(cache)["references"]), valid
+    handle, refs = SceneHandle(config["scene"], lights[0]), []
+    for k, item in enumerate(testset.items):
+        handle.set_lighting(lights[item.lighting])
+        _, indirect = rrf_common._centre_rays(handle, cameras[item.camera], int(e["reference_spp"]),
+                                              int(e["seed"]) * 1009 + k)
+        refs.append(np.where(valid[k][..., None], indirect, 0.0))
+    os.makedirs(os.path.dirname(os.path.abspath(cache)), exist_ok=True)
+    np.savez(cache, references=np.stack(refs))
+    return testset, refs, valid
+
+
+def score(config: dict, override: dict, testset, refs, valid) -> dict:
+    """Fit rrf_cornell's config with ``override`` merged in; its tail statistics on the held-out set."""
+    from jprt.config import merge
+    from jprt.methods import REGISTRY
+    from jprt.methods.rrf import data as rrf_data
+    from jprt.runner import method_config
+
+    method = REGISTRY["rrf"]
+    cfg = method_config(method, merge(config, override))
+    t0 = time.perf_counter()
+    fit = method.fit(rrf_data.make_dataset(config["scene"], cfg, progress=False),
+                     {**cfg, "train": {**cfg["train"], "progress": False}})
+    evaluate = method.evaluator(fit.params, cfg)
+    gbs = [testset.gbuffer(item.camera) for item in testset.items]
+    preds = [np.asarray(evaluate(g, testset.lighting(item.lighting))) for g, item in zip(gbs, testset.items)]
+    err = np.concatenate([np.abs(p - r)[v].ravel() for p, r, v in zip(preds, refs, valid)])
+    rmse = float(np.sqrt(np.mean(err ** 2)))
+    p999 = float(np.percentile(err, 99.9))
+    surface = np.concatenate([np.repeat(np.asarray(g.object_id)[v] * 10 + np.argmax(np.abs(np.asarray(g.normal)), -1)[v], 3)
+                              for g, v in zip(gbs, valid)])
+    ids, counts = np.unique(surface[err >= p999], return_counts=True)
+    worst = {f"{i // 10}/{i % 10}": int(c) for i, c in sorted(zip(ids, counts), key=lambda t: -t[1])}
+    return {"rmse": rmse, "p999_abs_error": p999, "p999_over_rmse": p999 / rmse,
+            "n_leaves": int(np.shape(fit.params["leaves"]["layers"][0]["w"])[0]), "worst_0.1%_by_surface": worst,
+            "seconds": round(time.perf_counter() - t0)}
+
+
+def main() -> None:
+    import rrf_cornell
+
+    from jprt.config import merge
+
+    if len(sys.argv) != 2:
+        sys.exit(__doc__)
+    config = merge(rrf_cornell.CONFIG, {})
+    testset, refs, valid = held_out(config, os.path.join(config["output"]["dir"], "tail_references.npz"))
+    for name, override in json.loads(sys.argv[1]).items():
+        print(json.dumps({"name": name, "override": override, **score(config, override, testset, refs, valid)}),
+              flush=True)
+
+
+if __name__ == "__main__":
+    main()
