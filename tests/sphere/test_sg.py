@@ -102,6 +102,13 @@ VALID_SHARPNESS = 8.0
 MAX_OFFSET_WIDTHS = 4.0
 
 
+@jax.jit
+def _lobe_product(v, axis, light_sharpness, asg):
+    """The quadrature's integrand, one compiled program for every case (eager, each of its ops was
+    a pass over the 750k grid points)."""
+    return sg.evaluate(v, axis, light_sharpness, 1.0) * sg.asg_evaluate(v, asg)
+
+
 def convolution_case(roughness, light_sharpness, view_deg, offset_rad):
     """(closed form, quadrature, effective sharpness) for a light lobe near the reflected direction."""
     n = jnp.array([0.0, 0.0, 1.0], jnp.float64)
@@ -112,8 +119,8 @@ def convolution_case(roughness, light_sharpness, view_deg, offset_rad):
     axis = z * np.cos(offset_rad) + y * np.sin(offset_rad)
     closed = float(sg.convolve_sg_asg(jnp.asarray(axis), jnp.asarray(light_sharpness), 1.0, asg))
     pole = axis if light_sharpness > float(asg.sharpness_x) else z
-    numeric = integrate(lambda v: sg.evaluate(jnp.asarray(v), jnp.asarray(axis), light_sharpness, 1.0)
-                        * sg.asg_evaluate(jnp.asarray(v), asg), pole, n_theta=1500, n_phi=500)
+    numeric = integrate(lambda v: _lobe_product(jnp.asarray(v), jnp.asarray(axis), jnp.asarray(light_sharpness), asg),
+                        pole, n_theta=1500, n_phi=500)
     effective = 0.5 * light_sharpness + min(float(asg.sharpness_x), float(asg.sharpness_y))
     return closed, numeric, effective
 
