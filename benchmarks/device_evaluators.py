@@ -92,18 +92,12 @@ def _time(fn, *args, repeats: int = 20) -> dict:
 
 def _rates(n: int) -> dict:
     """The device's n^3 matmul rate (TFLOP/s) for float32 at the default and highest precision
-    and for bfloat16, each the fastest of ten runs."""
-    import jax
-    import jax.numpy as jnp
+    and for bfloat16 (``jprt.eval.matmul_peak_gflops``)."""
+    from jprt.eval import matmul_peak_gflops
 
-    a = jnp.asarray(np.random.default_rng(0).random((n, n)), jnp.float32)
-    out = {}
-    for name, dtype, precision in (("f32_default", jnp.float32, None), ("f32_highest", jnp.float32, "highest"),
-                                   ("bf16", jnp.bfloat16, None)):
-        x = a.astype(dtype)
-        f = jax.jit(lambda m, p=precision: jnp.matmul(m, m, precision=p))
-        out[name] = 2.0 * n ** 3 / (_time(f, x, repeats=10)["min_ms"] * 1e-3) / 1e12
-    return out
+    return {name: matmul_peak_gflops(n=n, dtype=dtype, precision=precision) / 1e3
+            for name, dtype, precision in (("f32_default", "float32", None), ("f32_highest", "float32", "highest"),
+                                           ("bf16", "bfloat16", None))}
 
 
 def _compare(frame, ref, valid) -> dict:
@@ -125,13 +119,14 @@ def measure(path: str, out: str, *, rrf_layouts=RRF_LAYOUTS, wavelet_chunks=WAVE
     result = {"device": str(dev), "device_kind": dev.device_kind, "platform": dev.platform, "jax": jax.__version__,
               "matmul_tflops": rates, "matmul_n": n, "rrf": {}, "wavelet_prt": {}}
     print(f"{dev.device_kind}: matmul {json.dumps(rates)} TFLOP/s", flush=True)
-    for name, cases in (("rrf", _rrf_cases(path, result, rrf_layouts, precisions)),
-                        ("wavelet_prt", _wavelet_cases(path, wavelet_chunks))):
-        for case in cases:
+    exported = dict(np.load(path))
+    for name, cases in (("rrf", _rrf_cases(exported, path, result, rrf_layouts, precisions)),
+                        ("wavelet_prt", _wavelet_cases(exported, wavelet_chunks))):
+        for key, case in cases:
             try:
-                key, entry = case(rates["f32_default"] * 1e3)
+                entry = case(rates["f32_default"] * 1e3)
             except Exception as e:  # noqa: BLE001 - one failing case must not lose the device run
-                key, entry = getattr(case, "key", repr(case)), {"error": repr(e)}
+                entry = {"error": repr(e)}
                 traceback.print_exc()
             result[name][key] = entry
             print(f"{name} {key}: {json.dumps(entry)}", flush=True)
@@ -139,12 +134,16 @@ def measure(path: str, out: str, *, rrf_layouts=RRF_LAYOUTS, wavelet_chunks=WAVE
     return result
 
 
-def _roof(t: dict, flops: float, peak_gflops: float) -> dict:
-    return {**t, "frame_flops": flops, "flops_fraction_of_peak": flops / (t["median_ms"] * 1e-3) / 1e9 / peak_gflops}
+def _roof(fn, args: tuple, flops: float, peak_gflops: float) -> dict:
+    """``fn(*args)``'s time and its roofline (``jprt.eval.roofline``) at ``flops`` per call."""
+    from jprt.eval import roofline
+
+    t = _time(fn, *args)
+    return {**t, **roofline(fn, *args, frame_ms=t["median_ms"], peak_gflops=peak_gflops, flops=flops)}
 
 
-def _rrf_cases(path: str, result: dict, rrf_layouts, precisions) -> list:
-    """One case per (matmul precision, renderer layout): the exported RRF's 1- and 4-light frames."""
+def _rrf_cases(d: dict, path: str, result: dict, rrf_layouts, precisions) -> list:
+    """(key, case) per (matmul precision, renderer layout): the exported RRF's 1- and 4-light frames."""
     import functools
 
     import jax
@@ -154,7 +153,6 @@ def _rrf_cases(path: str, result: dict, rrf_layouts, precisions) -> list:
     from jprt.methods import REGISTRY
     from jprt.methods.rrf import model as rrf
 
-    d = np.load(path)
     params, _, meta = io.load_tree(path + ".params.npz")
     result["cpu_export"] = meta["cpu"]
     gb = jax.device_put(GBuffer(*(d[f"gb_{f}"] for f in GBuffer._fields)))
@@ -167,24 +165,19 @@ def _rrf_cases(path: str, result: dict, rrf_layouts, precisions) -> list:
         with jax.default_matmul_precision(None if precision == "default" else "highest"):
             cfg = {**mc, "render": {**mc["render"], "tile": tile, "chunk": chunk}}
             fast = jax.jit(REGISTRY["rrf"].evaluator(params, cfg))
-            entry = {name: {**_roof(_time(fast, gb, light), meta["cpu"][name]["frame_flops"], peak),
+            entry = {name: {**_roof(fast, (gb, light), meta["cpu"][name]["frame_flops"], peak),
                             "vs_cpu": _compare(fast(gb, light), d[f"{name}_cpu_frame"], valid)}
                      for name, light in lights.items()}
         entry["4lights_over_1light"] = entry["4lights"]["median_ms"] / entry["1light"]["median_ms"]
         entry["tile"], entry["chunk"] = rrf.render_layout(cfg["render"])
-        return f"{precision}_" + (f"tile{tile}_chunk{chunk}" if tile else "auto"), entry
+        return entry
 
-    cases = []
-    for precision in precisions:
-        for tile, chunk in layouts:
-            c = functools.partial(case, precision, tile, chunk)
-            c.key = f"{precision}_" + (f"tile{tile}_chunk{chunk}" if tile else "auto")
-            cases.append(c)
-    return cases
+    return [(f"{precision}_" + (f"tile{tile}_chunk{chunk}" if tile else "auto"),
+             functools.partial(case, precision, tile, chunk)) for precision in precisions for tile, chunk in layouts]
 
 
-def _wavelet_cases(path: str, chunks) -> list:
-    """One case per (preset, resolution): freshly initialised networks at the ``small`` and
+def _wavelet_cases(d: dict, chunks) -> list:
+    """(key, case) per (preset, resolution, chunk): freshly initialised networks at the ``small`` and
     ``paper`` sizes of experiments/wavelet_prt_cornell.py, K = 64, on the exported G-buffer
     (every other pixel at 256^2)."""
     import functools
@@ -200,11 +193,9 @@ def _wavelet_cases(path: str, chunks) -> list:
     sys.path.insert(0, os.path.join(ROOT, "experiments"))
     import wavelet_prt_cornell as wexp
 
-    d = np.load(path)
     valid = np.asarray(d["gb_valid"], bool)
 
-    def case(preset, res, chunk, peak):
-        cfg = method_config(REGISTRY["wavelet_prt"], resolve_config(wexp, [f"render.chunk={chunk}"], preset))
+    def case(cfg, res, chunk, peak):
         m = wp.model(cfg)
         pos = np.asarray(d["gb_position"])[valid]
         bbox = np.stack([pos.min(0) - 0.02, pos.max(0) + 0.02]).astype(np.float32)
@@ -216,22 +207,21 @@ def _wavelet_cases(path: str, chunks) -> list:
         g["valid"] = g["valid"].astype(np.float32)
         g, cube_d = jax.device_put((g, cube))
         evaluate = jax.jit(REGISTRY["wavelet_prt"].evaluator(params, cfg))
-        entry = _roof(_time(evaluate, g, cube_d), wp.frame_flops(params, cfg, g, cube), peak)
+        entry = _roof(evaluate, (g, cube_d), wp.frame_flops(params, cfg, g, cube), peak)
         with jax.default_matmul_precision("highest"):  # what the default precision (TF32 on NVIDIA) costs
             exact = jax.jit(REGISTRY["wavelet_prt"].evaluator(params, cfg))(g, cube_d)
         entry["vs_highest_precision"] = _compare(evaluate(g, cube_d), exact, np.asarray(g["valid"]) > 0)
         entry["chunk_pixels"] = chunk or wp.auto_chunk(cfg["render"]["k"])
         entry.update(hidden=cfg["model"]["hidden"], layers=cfg["model"]["layers"],
                      n_features=cfg["model"]["n_features"], face_size=m.face_size, k=cfg["render"]["k"])
-        return f"{preset}_{res}x{res}_k{cfg['render']['k']}_chunk{chunk}", entry
+        return entry
 
     cases = []
     for preset in ("small", "paper"):
-        for res in (256, 512):
-            for chunk in (0,) + tuple(c for c in chunks if c):  # 0: the method's automatic chunk
-                c = functools.partial(case, preset, res, chunk)
-                c.key = f"{preset}_{res}x{res}_chunk{chunk}"
-                cases.append(c)
+        configs = {chunk: method_config(REGISTRY["wavelet_prt"], resolve_config(wexp, [f"render.chunk={chunk}"], preset))
+                   for chunk in (0,) + tuple(c for c in chunks if c)}  # 0: the method's automatic chunk
+        cases += [(f"{preset}_{res}x{res}_k{cfg['render']['k']}_chunk{chunk}", functools.partial(case, cfg, res, chunk))
+                  for res in (256, 512) for chunk, cfg in configs.items()]
     return cases
 
 

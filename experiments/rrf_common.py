@@ -112,25 +112,42 @@ def _centre_rays(handle, camera, spp: int, seed: int):
 def held_out(run) -> HeldOut:
     """The held-out (view, light) pairs: references path traced along the pixel-centre rays at
     ``eval.reference_spp`` (``_centre_rays``), and the RRF's predictions."""
-    from jprt.render.dataset import render_dataset
-    from jprt.render.scenes import SceneHandle
-
     if run.config["data"]["mode"] == "material":
         raise ValueError("the RRF report evaluates view-mode RRFs; material editing is the material_edit stage")
-    e = run.config["eval"]
-    cameras, lightings = _test_pairs(run.config)
-    testset = render_dataset(run.config["scene"], cameras, lightings, spp=1, seed=int(e["seed"]), gbuffers=True)
+    cameras, lightings, testset = held_out_inputs(run.config)
     run.state.update(testset=testset, cameras=cameras, lightings=lightings)
     valid = [testset.gbuffer(item.camera).valid for item in testset.items]
-    handle = SceneHandle(run.config["scene"], lightings[0])
-    refs, direct = [], []
-    for k, item in enumerate(testset.items):
-        handle.set_lighting(lightings[item.lighting])
-        d, i = _centre_rays(handle, cameras[item.camera], int(e["reference_spp"]), int(e["seed"]) * 1009 + k)
-        direct.append(np.where(valid[k][..., None], d, 0.0))
-        refs.append(np.where(valid[k][..., None], i, 0.0))
+    direct, refs = held_out_references(run.config, cameras, lightings, testset)
     return HeldOut(_predict(run.evaluate, testset), refs, valid, direct,
                    [f"pair {k}" for k in range(len(testset))])
+
+
+def held_out_inputs(config: dict):
+    """(cameras, lightings, testset): the held-out pairs of ``_test_pairs`` and their G-buffers
+    (``render_dataset`` at 1 spp)."""
+    from jprt.render.dataset import render_dataset
+
+    cameras, lightings = _test_pairs(config)
+    testset = render_dataset(config["scene"], cameras, lightings, spp=1, seed=int(config["eval"]["seed"]),
+                             gbuffers=True)
+    return cameras, lightings, testset
+
+
+def held_out_references(config: dict, cameras, lightings, testset):
+    """(direct, indirect) references of the held-out pairs along the pixel-centre rays at
+    ``eval.reference_spp`` (``_centre_rays``), 0 where the G-buffer is invalid."""
+    from jprt.render.scenes import SceneHandle
+
+    e = config["eval"]
+    handle = SceneHandle(config["scene"], lightings[0])
+    refs, direct = [], []
+    for k, item in enumerate(testset.items):
+        valid = testset.gbuffer(item.camera).valid
+        handle.set_lighting(lightings[item.lighting])
+        d, i = _centre_rays(handle, cameras[item.camera], int(e["reference_spp"]), int(e["seed"]) * 1009 + k)
+        direct.append(np.where(valid[..., None], d, 0.0))
+        refs.append(np.where(valid[..., None], i, 0.0))
+    return direct, refs
 
 
 def frame(run):

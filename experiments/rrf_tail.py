@@ -29,21 +29,11 @@ def held_out(config: dict, cache: str):
     """(testset, references, valid masks) of rrf_cornell's held-out pairs; references cached in ``cache``."""
     import rrf_common
 
-    from jprt.render.dataset import render_dataset
-    from jprt.render.scenes import SceneHandle
-
-    cameras, lights = rrf_common._test_pairs(config)
-    e = config["eval"]
-    testset = render_dataset(config["scene"], cameras, lights, spp=1, seed=int(e["seed"]), gbuffers=True)
+    cameras, lights, testset = rrf_common.held_out_inputs(config)
     valid = [np.asarray(testset.gbuffer(item.camera).valid, bool) for item in testset.items]
     if os.path.exists(cache):
         return testset, list(np.load(cache)["references"]), valid
-    handle, refs = SceneHandle(config["scene"], lights[0]), []
-    for k, item in enumerate(testset.items):
-        handle.set_lighting(lights[item.lighting])
-        _, indirect = rrf_common._centre_rays(handle, cameras[item.camera], int(e["reference_spp"]),
-                                              int(e["seed"]) * 1009 + k)
-        refs.append(np.where(valid[k][..., None], indirect, 0.0))
+    refs = rrf_common.held_out_references(config, cameras, lights, testset)[1]
     os.makedirs(os.path.dirname(os.path.abspath(cache)), exist_ok=True)
     np.savez(cache, references=np.stack(refs))
     return testset, refs, valid

@@ -85,14 +85,17 @@ def xla_flops(jitted: Callable, *args) -> float | None:
     return float(flops) if flops is not None and flops > 0 else None
 
 
-def matmul_peak_gflops(n: int = 1024, repeats: int = 10, dtype: str = "float32") -> float:
+def matmul_peak_gflops(n: int = 1024, repeats: int = 10, dtype: str = "float32",
+                       precision: str | None = None) -> float:
     """The JAX matmul rate of this process (GFLOP/s): an n x n by n x n product, the fastest of
-    ``repeats`` timed runs after warm-up: what "near the machine's limit" is judged against."""
+    ``repeats`` timed runs after warm-up: what "near the machine's limit" is judged against.
+    ``precision`` is ``jnp.matmul``'s (None: JAX's default, which lets XLA use TF32 for float32
+    on NVIDIA GPUs; "highest": full float32)."""
     import jax
     import jax.numpy as jnp
 
     a = jax.device_put(jnp.asarray(np.random.default_rng(0).random((n, n)), dtype))
-    ms = time_call(jax.jit(lambda x: x @ x), a, repeats=repeats, warmup=2)["min_ms"]
+    ms = time_call(jax.jit(lambda x: jnp.matmul(x, x, precision=precision)), a, repeats=repeats, warmup=2)["min_ms"]
     return 2.0 * n ** 3 / (ms * 1e-3) / 1e9
 
 
