@@ -1,7 +1,7 @@
 """Real-scene benchmark (issue 21): experiments/real_scenes.py on the two Bitterli interiors of
 ../shared/assets/scenes, every number read from the run's report.json (its folder is recorded).
 
-    python benchmarks/real_scenes.py            # about 20 min on a 2-core CPU
+    python benchmarks/real_scenes.py            # about 40 min on a 2-core CPU
 
 Per scene and method: per-object relative RMSE of the indirect light (objects covering >= 1 % of
 the file camera's image), the references' own noise on the same objects, the evaluator's frame
@@ -41,6 +41,8 @@ def main() -> int:
                                "per_object_rel_rmse": {k: v["rel_rmse"] for k, v in m["per_object"].items()},
                                "per_object_rel_rmse_noise_removed": {k: v["rel_rmse_noise_removed"]
                                                                      for k, v in m["per_object"].items()},
+                               "per_object_rel_rmse_by_lighting": {k: v["rel_rmse_by_lighting"]
+                                                                   for k, v in m["per_object"].items()},
                                "worst_rel_rmse": m["worst_rel_rmse"], "mean_rel_rmse": m["mean_rel_rmse"],
                                "target_met": m["target_met"], "frame_ms": m["frame_ms"],
                                "frame_flops": m["frame_flops"], "frame_flops_source": m["frame_flops_source"],
@@ -51,6 +53,8 @@ def main() -> int:
                                "skipped_objects": m["skipped_objects"]}
                         for name, m in entry["methods"].items()},
             "pathtracer": entry["pathtracer"], "side_by_side": entry["side_by_side"]}
+        if "environment" in entry:  # the opening the environment-lit methods saw, and their held-out maps
+            result["scenes"][scene]["environment"] = entry["environment"]
     result["matmul_peak_gflops"] = report["matmul_peak_gflops"]
     write_benchmark(args.out, result, "python benchmarks/real_scenes.py" + (f" --preset {args.preset}" if args.preset
                                                                               else ""),
@@ -58,7 +62,9 @@ def main() -> int:
                           "every held-out light (linear HDR indirect light, Mitsuba full minus direct); predicting "
                           "zero scores 1; noise_floor: a second reference render (another seed) against the first; "
                           "noise_removed: sqrt(rel^2 - floor^2 / 2), the error against the truth with the "
-                          "references' independent noise taken out; "
+                          "references' independent noise taken out; by_lighting: the same per held-out lighting, in the "
+                          "order of the scene's lights or environment.maps; environment: the opening cut into the file for the "
+                          "environment-lit methods (lit by held-out maps through it), what it removed; "
                           "frame_ms: the jitted evaluator at the file camera's held-out resolution, inputs and "
                           "lighting ready; frame_flops: the method's own count where it has one, else XLA's cost "
                           "analysis; matmul_peak_gflops measured once in the same run; pathtracer: Mitsuba's time "

@@ -1,7 +1,7 @@
-"""Real scenes as users bring them (issue 21): Mitsuba XML interiors through the point-lit methods
-with no hand-set box, atlas or object list.
+"""Real scenes as users bring them (issue 21): Mitsuba XML interiors through every method whose
+lighting fits an interior, with no hand-set box, atlas or object list.
 
-    jprt run experiments/real_scenes.py                 # both Bitterli scenes, RRF + data-driven PRT
+    jprt run experiments/real_scenes.py                 # both Bitterli scenes, every method below
     jprt run experiments/real_scenes.py --preset test   # tiny sizes, the Cornell picture scene only
     python benchmarks/real_scenes.py                    # -> benchmarks/results/real_scenes.json
 
@@ -10,13 +10,19 @@ For each scene file (``scenes``, under ``assets``; default ../shared/assets/scen
 * the file is loaded as it is. RRF and data-driven PRT relight with point lights (Eq. 9 and the
   §4.1 scenario are linear in them), so the file's own emitters are removed for them
   (``keep_emitters = False``); SG light-field textures bake the light field of the file's own
-  emitters (``LightScale``: only their power can change), so they keep them;
+  emitters (``LightScale``: only their power can change), so they keep them. The
+  environment-lit methods (neural-wavelet PRT, SH PRT) see the file with its emitters removed and
+  an opening cut into it (``environment.opening``, default "ceiling": ``jprt.render.scenes.xml``
+  removes every up- or down-facing surface in the top 2 % of the scene's height), lit by held-out
+  environment maps (``environment.maps``: never in neural-wavelet PRT's training set) through the
+  opening and through the side the file's camera looks in from;
 * every region comes from the scene (``jprt.render.sampling.scene_regions``: lights in the upper
   part of the room's bounds and outside geometry, views about the file's own camera); the atlas
   covers every object (xatlas charts where a mesh's UVs do not serve); nothing is set per scene;
 * held-out: the file's camera at ``eval.resolution`` (no capture or training view), lit by
   ``eval.n_lights`` point lights drawn in the same light region with another seed, or by the
-  file's emitters for the baked method. References: Mitsuba's indirect light (full minus direct,
+  file's emitters for the baked method, or by the held-out maps (as ``face_size`` cube maps; Mitsuba
+  renders the same texels) for the environment-lit ones. References: Mitsuba's indirect light (full minus direct,
   same seed) at ``eval.reference_spp``, and a second render of them with another seed (the
   references' own noise);
 * per object covering at least ``eval.min_object_fraction`` of the image: the relative RMSE
@@ -27,8 +33,9 @@ For each scene file (``scenes``, under ``assets``; default ../shared/assets/scen
   judged on the raw number;
 * the evaluator's frame time (inputs and lighting ready) and a side-by-side image per method.
 
-Environment-lit methods (neural-wavelet PRT, SH-PRT, SG environment visibility) are not run
-here yet (``not_run`` in the report says why); MRT is exempt (its scenes are block layouts).
+SG environment visibility is not run (``not_run`` says why: it predicts the glossy part of the
+direct light, and every object these views see at 1 % or more is diffuse); MRT is exempt (its
+scenes are block layouts).
 """
 
 from __future__ import annotations
@@ -48,12 +55,16 @@ SHARED_SCENES = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".
 CONFIG = {
     "assets": "",  # folder of the scene files; "" = SHARED_SCENES
     "scenes": ["veach-bidir/scene.xml", "cornell_box_picture/scene_picture.xml"],
-    "methods": ["rrf", "datadriven", "sg_lightfield"],
+    "methods": ["rrf", "datadriven", "sg_lightfield", "wavelet_prt", "sh_prt"],
     # reference_spp_file_emitters: the file's own emitters light veach-bidir through its lamp's
     # glass (the scene made to defeat path tracing): at 512 spp its references differ from each
     # other by 0.89 of their norm, at 16384 by about 0.16
     "eval": {"resolution": 64, "n_lights": 3, "reference_spp": 512, "reference_spp_file_emitters": 16384,
              "seed": 7100, "min_object_fraction": 0.01, "timing_repeats": 10, "target": 0.5},
+    # the environment-lit methods: the opening cut into each file, the held-out maps (one indoor, one
+    # overcast, one clear sky with sun; all held out of neural-wavelet PRT's training maps) as cube
+    # maps at neural-wavelet PRT's cube face size, normalised to mean radiance 1
+    "environment": {"opening": "ceiling", "maps": ["st_fagans_interior_1k", "potsdamer_platz_1k", "rooitou_park_1k"]},
     # the methods' own sections (their defaults are scene-aware; these are sizes only)
     "rrf": {"data": {"n_lights": 16, "n_views": 12, "n_rays": 256, "spp": 256, "min_object_rays": 8},
             "tree": {"max_leaves": 32, "min_samples": 600}, "train": {"max_iters": 30}},
@@ -61,6 +72,15 @@ CONFIG = {
                    "data": {"n_train": 128, "n_test": 4, "spp": 64, "test_spp": 64}},
     "sg_lightfield": {"objects": [], "lightmap": {"resolution": 128}, "capture": {"size": 16, "spp": 64},
                       "model": {"n_lobes": 8, "channels": [16, 32, 64]}, "train": {"steps": 1000, "batch": 64}},
+    # views from the scene (target None: about the file's camera); one held-out view of its own (the
+    # report scores the file's camera)
+    "wavelet_prt": {"envmaps": {"face_size": 16},
+                    "cameras": {"width": 64, "height": 64, "target": None, "sphere": {"n": 40}, "helix": {"n": 35},
+                                "near": 1, "far": 1},
+                    "data": {"spp": 128, "test_spp": 64, "envs_per_view": 2, "test_pairs": "cycle"},
+                    "model": {"n_levels": 8, "log2_table_size": 14, "n_features": 32, "hidden": 128},
+                    "train": {"steps": 1500, "pixels": 256, "wavelets": 300}, "render": {"k": 64}},
+    "sh_prt": {"lightmap": {"resolution": 96}, "sh": {"order": 3, "spp": 64, "env_height": 32}},
     "output": {"dir": "results/real_scenes"},
 }
 
@@ -73,7 +93,14 @@ PRESETS = {
              "datadriven": {"lightmap": {"resolution": 32}, "points": {"candidates": 512, "count": 16},
                             "data": {"n_train": 12, "n_test": 2, "spp": 4, "test_spp": 4}},
              "sg_lightfield": {"lightmap": {"resolution": 32}, "capture": {"size": 8, "spp": 2},
-                               "model": {"n_lobes": 2, "channels": [4, 8]}, "train": {"steps": 20, "batch": 16}}},
+                               "model": {"n_lobes": 2, "channels": [4, 8]}, "train": {"steps": 20, "batch": 16}},
+             "environment": {"maps": ["rooitou_park_1k"]},
+             "wavelet_prt": {"envmaps": {"face_size": 4},
+                             "cameras": {"width": 12, "height": 12, "sphere": {"n": 3}, "helix": {"n": 3}},
+                             "data": {"spp": 4, "test_spp": 4, "envs_per_view": 1},
+                             "model": {"n_levels": 3, "log2_table_size": 8, "n_features": 8, "hidden": 16},
+                             "train": {"steps": 20, "pixels": 32, "wavelets": 24}, "render": {"k": 16}},
+             "sh_prt": {"lightmap": {"resolution": 32}, "sh": {"order": 2, "spp": 2, "env_height": 8}}},
 }
 
 
@@ -114,8 +141,9 @@ def _held_out(desc: dict, regions: dict, e: dict):
 
 
 def _per_object(preds, refs, object_id, names, min_fraction: float) -> dict:
-    """{object name: {"pixels", "fraction", "rel_rmse"}} over all images, for objects covering at
-    least ``min_fraction`` of the image."""
+    """{object name: {"pixels", "fraction", "rel_rmse", "rel_rmse_by_lighting"}} for objects
+    covering at least ``min_fraction`` of the image: ``rel_rmse`` over all images (the brightest
+    lighting weighs most), ``rel_rmse_by_lighting`` image by image."""
     out = {}
     count = object_id.size
     for k in np.unique(object_id[object_id >= 0]):
@@ -123,16 +151,45 @@ def _per_object(preds, refs, object_id, names, min_fraction: float) -> dict:
         fraction = float(mask.sum() / count)
         if fraction < min_fraction:
             continue
-        p = np.concatenate([np.asarray(x, np.float64)[mask] for x in preds])
-        r = np.concatenate([np.asarray(x, np.float64)[mask] for x in refs])
-        norm = float(np.sqrt(np.sum(r * r)))
-        out[names[int(k)]] = {"pixels": int(mask.sum()), "fraction": fraction,
-                              "rel_rmse": float(np.sqrt(np.sum((p - r) ** 2)) / max(norm, 1e-30))}
+        p = np.concatenate([np.asarray(x)[mask] for x in preds])
+        r = np.concatenate([np.asarray(x)[mask] for x in refs])
+        out[names[int(k)]] = {"pixels": int(mask.sum()), "fraction": fraction, "rel_rmse": _rel(p, r),
+                              "rel_rmse_by_lighting": [_rel(np.asarray(a)[mask], np.asarray(b)[mask])
+                                                       for a, b in zip(preds, refs)]}
     return out
+
+
+def _rel(p, r) -> float:
+    """||p - r|| / ||r|| in float64."""
+    p, r = np.asarray(p, np.float64), np.asarray(r, np.float64)
+    return float(np.sqrt(np.sum((p - r) ** 2)) / max(float(np.sqrt(np.sum(r * r))), 1e-30))
 
 
 #: Methods baked under the scene file's own emitters (their lighting is ``LightScale``).
 BAKED = ("sg_lightfield",)
+#: Methods relit by environment maps: run on the file with an opening cut into it.
+ENVIRONMENT_LIT = ("wavelet_prt", "sh_prt")
+#: Registered methods this experiment does not run, and why (the report's ``not_run``).
+NOT_RUN = {"sg_environment": "predicts the glossy part of the direct light (the environment reflected once); every "
+                             "object these views see at >= 1 % is diffuse, where its prediction is 0 by construction",
+           "mrt": "exempt (block layouts)"}
+
+
+def setup_kind(name: str) -> str:
+    """The lighting set-up a method is scored under: "file emitters", "environment" or "point"."""
+    return "file emitters" if name in BAKED else "environment" if name in ENVIRONMENT_LIT else "point"
+
+
+def _environments(env: dict, face_size: int) -> tuple[list, list]:
+    """(method-side ``CubeMap`` lightings, Mitsuba-side ``EnvMap`` of the same texels) of the
+    held-out maps ``env["maps"]`` at cube face size ``face_size``."""
+    from jprt.inputs import CubeMap
+    from jprt.methods.wavelet_prt import data as wp_data
+    from jprt.methods.wavelet_prt import model as wp
+    from jprt.render.lights import EnvMap
+
+    cubes, _ = wp_data.load_environments(list(env["maps"]), [0.0], int(face_size))
+    return [CubeMap(c) for c in cubes], [EnvMap.create(wp.render_equirect(c)) for c in cubes]
 
 
 def _references(handle, camera, lightings, e) -> tuple[list, list]:
@@ -163,6 +220,11 @@ def _pathtrace_ms(handle, camera, lighting, e) -> dict:
             "note": "Mitsuba llvm_ad_rgb, full (max_depth -1) + direct (max_depth 2) renders at the references' spp"}
 
 
+def _face_counts(handle) -> list[int]:
+    """Triangles of each shape of ``handle`` in object-id order (0 for shapes that are not meshes)."""
+    return [int(s.face_count()) if hasattr(s, "face_count") else 0 for s in handle.shapes()]
+
+
 def run_scene(path: str, config: dict, out: str) -> dict:
     """Every method of ``config['methods']`` on the scene file ``path``: its report entry."""
     import jax
@@ -178,13 +240,20 @@ def run_scene(path: str, config: dict, out: str) -> dict:
     dark = {"name": "xml", "path": path, "keep_emitters": False}
     regions = scene_regions(dark)
     camera, lights, handle = _held_out(dark, regions, e)
-    setups = {"point": (dark, handle, lights)}
-    if any(name in BAKED for name in config["methods"]):
+    # kind: (description, handle, lightings Mitsuba renders, the same lightings as the methods take)
+    setups = {"point": (dark, handle, lights, lights)}
+    kinds = {setup_kind(name) for name in config["methods"]}
+    if "file emitters" in kinds:
         lit = {**dark, "keep_emitters": True}
-        setups["file emitters"] = (lit, SceneHandle(lit), [None])
+        setups["file emitters"] = (lit, SceneHandle(lit), [None], [LightScale(np.ones(3, np.float32))])
+    if "environment" in kinds:
+        opened = {**dark, "opening": config["environment"]["opening"]}
+        face = int(config["wavelet_prt"]["envmaps"]["face_size"])
+        cubes, envmaps = _environments(config["environment"], face)
+        setups["environment"] = (opened, SceneHandle(opened), envmaps, cubes)
     t0 = time.perf_counter()
     per_setup, peers = {}, {}
-    for kind, (desc, h, lightings) in setups.items():
+    for kind, (desc, h, lightings, _) in setups.items():
         g = gbuffer(h, camera)
         refs, refs2 = _references(h, camera, lightings, e)
         per_setup[kind] = (g, refs, refs2, h.object_names())
@@ -194,14 +263,22 @@ def run_scene(path: str, config: dict, out: str) -> dict:
     entry = {"file": path, "objects": names, "regions": regions, "camera": camera._asdict(),
              "lights": [np.asarray(x.position).tolist()[0] for x in lights], "noise_floor": {}, "methods": {},
              "pathtracer": peers}
+    if "environment" in setups:  # what the opening took away: {object: "removed" or "a -> b triangles"}
+        before = dict(zip(names, _face_counts(handle)))
+        after = dict(zip(per_setup["environment"][3], _face_counts(setups["environment"][1])))
+        entry["environment"] = {
+            "opening": config["environment"]["opening"], "maps": list(config["environment"]["maps"]),
+            "face_size": int(config["wavelet_prt"]["envmaps"]["face_size"]),
+            "opened": {n: "removed" if n not in after else f"{k} -> {after[n]} triangles"
+                       for n, k in before.items() if after.get(n) != k}}
     for kind, (g, refs, refs2, objects) in per_setup.items():
         entry["noise_floor"][kind] = _per_object(refs2, refs, g.object_id, objects, float(e["min_object_fraction"]))
     # one exposure per lighting setup: its first reference's 99th percentile shown at 0.8
     exposure = {kind: float(np.log2(0.8 / max(float(np.percentile(v[1][0], 99)), 1e-12))) for kind, v in per_setup.items()}
     panels = []
     for name in config["methods"]:
-        kind = "file emitters" if name in BAKED else "point"
-        desc, h, lightings = setups[kind]
+        kind = setup_kind(name)
+        desc, h, _, lightings = setups[kind]
         g, refs, _, objects = per_setup[kind]
         m = REGISTRY[name]
         adapter = __import__(f"jprt.methods.{name}.data", fromlist=["data"])
@@ -216,7 +293,7 @@ def run_scene(path: str, config: dict, out: str) -> dict:
             from jprt.render import lightmap
 
             inputs = lightmap.atlas_gbuffer(h, lightmap.Atlas(**dataset.atlas), camera)
-            task = [LightScale(np.ones(3, np.float32))]
+            task = lightings
         else:
             inputs = adapter.task_inputs(h, dataset, camera)
             task = [adapter.task_lighting(h, dataset, result.params, cfg, light) for light in lightings]
@@ -265,9 +342,7 @@ def main(config: dict) -> dict:
     save_resolved(config, out)
     folder = config["assets"] or SHARED_SCENES
     config = {**config, "_peak_gflops": jeval.matmul_peak_gflops()}  # measured once, in this run
-    report = {"config_hash": digest, "matmul_peak_gflops": None, "scenes": {}, "not_run": {
-        "wavelet_prt, sh_prt, sg_environment": "environment-lit: needs an opening made in the interior; not run yet",
-        "mrt": "exempt (block layouts)"}}
+    report = {"config_hash": digest, "matmul_peak_gflops": None, "scenes": {}, "not_run": dict(NOT_RUN)}
     t0 = time.perf_counter()
     for rel in config["scenes"]:
         path = os.path.join(folder, rel)

@@ -90,8 +90,8 @@ def test_a_scene_section_takes_a_file_or_switches_kind(tmp_path):
     got = apply_overrides(config, [f"dataset.scene={room}"])
     assert got["dataset"]["scene"] == {"name": "xml", "path": str(room), "keep_emitters": True}
     got = apply_overrides(config, ["dataset.scene.name=xml", f"dataset.scene.path={room}",
-                                   "dataset.scene.keep_emitters=false"])
-    assert got["dataset"]["scene"] == {"name": "xml", "path": str(room), "keep_emitters": False}
+                                   "dataset.scene.keep_emitters=false", "dataset.scene.opening=ceiling"])
+    assert got["dataset"]["scene"] == {"name": "xml", "path": str(room), "keep_emitters": False, "opening": "ceiling"}
     assert got["dataset"]["spp"] == 4 and config["dataset"]["scene"]["name"] == "cornell_box"
     with pytest.raises(ConfigError, match=r"for a 'cornell_box' scene; switch the scene's kind first \(--set "
                                           r"dataset.scene.name=xml"):

@@ -156,7 +156,7 @@ def test_sg_environment_test_preset(mi, tmp_path):
     assert s["psnr_full"] is None  # the prediction is direct light: no separate direct term
 
 
-@pytest.mark.slow  # ~20 s: RRF and data-driven PRT on a Bitterli scene file with nothing set per scene
+@pytest.mark.slow  # ~2 min: every method on a Bitterli scene file with nothing set per scene
 def test_real_scenes_test_preset(mi, tmp_path):
     import importlib.util
 
@@ -173,8 +173,12 @@ def test_real_scenes_test_preset(mi, tmp_path):
         report = json.load(f)
     entry = report["scenes"]["cornell_box_picture"]
     assert entry["regions"]["source"] == "scene bounds"
-    assert set(entry["methods"]) == {"rrf", "datadriven", "sg_lightfield"}
+    assert set(entry["methods"]) == {"rrf", "datadriven", "sg_lightfield", "wavelet_prt", "sh_prt"}
+    assert entry["methods"]["wavelet_prt"]["lighting"] == entry["methods"]["sh_prt"]["lighting"] == "environment"
+    assert entry["environment"]["opened"] == {"Ceiling": "removed"}  # the environment lights it from above
     for m in entry["methods"].values():
         assert m["per_object"] and all(np.isfinite(v["rel_rmse"]) for v in m["per_object"].values())
+        for v in m["per_object"].values():  # one lighting in the test preset: the pooled score is its score
+            assert v["rel_rmse_by_lighting"] == [pytest.approx(v["rel_rmse"])]
         assert m["frame_ms"] > 0
     assert os.path.isfile(os.path.join(out, folder, "cornell_box_picture_side_by_side.png"))

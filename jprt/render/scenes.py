@@ -5,6 +5,7 @@ A scene *description* is a plain dict (so it hashes into dataset cache keys and 
   {"name": "cornell_box", "area_light": True, "materials": {"floor": {...}, ...}}
   {"name": "glossy_cornell", "floor_roughness": 0.2, "sphere_roughness": 0.05, ...}
   {"name": "xml", "path": "/abs/scene.xml", "sha256": "...", "keep_emitters": True}
+                                             (+ "opening": "ceiling" to cut the ceiling away)
   {"name": "asset_room", "mesh": "/abs/spot.obj", "sha256": "...", "albedo": [...], ...}
                                              a UV-mapped mesh (object "asset") in an open room corner
   {"name": "empty"}                          no geometry: only the jprt lighting (probes, tests)
@@ -150,15 +151,34 @@ def glossy_cornell(*, floor_roughness: float = 0.15, sphere_roughness: float = 0
 XML_READER = 3
 
 
-def xml(path: str, *, keep_emitters: bool = True) -> dict:
+#: Openings ``xml`` can cut into a file's geometry, so that an environment map lights an interior.
+OPENINGS = ("", "ceiling")
+#: The ceiling opening removes what lies within this fraction of the scene's height of its top.
+CEILING_SLAB = 0.02
+
+
+def xml(path: str, *, keep_emitters: bool = True, opening: str = "") -> dict:
     """Description of a Mitsuba XML scene file (content-hashed, so an edited file re-renders; with
-    ``XML_READER``, so a changed reading does too)."""
+    ``XML_READER``, so a changed reading does too).
+
+    Args:
+      keep_emitters: keep the file's own emitters (False: only jprt's lighting lights it).
+      opening: "" (the file as it is) or "ceiling": every surface within ``CEILING_SLAB`` of the
+        scene's height of its top, facing up or down, is removed (whole shapes, or a mesh's
+        triangles), so that an environment map lights an interior from above as through a
+        skylight. "Up" is the file camera's up axis (y without a camera).
+    """
     path = os.path.abspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"scene file not found: {path}")
+    if opening not in OPENINGS:
+        raise ValueError(f"unknown scene opening {opening!r}: use one of {list(OPENINGS)}")
     with open(path, "rb") as f:
         digest = hashlib.sha256(f.read()).hexdigest()
-    return {"name": "xml", "path": path, "sha256": digest, "keep_emitters": bool(keep_emitters), "reader": XML_READER}
+    desc = {"name": "xml", "path": path, "sha256": digest, "keep_emitters": bool(keep_emitters), "reader": XML_READER}
+    if opening:  # only present when set, so descriptions without one (and their cache hashes) are unchanged
+        desc["opening"] = opening
+    return desc
 
 
 _ROOM_MATERIALS = {
@@ -233,7 +253,7 @@ def section_defaults(name: str) -> dict:
         "empty": {"name": "empty"},
         "cornell_box": {"name": "cornell_box", "area_light": True},
         "glossy_cornell": {"name": "glossy_cornell", "floor_roughness": 0.15, "sphere_roughness": 0.02},
-        "xml": {"name": "xml", "path": "", "keep_emitters": True},
+        "xml": {"name": "xml", "path": "", "keep_emitters": True, "opening": ""},
         "asset_room": {"name": "asset_room", "mesh": "", "albedo": [0.75, 0.6, 0.45], "margin": 1.0, "size": 3.0,
                        "walls": True},
         "blocks": {"name": "blocks", "layout": {}, "size": 1.0},
@@ -288,7 +308,7 @@ def describe(scene: dict | str) -> dict:
     if name == "xml":
         if not scene.get("path"):
             raise ValueError("an xml scene needs its file: set scene.path (e.g. --set scene.path=/abs/scene.xml)")
-        return xml(scene["path"], keep_emitters=scene.get("keep_emitters", True))
+        return xml(scene["path"], keep_emitters=scene.get("keep_emitters", True), opening=scene.get("opening", ""))
     if name == "asset_room":
         kwargs.pop("sha256", None)
         return asset_room(**kwargs)
@@ -376,10 +396,77 @@ def _base_dict(desc: dict, mi) -> dict:
             for k, emitter in enumerate(loaded.emitters()):
                 if not mi.has_flag(emitter.flags(), mi.EmitterFlags.Surface):  # area lights come with their shapes
                     base[f"emitter_{k:04d}"] = emitter
+        if desc.get("opening") == "ceiling":
+            up = _up_axis(loaded.sensors()[0] if loaded.sensors() else None, mi)
+            surfaces = {k: v for k, v in base.items() if isinstance(v, mi.Shape) and v.emitter() is None}
+            removed, shortened = cut_ceiling(surfaces, up, mi)
+            base = {k: v for k, v in base.items() if k not in removed}
+            base.update(shortened)
         if loaded.sensors():
             base["jprt_sensor"] = loaded.sensors()[0]
         return base
     raise ValueError(f"unknown scene name {name!r}")
+
+
+def _up_axis(sensor, mi) -> int:
+    """The world axis nearest a sensor's up vector (1, y, without a sensor)."""
+    if sensor is None:
+        return 1
+    to_world = np.array(mi.traverse(sensor)["to_world"].matrix, np.float64).reshape(4, 4)
+    return int(np.argmax(np.abs(to_world[:3, 1])))
+
+
+def cut_ceiling(shapes: dict, up: int, mi) -> tuple[list[str], dict]:
+    """The ceiling opening of ``xml``: what to remove from ``shapes`` ({key: Mitsuba shape}) and
+    what replaces it, as (keys removed, {key: shortened mesh}).
+
+    The slab is the top ``CEILING_SLAB`` of the shapes' joint bounds along axis ``up``. A shape
+    inside the slab is removed whole; a mesh reaching into it loses the triangles whose vertices
+    all lie in the slab and whose face normal is within 25 degrees of the up axis (the ceiling,
+    not a wall's top row), keeping its BSDF, id, normals and UVs.
+
+    Numerics: not differentiable (scene geometry).
+    """
+    boxes = {k: (np.array(s.bbox().min, np.float64), np.array(s.bbox().max, np.float64)) for k, s in shapes.items()}
+    lo = min(b[0][up] for b in boxes.values())
+    hi = max(b[1][up] for b in boxes.values())
+    top = hi - CEILING_SLAB * (hi - lo)
+    removed, shortened = [], {}
+    for key, shape in shapes.items():
+        b_lo, b_hi = boxes[key]
+        if b_lo[up] >= top:
+            removed.append(key)
+            continue
+        if b_hi[up] < top or not isinstance(shape, mi.Mesh):
+            continue
+        v = np.array(shape.vertex_positions_buffer(), np.float64).reshape(-1, 3)
+        f = np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)
+        tri = v[f]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        vertical = np.abs(n[:, up]) > np.cos(np.radians(25.0)) * np.maximum(np.linalg.norm(n, axis=1), 1e-30)
+        cut = (tri[:, :, up].min(axis=1) >= top) & vertical
+        if not cut.any():
+            continue
+        removed.append(key)
+        if cut.all():
+            continue
+        props = mi.Properties()
+        props["bsdf"] = shape.bsdf()
+        props["face_normals"] = bool(shape.has_face_normals())
+        props["flip_normals"] = bool(shape.has_flipped_normals())
+        mesh = mi.Mesh(shape.id() or key, int(v.shape[0]), int((~cut).sum()), props=props,
+                       has_vertex_normals=bool(shape.has_vertex_normals()),
+                       has_vertex_texcoords=bool(shape.has_vertex_texcoords()))
+        out = mi.traverse(mesh)
+        out["vertex_positions"] = shape.vertex_positions_buffer()
+        out["faces"] = mi.UInt32(f[~cut].ravel().astype(np.uint32))
+        if shape.has_vertex_normals():
+            out["vertex_normals"] = shape.vertex_normals_buffer()
+        if shape.has_vertex_texcoords():
+            out["vertex_texcoords"] = shape.vertex_texcoords_buffer()
+        out.update()
+        shortened[key] = mesh
+    return removed, shortened
 
 
 #: Integrators of a scene file that do not estimate the radiance jprt renders its ground truth

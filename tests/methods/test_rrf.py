@@ -55,7 +55,7 @@ def test_smooth_target_single_leaf():
     assert info["leaf_val_error"][0] < 0.01  # stated: a smooth target is fit below 1 % relative error
     test = rng.random((500, 3)).astype(np.float32)
     ref = 1.0 + 0.5 * np.sin(2.0 * test[:, 0]) + 0.3 * test[:, 1] * test[:, 2]
-    pred = np.asarray(rrf._predict_sorted(params, jnp.asarray(test), jnp.zeros(500, jnp.int32), clamp=False))
+    pred = _sorted(params, test, np.zeros(500, np.int32), clamp=False)
     assert rrf._relative_error(pred[:, 0], ref) < 0.01
 
 
@@ -69,13 +69,20 @@ def test_a_feature_constant_in_training_stays_constant_at_run_time():
     y = np.stack([1.0 + 0.5 * np.sin(3.0 * x[:, 0]) * x[:, 1]] * 3, axis=1)
     cfg = {"model": {"hidden": [4, 2]}, "train": {"max_iters": 15, "progress": False}, "tree": {"min_samples": 50}}
     params, _ = rrf.fit_arrays(x, y, np.zeros(len(x), np.int32), cfg)
-    seen = np.asarray(rrf._predict_sorted(params, jnp.asarray(x), jnp.zeros(600, jnp.int32)))
+    seen = _sorted(params, x, np.zeros(600, np.int32))
     x_new = x.copy()
     x_new[:, 2] = 1.0
-    held = np.asarray(rrf._predict_sorted(params, jnp.asarray(x_new), jnp.zeros(600, jnp.int32)))
-    free = np.asarray(rrf._predict_sorted(params, jnp.asarray(x_new), jnp.zeros(600, jnp.int32), clamp=False))
+    held = _sorted(params, x_new, np.zeros(600, np.int32))
+    free = _sorted(params, x_new, np.zeros(600, np.int32), clamp=False)
     np.testing.assert_allclose(held, seen, rtol=1e-5, atol=1e-6)
     assert np.abs(free - seen).max() > 1e-3  # extrapolated, the output moves
+
+
+def _sorted(params, x, object_id, **kw) -> np.ndarray:
+    """``rrf._predict_sorted`` compiled as one program (the trained tree closed over, as the
+    evaluator does): run eagerly, each of its many small operations compiles on its own, several
+    times slower in the suite."""
+    return np.asarray(jax.jit(lambda a, b: rrf._predict_sorted(params, a, b, **kw))(jnp.asarray(x), jnp.asarray(object_id)))
 
 
 def _reference_phi(layers, scaling, x):
@@ -286,7 +293,7 @@ def test_blocked_prediction_matches_per_leaf_numpy(model):
     x = np.concatenate([rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3)), rng.uniform([-0.5, 0.3, -0.5],
                         [0.5, 0.9, 0.5], (n, 3)), rng.normal(size=(n, 3)), rng.random((n, 7))], axis=1).astype(np.float32)
     obj = rng.integers(-1, 3, n)  # -1 and 2: no tree -> 0
-    got = np.asarray(rrf._predict_sorted(params, jnp.asarray(x), jnp.asarray(obj), block=16, clamp=False))
+    got = _sorted(params, x, obj, block=16, clamp=False)
     tree = kdtree.KDTree(**{k: np.asarray(v) for k, v in params["tree"].items()})
     safe = np.clip(obj, 0, 1)
     lo, hi = np.asarray(params["obj_lo"])[safe], np.asarray(params["obj_hi"])[safe]
@@ -301,7 +308,7 @@ def test_blocked_prediction_matches_per_leaf_numpy(model):
         want_c[i] = _reference_phi(layers, s, clipped[None])[0]
     assert np.any(leaf < 0) and np.all(got[leaf < 0] == 0)
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
-    got_c = np.asarray(rrf._predict_sorted(params, jnp.asarray(x), jnp.asarray(obj), block=16, clamp=True))
+    got_c = _sorted(params, x, obj, block=16, clamp=True)
     np.testing.assert_allclose(got_c, want_c, rtol=1e-4, atol=1e-5)
     assert np.abs(want_c - want).max() > 1e-2  # the normals drawn from N(0, 1) leave the trained range
     # the renderer's form: one light for every sample, the other columns shared; sorted by object and
@@ -310,12 +317,13 @@ def test_blocked_prediction_matches_per_leaf_numpy(model):
     order = np.lexsort((x[:, 0], obj))
     x, obj = x[order], obj[order]
     shared = np.delete(x, [6, 7, 8], axis=1)
-    ref = np.asarray(rrf._predict_sorted(params, jnp.asarray(x), jnp.asarray(obj), block=16, clamp=True))
+    ref = _sorted(params, x, obj, block=16, clamp=True)
     for tile, chunk in ((4, 3), (16, 1)):  # a chunk that does not divide the tiles, and one chunk
-        tiled = rrf._predict_tiles(params, [jnp.asarray(shared[:, :6].reshape(40, 25, -1)),
-                                            jnp.asarray(shared[:, 6:].reshape(40, 25, -1))], jnp.asarray(x[:1, 6:9]),
-                                   jnp.ones((1, 3)), jnp.asarray(obj.reshape(40, 25)), light_cols=(6, 7, 8), tile=tile,
-                                   chunk=chunk, clamp=True, nonnegative=False)
+        tiles = jax.jit(lambda a, b, light, o: rrf._predict_tiles(  # noqa: B023 (called at once)
+            params, [a, b], light, jnp.ones((1, 3)), o, light_cols=(6, 7, 8), tile=tile, chunk=chunk, clamp=True,
+            nonnegative=False))
+        tiled = tiles(jnp.asarray(shared[:, :6].reshape(40, 25, -1)), jnp.asarray(shared[:, 6:].reshape(40, 25, -1)),
+                      jnp.asarray(x[:1, 6:9]), jnp.asarray(obj.reshape(40, 25)))
         np.testing.assert_allclose(np.asarray(tiled).reshape(n, 3), ref, rtol=1e-4, atol=1e-5)
 
 

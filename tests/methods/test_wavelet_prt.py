@@ -238,20 +238,24 @@ def test_split_first_layer_matches_the_plain_mlp():
     data = _fake_data(n=4)
     g = {f: jnp.asarray(data.train[f][0, 0].reshape((-1,) + data.train[f].shape[4:])) for f in wp.GBUFFER_FIELDS}
     idx = jnp.array([0, 5, 17, 90], jnp.int32)
-    t = m.transport(params, g, idx)
+    t = jax.jit(m.transport)(params, g, idx)  # each side one program (eagerly, ~100 small compiles)
     mc = REGISTRY["wavelet_prt"].resolve(TINY)["model"]
     from jprt.nn.factor import factor_field
 
     field = factor_field(face_size=4, n_features=mc["n_features"], n_levels=mc["n_levels"],
                          features_per_level=mc["features_per_level"], log2_table_size=mc["log2_table_size"],
                          base_resolution=mc["base_resolution"], per_level_scale=mc["per_level_scale"])
-    x = (g["position"] - params["bbox"][0][None]) / (params["bbox"][1] - params["bbox"][0])[None]
-    h = field.apply(params["field"], jnp.clip(x, 0, 1), idx)
-    pix = wp.pixel_features(g, "sh4")
-    inp = jnp.concatenate([h, jnp.broadcast_to(pix[:, None], h.shape[:2] + pix.shape[-1:])], axis=-1)
-    f = mlp((inp.shape[-1], mc["hidden"], mc["hidden"], 3), activation="relu", init="he")
-    ref = f.apply(params["f"], inp) * (4 * np.pi / (6 * 16))
-    np.testing.assert_allclose(np.asarray(t), np.asarray(ref), rtol=1e-4, atol=1e-6)
+
+    @jax.jit
+    def plain(params, g, idx):  # the field, then one MLP over [h_k, pixel features]
+        x = (g["position"] - params["bbox"][0][None]) / (params["bbox"][1] - params["bbox"][0])[None]
+        h = field.apply(params["field"], jnp.clip(x, 0, 1), idx)
+        pix = wp.pixel_features(g, "sh4")
+        inp = jnp.concatenate([h, jnp.broadcast_to(pix[:, None], h.shape[:2] + pix.shape[-1:])], axis=-1)
+        f = mlp((inp.shape[-1], mc["hidden"], mc["hidden"], 3), activation="relu", init="he")
+        return f.apply(params["f"], inp) * (4 * np.pi / (6 * 16))
+
+    np.testing.assert_allclose(np.asarray(t), np.asarray(plain(params, g, idx)), rtol=1e-4, atol=1e-6)
 
 
 @pytest.mark.parametrize("reflection, size", [("sh4", 16), ("raw", 3), ("none", 0)])
@@ -430,3 +434,28 @@ def test_per_image_lightings_never_use_a_held_out_map(mi, assets, fraction):
     n_proc = sum(name.startswith("procedural") for name in names)
     assert (n_proc == 0) == (fraction == 0.0)
     assert len(set(names)) == 12  # twelve distinct lightings (uniform angles), not maps x 3 rotations
+
+
+@pytest.mark.mitsuba
+def test_cameras_without_a_target_come_from_the_scene_file(mi, tmp_path):
+    """cameras.target None: views about the file's own camera (scene_regions), every set its size."""
+    from jprt.methods.wavelet_prt import data as wp_data
+    from jprt.render.sampling import scene_regions
+
+    path = tmp_path / "room.xml"
+    path.write_text("""<scene version="3.0.0"><sensor type="perspective"><float name="fov" value="50"/>
+      <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform></sensor>
+      <shape type="cube"><bsdf type="diffuse"/></shape></scene>""")
+    desc = {"name": "xml", "path": str(path), "keep_emitters": False}
+    ccfg = dict(wp.DEFAULT_CONFIG["cameras"], target=None, sphere={"n": 5}, helix={"n": 2}, near=3, far=0)
+    train, near, far, target, fov = wp_data._cameras(desc, ccfg, seed=0)
+    regions = scene_regions(desc)
+    assert (train.shape, near.shape, far.shape) == ((7, 3), (3, 3), (0, 3))
+    for origins in (train, near):
+        assert np.all(origins >= np.asarray(regions["view_lo"]) - 1e-9)
+        assert np.all(origins <= np.asarray(regions["view_hi"]) + 1e-9)
+    assert not np.allclose(train[:3], near)  # each set its own seed
+    np.testing.assert_allclose(target, regions["view_target"])
+    assert fov == pytest.approx(regions["fov"])
+    orbit = wp_data._cameras(desc, wp.DEFAULT_CONFIG["cameras"], seed=0)  # a target: the orbits, as before
+    np.testing.assert_array_equal(orbit[0], wp.camera_sets(wp.DEFAULT_CONFIG["cameras"], 0)[0])

@@ -91,3 +91,33 @@ def test_the_file_camera_is_the_scene_files_sensor(mi, tmp_path):
     np.testing.assert_allclose(camera.target, [0, 0, 3], atol=1e-5)
     with pytest.raises(ValueError, match="needs the scene"):
         cameras_from_config({**DEFAULT_DATASET_CONFIG["cameras"], "kind": "file"})
+
+
+@pytest.mark.mitsuba
+def test_the_ceiling_opening_cuts_only_the_top_of_a_room(mi, tmp_path):
+    """opening="ceiling" removes a mesh's up/down-facing triangles in the top slab (a box room loses
+    its top two of 12, keeping its BSDF), drops shapes lying wholly in the slab, keeps the rest, and
+    is only recorded when set."""
+    path = _xml(tmp_path, """
+      <shape type="cube" id="room"><transform name="to_world"><scale value="2"/></transform>
+        <bsdf type="twosided"><bsdf type="diffuse"><rgb name="reflectance" value="0.3"/></bsdf></bsdf></shape>
+      <shape type="rectangle" id="lamp"><bsdf type="diffuse"/><transform name="to_world">
+        <rotate x="1" angle="90"/><scale value="0.2"/><translate y="1.95"/></transform></shape>""")
+    assert "opening" not in scenes.xml(path)  # older descriptions (and cache hashes) unchanged
+    with pytest.raises(ValueError, match="unknown scene opening 'window'"):
+        scenes.xml(path, opening="window")
+    desc = scenes.xml(path, opening="ceiling")
+    assert scenes.describe({"name": "xml", "path": path, "opening": "ceiling"}) == desc
+    closed, opened = SceneHandle(scenes.xml(path)), SceneHandle(desc)
+    assert closed.object_names() == ["floor", "room", "lamp"] and opened.object_names() == ["floor", "room"]
+    room = {s.id(): s for s in opened.shapes()}["room"]
+    assert room.face_count() == 10
+    np.testing.assert_allclose(np.ravel(mi.traverse(room.bsdf())["brdf_0.reflectance.value"]), 0.3)
+
+    def hits(handle, direction):
+        ray = mi.Ray3f(mi.Point3f(0.5, 0.0, 0.5), mi.Vector3f(*direction))
+        return bool(np.ravel(handle.scene.ray_intersect(ray).is_valid())[0])
+
+    assert hits(closed, [0, 1, 0]) and not hits(opened, [0, 1, 0])  # the sky through the ceiling
+    for direction in ([0, -1, 0], [1, 0, 0], [0, 0, -1]):  # floor and walls stay
+        assert hits(opened, direction)

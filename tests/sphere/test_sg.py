@@ -84,8 +84,9 @@ def test_gradients_check(x64):
     u1 = jnp.array([0.0, 0.6, 0.8])
     u2 = jnp.array([0.0, 0.0, 1.0])
     check_grads(jax.jit(lambda l1, l2, a: sg.inner_product(u1, l1, a, u2, l2, a)), (3.0, 7.0, 0.5), order=2)
-    check_grads(lambda lam: sg.integral(lam, 2.0), (0.01,), order=2)
-    check_grads(lambda v: sg.evaluate(v, u1, 5.0, 1.0), (jnp.array([0.3, 0.4, 0.866]),), order=1)
+    # jitted, each is one program (eagerly, about a hundred small ones compile)
+    check_grads(jax.jit(lambda lam: sg.integral(lam, 2.0)), (0.01,), order=2)
+    check_grads(jax.jit(lambda v: sg.evaluate(v, u1, 5.0, 1.0)), (jnp.array([0.3, 0.4, 0.866]),), order=1)
 
 
 # --------------------------------------------------------------------------------------------

@@ -181,7 +181,7 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
     ecfg, ccfg, dcfg = cfg["envmaps"], cfg["cameras"], cfg["data"]
     seed = int(dcfg["seed"])
     t0 = time.perf_counter()
-    train_o, near_o, far_o = camera_sets(ccfg, seed)
+    train_o, near_o, far_o, target, fov = _cameras(desc, ccfg, seed)
     per_view = int(dcfg["envs_per_view"])
     n_img = len(train_o) * per_view
     envs, names, test_envs, test_names = _environment_sets(ecfg, seed, n_img)
@@ -192,8 +192,7 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
     rng = np.random.default_rng(seed)
     # image j (of camera j // per_view) gets environment perm[j] % n_env: every environment equally often
     assign = rng.permutation(n_img) % n_env
-    cam_kw = {"fov": float(ccfg["fov"]), "width": int(ccfg["width"]), "height": int(ccfg["height"])}
-    target = tuple(ccfg["target"])
+    cam_kw = {"fov": fov, "width": int(ccfg["width"]), "height": int(ccfg["height"])}
     handle = SceneHandle(desc)
     spp, max_depth = int(dcfg["spp"]), int(dcfg["max_depth"])
     groups: list[list[dict]] = [[] for _ in range(n_env)]
@@ -248,6 +247,24 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
                   render_train_s=np.array(t_train), render_s=np.array(time.perf_counter() - t0),
                   spp=np.array(spp), test_spp=np.array(int(dcfg["test_spp"])))
     return arrays
+
+
+def _cameras(desc: dict, ccfg: dict, seed: int):
+    """(training, near, far origins, target, fov): the orbits of ``camera_sets`` about
+    ``cameras.target``, or, when it is None, views from the scene itself
+    (``jprt.render.sampling.scene_regions``: about a scene file's own camera, looking where it
+    looks, at its field of view; ``sphere.n + helix.n`` training views, ``near`` and ``far``
+    held-out views, each set Latin-hypercube sampled in the region's box with its own seed)."""
+    if ccfg["target"] is not None:
+        train_o, near_o, far_o = camera_sets(ccfg, seed)
+        return train_o, near_o, far_o, tuple(ccfg["target"]), float(ccfg["fov"])
+    from jprt.render.sampling import latin_hypercube, scene_regions
+
+    regions = scene_regions(desc)
+    counts = (int(ccfg["sphere"]["n"]) + int(ccfg["helix"]["n"]), int(ccfg["near"]), int(ccfg["far"]))
+    sets = [latin_hypercube(np.random.default_rng([seed, 11, i]), n, regions["view_lo"], regions["view_hi"])
+            if n else np.zeros((0, 3)) for i, n in enumerate(counts)]
+    return sets[0], sets[1], sets[2], tuple(regions["view_target"]), float(regions["fov"])
 
 
 def _unpack(a: dict) -> WaveletData:

@@ -129,6 +129,8 @@ DEFAULT_CONFIG = {
     },
     "cameras": {
         "width": 64, "height": 64, "fov": 39.3077,
+        # the orbits' centre; None: views from the scene instead (a file's own camera and field of
+        # view, jittered in a box about it: jprt.render.sampling.scene_regions), for interiors
         "target": [0.0, -0.1, 0.0],
         # spherical trajectory: a spiral over a cap of the sphere (azimuth / elevation ranges, degrees)
         "sphere": {"n": 45, "radius": 3.9, "azimuth": [-35.0, 35.0], "elevation": [-5.0, 45.0]},
