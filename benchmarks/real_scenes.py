@@ -43,6 +43,7 @@ def main() -> int:
                                                                      for k, v in m["per_object"].items()},
                                "per_object_rel_rmse_by_lighting": {k: v["rel_rmse_by_lighting"]
                                                                    for k, v in m["per_object"].items()},
+                               "per_object_mean_ratio": {k: v["mean_ratio"] for k, v in m["per_object"].items()},
                                "worst_rel_rmse": m["worst_rel_rmse"], "mean_rel_rmse": m["mean_rel_rmse"],
                                "target_met": m["target_met"], "frame_ms": m["frame_ms"],
                                "frame_flops": m["frame_flops"], "frame_flops_source": m["frame_flops_source"],
@@ -63,7 +64,8 @@ def main() -> int:
                           "zero scores 1; noise_floor: a second reference render (another seed) against the first; "
                           "noise_removed: sqrt(rel^2 - floor^2 / 2), the error against the truth with the "
                           "references' independent noise taken out; by_lighting: the same per held-out lighting, in the "
-                          "order of the scene's lights or environment.maps; environment: the opening cut into the file for the "
+                          "order of the scene's lights or environment.maps; mean_ratio: the prediction's mean over the "
+                          "reference's on the object (1: no light missing or added overall); environment: the opening cut into the file for the "
                           "environment-lit methods (lit by held-out maps through it), what it removed; "
                           "frame_ms: the jitted evaluator at the file camera's held-out resolution, inputs and "
                           "lighting ready; frame_flops: the method's own count where it has one, else XLA's cost "

@@ -141,9 +141,11 @@ def _held_out(desc: dict, regions: dict, e: dict):
 
 
 def _per_object(preds, refs, object_id, names, min_fraction: float) -> dict:
-    """{object name: {"pixels", "fraction", "rel_rmse", "rel_rmse_by_lighting"}} for objects
-    covering at least ``min_fraction`` of the image: ``rel_rmse`` over all images (the brightest
-    lighting weighs most), ``rel_rmse_by_lighting`` image by image."""
+    """{object name: {"pixels", "fraction", "rel_rmse", "rel_rmse_by_lighting", "mean_ratio"}} for
+    objects covering at least ``min_fraction`` of the image: ``rel_rmse`` over all images (the
+    brightest lighting weighs most), ``rel_rmse_by_lighting`` image by image, ``mean_ratio`` the
+    prediction's mean over the reference's (all images and channels: 1 when no light is missing
+    or added overall, whatever the error's pattern)."""
     out = {}
     count = object_id.size
     for k in np.unique(object_id[object_id >= 0]):
@@ -154,6 +156,8 @@ def _per_object(preds, refs, object_id, names, min_fraction: float) -> dict:
         p = np.concatenate([np.asarray(x)[mask] for x in preds])
         r = np.concatenate([np.asarray(x)[mask] for x in refs])
         out[names[int(k)]] = {"pixels": int(mask.sum()), "fraction": fraction, "rel_rmse": _rel(p, r),
+                              "mean_ratio": float(np.sum(p, dtype=np.float64) / max(float(np.sum(r, dtype=np.float64)),
+                                                                                   1e-30)),
                               "rel_rmse_by_lighting": [_rel(np.asarray(a)[mask], np.asarray(b)[mask])
                                                        for a, b in zip(preds, refs)]}
     return out

@@ -179,6 +179,6 @@ def test_real_scenes_test_preset(mi, tmp_path):
     for m in entry["methods"].values():
         assert m["per_object"] and all(np.isfinite(v["rel_rmse"]) for v in m["per_object"].values())
         for v in m["per_object"].values():  # one lighting in the test preset: the pooled score is its score
-            assert v["rel_rmse_by_lighting"] == [pytest.approx(v["rel_rmse"])]
+            assert v["rel_rmse_by_lighting"] == [pytest.approx(v["rel_rmse"])] and np.isfinite(v["mean_ratio"])
         assert m["frame_ms"] > 0
     assert os.path.isfile(os.path.join(out, folder, "cornell_box_picture_side_by_side.png"))

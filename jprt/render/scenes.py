@@ -399,7 +399,7 @@ def _base_dict(desc: dict, mi) -> dict:
         if desc.get("opening") == "ceiling":
             up = _up_axis(loaded.sensors()[0] if loaded.sensors() else None, mi)
             surfaces = {k: v for k, v in base.items() if isinstance(v, mi.Shape) and v.emitter() is None}
-            removed, shortened = cut_ceiling(surfaces, up, mi)
+            removed, shortened = _cut_ceiling(surfaces, up, mi)
             base = {k: v for k, v in base.items() if k not in removed}
             base.update(shortened)
         if loaded.sensors():
@@ -416,16 +416,14 @@ def _up_axis(sensor, mi) -> int:
     return int(np.argmax(np.abs(to_world[:3, 1])))
 
 
-def cut_ceiling(shapes: dict, up: int, mi) -> tuple[list[str], dict]:
+def _cut_ceiling(shapes: dict, up: int, mi) -> tuple[list[str], dict]:
     """The ceiling opening of ``xml``: what to remove from ``shapes`` ({key: Mitsuba shape}) and
     what replaces it, as (keys removed, {key: shortened mesh}).
 
     The slab is the top ``CEILING_SLAB`` of the shapes' joint bounds along axis ``up``. A shape
     inside the slab is removed whole; a mesh reaching into it loses the triangles whose vertices
     all lie in the slab and whose face normal is within 25 degrees of the up axis (the ceiling,
-    not a wall's top row), keeping its BSDF, id, normals and UVs.
-
-    Numerics: not differentiable (scene geometry).
+    not a wall's top row), keeping its BSDF, id, normals and UVs. "Top" is the largest coordinate.
     """
     boxes = {k: (np.array(s.bbox().min, np.float64), np.array(s.bbox().max, np.float64)) for k, s in shapes.items()}
     lo = min(b[0][up] for b in boxes.values())
