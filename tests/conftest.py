@@ -12,15 +12,9 @@ import pytest
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 # Trainers build a fresh jitted step per call (resume tests call them three times with identical
-# shapes): a per-session persistent compilation cache compiles each program once. The process
-# that starts the session makes it and removes it at exit; pytest-xdist's workers (started from
-# it, with its environment) share it, so a program one worker compiled (a method's test preset,
-# the tiny trainers) is read by the other.
-_COMPILE_CACHE = os.environ.get("JPRT_TEST_XLA_CACHE")
-if not _COMPILE_CACHE or not os.path.isdir(_COMPILE_CACHE):
-    _COMPILE_CACHE = tempfile.mkdtemp(prefix="jprt_xla_cache_")
-    os.environ["JPRT_TEST_XLA_CACHE"] = _COMPILE_CACHE
-    atexit.register(shutil.rmtree, _COMPILE_CACHE, ignore_errors=True)
+# shapes): a per-session persistent compilation cache compiles each program once.
+_COMPILE_CACHE = tempfile.mkdtemp(prefix="jprt_xla_cache_")
+atexit.register(shutil.rmtree, _COMPILE_CACHE, ignore_errors=True)
 jax.config.update("jax_compilation_cache_dir", _COMPILE_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
