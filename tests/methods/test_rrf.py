@@ -82,7 +82,8 @@ def _sorted(params, x, object_id, **kw) -> np.ndarray:
     """``rrf._predict_sorted`` compiled as one program (the trained tree closed over, as the
     evaluator does): run eagerly, each of its many small operations compiles on its own, several
     times slower in the suite."""
-    return np.asarray(jax.jit(lambda a, b: rrf._predict_sorted(params, a, b, **kw))(jnp.asarray(x), jnp.asarray(object_id)))
+    predict = jax.jit(lambda a, b: rrf._predict_sorted(params, a, b, **kw))
+    return np.asarray(predict(jnp.asarray(x), jnp.asarray(object_id)))
 
 
 def _reference_phi(layers, scaling, x):

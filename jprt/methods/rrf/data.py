@@ -144,6 +144,14 @@ def _faces(gb, idx):
     return np.asarray(gb.object_id)[idx] * 6 + axis * 2 + side
 
 
+def _floor_first(valid, group, floor: int, n: int, rng):
+    """Up to ``floor`` of the candidates ``valid`` of every ``group`` (uniformly within each), in
+    random order, at most ``n`` in all: the rays a floor draws before the rest."""
+    first = np.concatenate([rng.choice(valid[group == g], size=min(int(floor), int((group == g).sum())), replace=False)
+                            for g in np.unique(group)])
+    return first[rng.permutation(len(first))[:n]]
+
+
 def _face_floor(gb, origins, directions, n: int, rng, floor: int):
     """``n`` of the candidate rays: up to ``floor`` rays of every face group the candidates hit
     (``_faces``), drawn first, the rest uniformly among the other candidates that hit the scene,
@@ -151,10 +159,7 @@ def _face_floor(gb, origins, directions, n: int, rng, floor: int):
     valid = np.flatnonzero(np.asarray(gb.valid))
     if len(valid) <= n:
         return origins[valid], directions[valid]
-    group = _faces(gb, valid)
-    first = np.concatenate([rng.choice(valid[group == g], size=min(int(floor), int((group == g).sum())), replace=False)
-                            for g in np.unique(group)])
-    first = first[rng.permutation(len(first))[:n]]
+    first = _floor_first(valid, _faces(gb, valid), floor, n, rng)
     rest = np.setdiff1d(valid, first)
     keep = np.sort(np.concatenate([first, rng.choice(rest, size=n - len(first), replace=False)]))
     return origins[keep], directions[keep]
@@ -178,10 +183,7 @@ def _balanced(gb, origins, directions, n: int, rng, floor: int = 0):
     else:
         first = np.zeros(0, np.int64)
         if floor > 0:
-            objects = np.asarray(gb.object_id)[valid]
-            first = np.concatenate([rng.choice(valid[objects == o], size=min(int(floor), int((objects == o).sum())),
-                                               replace=False) for o in np.unique(objects)])
-            first = first[rng.permutation(len(first))[:n]]
+            first = _floor_first(valid, np.asarray(gb.object_id)[valid], floor, n, rng)
         rest = np.setdiff1d(valid, first)
         group = _faces(gb, rest)
         _, inverse, counts = np.unique(group, return_inverse=True, return_counts=True)
