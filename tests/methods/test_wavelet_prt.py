@@ -137,8 +137,10 @@ def test_auto_chunk_by_backend():
     assert wp.auto_chunk(16) == wp.auto_chunk(16, jax.default_backend())
 
 
-@pytest.mark.parametrize("overrides", [{}, pytest.param({"model": {"layers": 3, "hidden": 64}, "render": {"k": 32}},
-                                                     marks=pytest.mark.slow)])  # the second for the suite's budget
+@pytest.mark.parametrize("overrides", [{}, {"model": {"null_transport": "free"}},
+                                       pytest.param({"model": {"layers": 3, "hidden": 64},
+                                                     "render": {"k": 32}},
+                                                    marks=pytest.mark.slow)])  # the last for the suite's budget
 def test_frame_flops_is_xla_count_of_one_chunk(overrides):
     """The method's own FLOP count (XLA counts a loop body once) against XLA's cost analysis of
     a render done in one chunk: within 1 % (XLA also counts the encodings and the Haar transform)."""
@@ -233,13 +235,14 @@ def test_mu_law_loss_sign_extension_handles_negative_predictions():
 
 
 def test_split_first_layer_matches_the_plain_mlp():
-    m = wp.model(TINY)
+    free = {**TINY, "model": {**TINY["model"], "null_transport": "free"}}  # Eq. 4 as written
+    m = wp.model(free)
     params = m.init(jax.random.PRNGKey(0), np.array([[-1, -1, -1], [1, 1, 1]], np.float32))
     data = _fake_data(n=4)
     g = {f: jnp.asarray(data.train[f][0, 0].reshape((-1,) + data.train[f].shape[4:])) for f in wp.GBUFFER_FIELDS}
     idx = jnp.array([0, 5, 17, 90], jnp.int32)
     t = jax.jit(m.transport)(params, g, idx)  # each side one program (eagerly, ~100 small compiles)
-    mc = REGISTRY["wavelet_prt"].resolve(TINY)["model"]
+    mc = REGISTRY["wavelet_prt"].resolve(free)["model"]
     from jprt.nn.factor import factor_field
 
     field = factor_field(face_size=4, n_features=mc["n_features"], n_levels=mc["n_levels"],
@@ -256,6 +259,30 @@ def test_split_first_layer_matches_the_plain_mlp():
         return f.apply(params["f"], inp) * (4 * np.pi / (6 * 16))
 
     np.testing.assert_allclose(np.asarray(t), np.asarray(plain(params, g, idx)), rtol=1e-4, atol=1e-6)
+
+
+def test_null_transport_zero_subtracts_what_zero_features_transport():
+    """``model.null_transport = "zero"``: T_k = f(h_k, pixel) - f(0, pixel), so a wavelet whose
+    row of W is zero transports nothing (with "free", Eq. 4, it transports f(0, pixel))."""
+    data = _fake_data(n=4)
+    g = {f: jnp.asarray(data.train[f][0, 0].reshape((-1,) + data.train[f].shape[4:])) for f in wp.GBUFFER_FIELDS}
+    idx = jnp.array([0, 5, 17, 90], jnp.int32)
+    free = wp.model({**TINY, "model": {**TINY["model"], "null_transport": "free"}})
+    zero = wp.model({**TINY, "model": {**TINY["model"], "null_transport": "zero"}})
+    params = free.init(jax.random.PRNGKey(0), np.array([[-1, -1, -1], [1, 1, 1]], np.float32))
+    silent = dict(params, field=dict(params["field"], W=params["field"]["W"].at[idx[:2]].set(0.0)))
+
+    @jax.jit
+    def both(p):
+        return free.transport(p, g, idx), zero.transport(p, g, idx)
+
+    t_free, t_zero = both(silent)
+    null = t_free[:, :1]  # f(0, pixel): what the zeroed wavelet 0 transports under Eq. 4
+    assert float(jnp.min(jnp.abs(null).sum(-1))) > 0  # Eq. 4 transports something for h_k = 0
+    np.testing.assert_allclose(np.asarray(t_zero), np.asarray(t_free - null), rtol=1e-4, atol=1e-6)
+    assert float(jnp.abs(t_zero[:, :2]).max()) < 1e-6 * float(jnp.abs(null).max())
+    with pytest.raises(ValueError, match="null_transport"):
+        wp.model({**TINY, "model": {**TINY["model"], "null_transport": "mean"}})
 
 
 @pytest.mark.parametrize("reflection, size", [("sh4", 16), ("raw", 3), ("none", 0)])

@@ -156,9 +156,15 @@ DEFAULT_CONFIG = {
         # the loss also penalises the clipped negative part, so a negative B still gets a gradient
         "nonnegative": True,
         # W[k] ~ N(0, w_init^2) at the start: a row whose wavelet no training lighting excites keeps
-        # about its initial value (issue 18); measured once (`small`, one seed): 0.01 scored 26.2 dB mean
-        # / 29.4 on the original pair against 24.8 / 27.5 for 1 (the generalisation ablation reruns it)
-        "w_init": 1.0,
+        # about its initial value (issue 18), so it starts near zero (1 before; see null_transport)
+        "w_init": 0.01,
+        # what a wavelet whose features are zero (h_k = 0) transports: "free" is Eq. 4 as written,
+        # f(0, pixel) (the same for every such wavelet, whatever training left it); "zero" subtracts
+        # it, T_k = f(h_k, pixel) - f(0, pixel), so a wavelet no training lighting excited carries
+        # nearly nothing instead of the pixel's average transport times L_k. Under a sun the top-K
+        # Haar details at the sun all have the sun's sign, and with "free" their sum lit the scene
+        # 3-4x too bright (issue 18: rooitou_park 14.1 dB with "free", 18.7 with "zero", `small`)
+        "null_transport": "zero",
     },
     "train": {
         # paper: 2048 pixels per step; 256 keeps the `small` run near 0.5 s per step on 2 CPU cores
@@ -544,6 +550,9 @@ def model(config: dict | None = None, *, n_vertices: int | None = None) -> Model
         raise ValueError(f"unknown model.spatial {spatial!r}: use 'hashgrid' or 'vertex'")
     fields = tuple(GBUFFER_FIELDS) + (tuple(VERTEX_FIELDS) if spatial == "vertex" else ())
     reflection = mc["reflection"]
+    null = mc["null_transport"]
+    if null not in ("free", "zero"):
+        raise ValueError(f"unknown model.null_transport {null!r}: use 'free' (Eq. 4) or 'zero'")
     d_pix = _reflection_size(reflection) + 10
     n_in = int(mc["n_features"]) + d_pix
     f = mlp((n_in,) + (int(mc["hidden"]),) * int(mc["layers"]) + (3,), activation="relu", init="he")
@@ -578,7 +587,17 @@ def model(config: dict | None = None, *, n_vertices: int | None = None) -> Model
         layers = params["f"]["layers"]
         n_h = params["field"]["U"].shape[-1]
         pix = pixel_features(g, reflection)  # (P, D)
-        return {"s": s, "z0": pix @ layers[0]["w"][n_h:] + layers[0]["b"][None, :]}
+        pre = {"s": s, "z0": pix @ layers[0]["w"][n_h:] + layers[0]["b"][None, :]}
+        if null == "zero":  # f(0, pixel), subtracted from every T_k (per pixel, not per wavelet)
+            pre["t0"] = _rest(layers, jax.nn.relu(pre["z0"]))
+        return pre
+
+    def _rest(layers, z):
+        """f's layers after the first on first-layer activations z (..., hidden), times the output scale."""
+        lead = (1,) * (z.ndim - 1)  # the biases broadcast over z's leading axes
+        for layer in layers[1:-1]:
+            z = jax.nn.relu(z @ layer["w"] + layer["b"].reshape(lead + (-1,)))
+        return (z @ layers[-1]["w"] + layers[-1]["b"].reshape(lead + (-1,))) * out_scale
 
     def head(params, pre, k):
         """T_k for prepared pixels (``prepare``) and wavelets k (K,) -> (P, K, 3)."""
@@ -590,9 +609,8 @@ def model(config: dict | None = None, *, n_vertices: int | None = None) -> Model
         # (Eq. 7 is linear in U): 2 M hidden FLOPs per (pixel, wavelet) instead of 2 (M + hidden) L.
         v = params["field"]["U"] @ layers[0]["w"][:n_h]  # (M, hidden)
         z = jax.nn.relu((pre["s"][:, None, :] * w[None, :, :]) @ v + pre["z0"][:, None, :])
-        for layer in layers[1:-1]:
-            z = jax.nn.relu(z @ layer["w"] + layer["b"][None, None, :])
-        return (z @ layers[-1]["w"] + layers[-1]["b"][None, None, :]) * out_scale
+        t = _rest(layers, z)
+        return t - pre["t0"][:, None, :] if "t0" in pre else t
 
     def transport(params, g, k):
         return head(params, prepare(params, g), k)
@@ -952,6 +970,9 @@ def frame_flops(params, config: dict | None, inputs, lighting) -> float:
     hidden = sizes[1]
     pixels = int(np.sum(np.asarray(inputs["valid"]) > 0))
     per_pixel = 2 * (sizes[0] - n_h) * hidden + hidden + (2 * 8 * m if mc["spatial"] == "hashgrid" else 0)
+    if mc["null_transport"] == "zero":  # f(0, pixel): the layers after the first, once per pixel
+        per_pixel += sum(2 * a * b + 2 * b for a, b in zip(sizes[1:-2], sizes[2:-1])) + 2 * sizes[-2] * sizes[-1] \
+            + 2 * sizes[-1]
     per_pair = m + 2 * m * hidden + 2 * hidden  # S * W, folded first layer, + pixel part, ReLU
     per_pair += sum(2 * a * b + 2 * b for a, b in zip(sizes[1:-2], sizes[2:-1]))  # hidden layers, bias, ReLU
     per_pair += 2 * sizes[-2] * sizes[-1] + 2 * sizes[-1] + 2 * sizes[-1]  # output, bias, scale; dot with L_k
