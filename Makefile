@@ -55,7 +55,9 @@ bench-rrf: setup
 bench-datadriven: setup
 	$(PY) benchmarks/datadriven.py
 
+# the reruns first: wavelet_prt.py copies their spread (psnr_spread_reruns) into its JSON
 bench-wavelet: setup
+	$(PY) benchmarks/wavelet_reruns.py
 	$(PY) benchmarks/wavelet_prt.py
 
 bench-sg: setup
