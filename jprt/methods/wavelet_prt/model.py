@@ -527,7 +527,8 @@ class Model(NamedTuple):
 
 def model(config: dict | None = None, *, n_vertices: int | None = None) -> Model:
     """The transport network T_k(x, w_o) = f(h_k(x), enc(w_r), n, rho) of Eq. 4 with the CP
-    feature field of Eq. 7 (``jprt.nn.factor``). With ``model.spatial = "vertex"`` S_m[x] is
+    feature field of Eq. 7 (``jprt.nn.factor``), less f(0, pixel) with ``model.null_transport =
+    "zero"`` (the default; "free" is Eq. 4 as written). With ``model.spatial = "vertex"`` S_m[x] is
     softplus of per-vertex features interpolated over the subdivided scene mesh instead
     (``n_vertices`` needed for ``init``).
 
