@@ -38,13 +38,10 @@ def _reruns(preset: str) -> dict:
     """``psnr_spread_reruns`` (and its per-map spread and source) from
     benchmarks/results/wavelet_reruns.json when those reruns trained this preset's model (same
     ``run_key``); None otherwise (the spread needs fresh processes and caches: its own script)."""
-    from jprt.cli import load_experiment, resolve_config
-    from jprt.methods import REGISTRY
     from jprt.methods.wavelet_prt.model import run_key
-    from jprt.runner import method_config
+    from wavelet_reruns import experiment_config
 
-    module = load_experiment(os.path.join(ROOT, "experiments", "wavelet_prt_cornell.py"))
-    key = run_key(method_config(REGISTRY[module.METHOD], resolve_config(module, [], preset)))
+    key = run_key(experiment_config(preset)[3])
     path = os.path.join(HERE, "results", "wavelet_reruns.json")
     if not os.path.isfile(path):
         return {"psnr_spread_reruns": None}

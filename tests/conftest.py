@@ -6,9 +6,9 @@ import shutil
 import tempfile
 
 # The suite's programs are tiny and each compiles once, so compiling (mostly LLVM's optimisation
-# passes) is most of its time: the tests compile without them, about a third less time measured on
-# tests/numerics. Semantics and float rounding do not depend on it; benchmarks and users keep
-# XLA's default. A level the caller sets wins.
+# passes) is most of its time: the tests compile without them (tests/numerics: 65 -> 46 s). The
+# operations are the same; last-bit rounding can differ from optimised code (no test compares bit
+# patterns across flags). Benchmarks and users keep XLA's default. A level the caller sets wins.
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
 
