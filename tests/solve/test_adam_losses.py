@@ -45,6 +45,38 @@ def test_resume_at_step_50_of_100_is_bit_identical(tmp_path):
     assert full.losses[-10:].mean() < full.losses[:10].mean()
 
 
+def test_ema_is_the_moving_average_of_the_iterates_and_resumes_bit_identically(tmp_path):
+    """state.ema follows ema <- d ema + (1 - d) params after every step from ema_0 = params_0,
+    and a run interrupted after step 3 of 5 ends with the same average to the bit."""
+    params = NET.init(jax.random.PRNGKey(0))
+    key, d = jax.random.PRNGKey(1), 0.75
+    ckpt = str(tmp_path / "steps.npz")
+    iterates, ema = [], params
+    for step in range(1, 6):  # one step per call, resumed from the checkpoint of the one before
+        r = adam.train(loss_fn, params, sampler, key=key, steps=5, learning_rate=1e-2, checkpoint_path=ckpt,
+                       stop_after=1, progress=False, ema_decay=d)
+        assert int(r.state.step) == step
+        iterates.append(r.state.params)
+        ema = jax.tree_util.tree_map(lambda a, p: d * a + (1 - d) * p, ema, r.state.params)
+    full = adam.train(loss_fn, params, sampler, key=key, steps=5, learning_rate=1e-2, progress=False, ema_decay=d)
+    jax.tree_util.tree_map(lambda a, b: np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-7),
+                           full.state.ema, ema)
+    jax.tree_util.tree_map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)),
+                           full.state.params, iterates[-1])
+    # the average is not the last iterate (it lags it)
+    assert not np.allclose(np.asarray(full.state.ema["layers"][0]["w"]), np.asarray(full.state.params["layers"][0]["w"]))
+    ckpt2 = str(tmp_path / "half.npz")
+    adam.train(loss_fn, params, sampler, key=key, steps=5, learning_rate=1e-2, checkpoint_path=ckpt2, stop_after=3,
+               progress=False, ema_decay=d)
+    resumed = adam.train(loss_fn, params, sampler, key=key, steps=5, learning_rate=1e-2, checkpoint_path=ckpt2,
+                         progress=False, ema_decay=d)
+    jax.tree_util.tree_map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)),
+                           full.state.ema, resumed.state.ema)
+    assert adam.train(loss_fn, params, sampler, key=key, steps=2, progress=False).state.ema is None
+    with pytest.raises(ValueError, match="ema_decay"):
+        adam.train(loss_fn, params, sampler, key=key, steps=2, progress=False, ema_decay=1.0)
+
+
 def test_mu_law_sign_extension():
     x = jnp.array([-10.0, -1.0, -1e-3, 0.0, 1e-3, 1.0, 10.0])
     tm = losses.mu_law(x)
