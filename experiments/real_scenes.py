@@ -70,7 +70,7 @@ CONFIG = {
             "tree": {"max_leaves": 32, "min_samples": 600}, "train": {"max_iters": 30}},
     "datadriven": {"lightmap": {"resolution": 96}, "points": {"candidates": 8192, "count": 512},
                    "data": {"n_train": 128, "n_test": 4, "spp": 64, "test_spp": 64}},
-    "sg_lightfield": {"objects": [], "lightmap": {"resolution": 128}, "capture": {"size": 16, "spp": 64},
+    "sg_lightfield": {"objects": [], "lightmap": {"resolution": 128}, "capture": {"size": 16, "spp": 64, "jitter": True},
                       "model": {"n_lobes": 8, "channels": [16, 32, 64]}, "train": {"steps": 1000, "batch": 64}},
     # views from the scene (target None: about the file's camera); one held-out view of its own (the
     # report scores the file's camera)
@@ -196,17 +196,28 @@ def _environments(env: dict, face_size: int) -> tuple[list, list]:
     return [CubeMap(c) for c in cubes], [EnvMap.create(wp.render_equirect(c)) for c in cubes]
 
 
-def _references(handle, camera, lightings, e) -> tuple[list, list]:
+def _references(desc, handle, camera, lightings, e) -> tuple[list, list]:
     """Mitsuba's indirect light of ``camera`` under each lighting (None: the file's emitters, at
-    ``reference_spp_file_emitters``), at two seeds: (references, second references)."""
+    ``reference_spp_file_emitters``), at two seeds: (references, second references). Each image is
+    a ``jprt.cache`` entry (scene description, camera, lighting, spp, seed): a second run of the
+    report (another method, another setting) does not render them again."""
+    from jprt import cache
     from jprt.render.images import direct_indirect
+    from jprt.render.lights import lighting_description
+    from jprt.render.scenes import describe
 
     refs, refs2 = [], []
     for i, lighting in enumerate(lightings):
-        handle.set_lighting(lighting)
         spp = int(e["reference_spp"] if lighting is not None else e["reference_spp_file_emitters"])
         for seed, out in ((int(e["seed"]) + i, refs), (int(e["seed"]) + 1000 + i, refs2)):
-            out.append(np.asarray(direct_indirect(handle, camera, spp=spp, seed=seed).indirect))
+            spec = {"format": 1, "scene": describe(desc), "camera": camera._asdict(), "spp": spp, "seed": seed,
+                    "lighting": None if lighting is None else lighting_description(lighting)}
+
+            def render(lighting=lighting, spp=spp, seed=seed):
+                handle.set_lighting(lighting)
+                return {"indirect": np.asarray(direct_indirect(handle, camera, spp=spp, seed=seed).indirect)}
+
+            out.append(cache.cached("real_scenes_reference", spec, render)[0]["indirect"])
     return refs, refs2
 
 
@@ -259,7 +270,7 @@ def run_scene(path: str, config: dict, out: str) -> dict:
     per_setup, peers = {}, {}
     for kind, (desc, h, lightings, _) in setups.items():
         g = gbuffer(h, camera)
-        refs, refs2 = _references(h, camera, lightings, e)
+        refs, refs2 = _references(desc, h, camera, lightings, e)
         per_setup[kind] = (g, refs, refs2, h.object_names())
         peers[kind] = _pathtrace_ms(h, camera, lightings[0], e)
     names = handle.object_names()

@@ -129,8 +129,14 @@ def _distance_along(handle: SceneHandle, origins, directions) -> np.ndarray:
 
 
 def capture_block(handle: SceneHandle, points, normal, flags, size: int, *, spp: int,
-                  seed: int = 0) -> dict:
-    """The maps of one block of texels (see the module docstring): {"full", "indirect", "below"}."""
+                  seed: int = 0, jitter: bool = False) -> dict:
+    """The maps of one block of texels (see the module docstring): {"full", "indirect", "below"}.
+
+    ``jitter``: each of the ``spp`` paths of a pixel leaves along its own direction, uniform over
+    the pixel's octahedral square (a path whose direction lies below the surface adds 0), so a
+    pixel holds the radiance averaged over its footprint (box-filtered) rather than sampled at its
+    centre; a light source much smaller than a pixel (a lamp seen through glass) then adds its
+    share to every pixel it overlaps instead of all or nothing. Same number of paths."""
     from jprt.render.images import radiance_rays
 
     points = np.asarray(points, np.float64).reshape(-1, 3)
@@ -142,7 +148,22 @@ def capture_block(handle: SceneHandle, points, normal, flags, size: int, *, spp:
     rows, cols = np.nonzero(traced)
     full = np.zeros((len(points), m, 3), np.float32)
     indirect = np.zeros((len(points), m, 3), np.float32)
-    if len(rows):
+    if len(rows) and jitter:
+        from jprt.sphere import octahedral
+
+        n = int(size)
+        centres = np.asarray(octahedral.texel_centers(n), np.float64).reshape(-1, 2)[cols]
+        rng = np.random.default_rng([int(seed), 17])
+        uv = np.clip(centres[None] + rng.uniform(-1.0 / n, 1.0 / n, (int(spp),) + centres.shape), -1.0, 1.0)
+        d = np.asarray(octahedral.decode(uv.reshape(-1, 2)), np.float64)
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        o = np.broadcast_to(points[rows][None], (int(spp), len(rows), 3)).reshape(-1, 3)
+        up = ((d * np.broadcast_to(normal[rows][None], (int(spp), len(rows), 3)).reshape(-1, 3)).sum(-1) > 0.0)[:, None]
+        every = np.where(up, radiance_rays(handle, o, d, spp=1, seed=seed, max_depth=-1), 0.0)
+        seen = np.where(up, radiance_rays(handle, o, d, spp=1, seed=seed, max_depth=1), 0.0)
+        full[rows, cols] = every.reshape(int(spp), len(rows), 3).mean(0)
+        indirect[rows, cols] = (every - seen).reshape(int(spp), len(rows), 3).mean(0)
+    elif len(rows):
         o, d = points[rows], dirs[cols]
         every = radiance_rays(handle, o, d, spp=spp, seed=seed, max_depth=-1)
         seen = radiance_rays(handle, o, d, spp=spp, seed=seed, max_depth=1)
@@ -184,10 +205,11 @@ def _cached_blocks(namespace: str, base: dict, count: int, block: int, build, la
 def capture_lightfield(scene, lighting=None, *, objects: Sequence[str] | None = None, resolution: int = 64,
                        size: int = 32, spp: int = 64, seed: int = 0, block: int = 256,
                        atlas: Atlas | dict | None = None, cache_dir: str | None = None,
-                       progress: bool = True) -> LightField:
+                       progress: bool = True, jitter: bool = False) -> LightField:
     """Capture the light field of every texel of ``atlas`` (default: ``build_atlas`` of ``objects``
     at ``resolution``) in ``scene`` under ``lighting`` (``None``: the scene's own emitters):
-    ``size`` x ``size`` octahedral maps, ``spp`` paths per direction. Blocks of ``block`` texels
+    ``size`` x ``size`` octahedral maps, ``spp`` paths per direction (at the pixel centre, or
+    with ``jitter`` each over the pixel's footprint: ``capture_block``). Blocks of ``block`` texels
     are cache entries of their own (an interrupted capture resumes); the assembled light field is
     returned (not stored twice)."""
     from jprt.render.lights import lighting_description
@@ -195,17 +217,17 @@ def capture_lightfield(scene, lighting=None, *, objects: Sequence[str] | None = 
     desc, handle, a, points, flags = _setup(scene, lighting, objects, resolution, atlas)
     base = {"format": 1, "scene": desc, "lighting": lighting_description(lighting) if lighting is not None else None,
             "atlas": _digest(a["position"], a["normal"]),
-            "size": int(size), "spp": int(spp), "seed": int(seed)}
+            "size": int(size), "spp": int(spp), "seed": int(seed), **({"jitter": True} if jitter else {})}
     t0 = time.perf_counter()
 
     def build(start, stop, b):
         return capture_block(handle, points[start:stop], np.asarray(a["normal"])[start:stop], flags[start:stop],
-                             int(size), spp=int(spp), seed=int(seed) * 1000003 + b)
+                             int(size), spp=int(spp), seed=int(seed) * 1000003 + b, jitter=bool(jitter))
 
     cat = _cached_blocks("lightfield", base, len(points), block, build, "light-field capture", progress, cache_dir)
     return LightField(a, int(size), points.astype(np.float32), np.asarray(a["normal"], np.float32), cat("full"),
                       cat("indirect"), cat("below").astype(bool), flags,
-                      {"spp": int(spp), "seed": int(seed), "capture_s": time.perf_counter() - t0,
+                      {"spp": int(spp), "seed": int(seed), "jitter": bool(jitter), "capture_s": time.perf_counter() - t0,
                        "pushed": int((flags == PUSHED).sum()), "inside": int((flags == INSIDE).sum())})
 
 

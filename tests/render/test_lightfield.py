@@ -28,6 +28,35 @@ def test_open_sky_is_the_environment_and_nothing_bounces(mi, tmp_path):
     assert 0.35 < lf.below.mean() < 0.65
 
 
+def test_jittered_capture_averages_each_pixel_over_its_footprint(mi, tmp_path):
+    """capture jitter: under a constant sky a pixel wholly above the surface holds the sky exactly,
+    one the horizon cuts holds the sky times the share of its paths above (strictly between 0 and
+    the sky somewhere), nothing bounces, and the irradiance quadrature comes out near pi L."""
+    from jprt.methods.sg_lightfield.model import texel_irradiance
+    from jprt.sphere import octahedral
+
+    normal = np.array([0.3, 0.9, 0.3]) / np.linalg.norm([0.3, 0.9, 0.3])  # the horizon cuts through pixels
+    atlas = {"position": np.array([[0.0, 0.0, 0.0]], np.float32), "normal": normal[None].astype(np.float32),
+             "texel_size": 0.1}
+    sky = np.array([0.5, 1.0, 2.0], np.float32)
+    env = EnvMap.create(np.full((8, 16, 3), sky, np.float32))
+    n = 8
+    lf = lightfield.capture_lightfield("empty", env, atlas=atlas, size=n, spp=16, cache_dir=str(tmp_path),
+                                       progress=False, jitter=True)
+    assert lf.meta["jitter"] and np.array_equal(lf.indirect, np.zeros_like(lf.indirect))
+    # pixels whose four corners are all above the surface: the sky to rounding
+    c = np.asarray(octahedral.texel_centers(n), np.float64)
+    corners = [np.asarray(octahedral.decode(np.clip(c + np.array(o) / n, -1, 1))) @ normal for o in
+               [(-1, -1), (-1, 1), (1, -1), (1, 1)]]
+    inside = np.all([y > 1e-6 for y in corners], axis=0)
+    assert inside.sum() > 4
+    np.testing.assert_allclose(lf.full[0][inside], np.broadcast_to(sky, lf.full[0][inside].shape), rtol=1e-5)
+    share = lf.full[0, ..., 1] / sky[1]
+    assert (share <= 1 + 1e-5).all() and ((share > 0.01) & (share < 0.99)).any()  # the horizon's pixels
+    e = np.asarray(texel_irradiance(lf.full, lf.normal, n))[0]
+    np.testing.assert_allclose(e, np.pi * sky, rtol=0.15)
+
+
 def test_cornell_floor_texels_under_the_boxes_are_flagged_and_the_rest_see_the_light(mi, tmp_path, monkeypatch):
     scene = {"name": "cornell_box", "area_light": True}
     kwargs = dict(objects=["floor"], resolution=16, size=4, spp=4, block=64, cache_dir=str(tmp_path), progress=False)

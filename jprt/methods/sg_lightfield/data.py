@@ -33,7 +33,8 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
         raise ValueError(f"capture.field must be 'indirect' or 'full', got {c['field']!r}")
     lf = capture_lightfield(scene if scene is not None else cfg["scene"], None, objects=list(cfg["objects"]) or None,
                             resolution=int(cfg["lightmap"]["resolution"]), size=int(c["size"]), spp=int(c["spp"]),
-                            seed=int(c["seed"]), block=int(c["block"]), cache_dir=cache_dir, progress=progress)
+                            seed=int(c["seed"]), block=int(c["block"]), cache_dir=cache_dir, progress=progress,
+                            jitter=bool(c["jitter"]))
     images = lf.indirect if c["field"] == "indirect" else lf.full
     irradiance = np.asarray(texel_irradiance(images, lf.normal, lf.size), np.float32)
     return SGData(lf.atlas, images, lf.below, lf.normal, lf.flags, irradiance,

@@ -69,8 +69,11 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "lightmap": {"resolution": 64},
     # octahedral maps of `size`^2 directions, `spp` paths each; `field`: "indirect" (paths that
     # bounced: the evaluator then predicts indirect light, as every jprt method does) or "full"
-    # (the emitters seen in the lobes too: direct + indirect, as the paper bakes)
-    "capture": {"size": 32, "spp": 64, "seed": 0, "block": 256, "field": "indirect"},
+    # (the emitters seen in the lobes too: direct + indirect, as the paper bakes); `jitter`: each
+    # path along its own direction within the map pixel (box-filtered, ``jprt.render.lightfield.
+    # capture_block``) instead of the pixel centre: needed where a small bright source lights the
+    # receivers (a lamp behind glass), which centre sampling catches all or nothing
+    "capture": {"size": 32, "spp": 64, "seed": 0, "block": 256, "field": "indirect", "jitter": False},
     "model": {"n_lobes": 16, "channels": [32, 64, 128, 256], "min_sharpness": 0.5, "max_sharpness": 1.0e4,
               "init_sharpness": 1.0},
     "train": {"steps": 2000, "batch": 64, "learning_rate": 1e-3, "final_lr_fraction": 0.1, "seed": 0,
