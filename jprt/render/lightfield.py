@@ -62,7 +62,7 @@ class LightField(NamedTuple):
         directly seen emission).
       below: (T, n, n) bool, directions at or below the texel's surface (not traced, 0).
       flags: (T,) int8: OK, PUSHED (captured from further out) or INSIDE (not captured, 0).
-      meta: {"spp", "seed", "capture_s", "offsets"}.
+      meta: {"spp", "seed", "jitter", "capture_s", "pushed", "inside"}.
     """
 
     atlas: dict

@@ -71,8 +71,8 @@ DEFAULT_CONFIG: dict[str, Any] = {
     # bounced: the evaluator then predicts indirect light, as every jprt method does) or "full"
     # (the emitters seen in the lobes too: direct + indirect, as the paper bakes); `jitter`: each
     # path along its own direction within the map pixel (box-filtered, ``jprt.render.lightfield.
-    # capture_block``) instead of the pixel centre: needed where a small bright source lights the
-    # receivers (a lamp behind glass), which centre sampling catches all or nothing
+    # capture_block``) instead of the pixel centre, same cost; on veach-bidir's lamp-lit room it
+    # took the room from 0.34 to 0.28 relative RMSE and left the table at 0.90 (README)
     "capture": {"size": 32, "spp": 64, "seed": 0, "block": 256, "field": "indirect", "jitter": False},
     "model": {"n_lobes": 16, "channels": [32, 64, 128, 256], "min_sharpness": 0.5, "max_sharpness": 1.0e4,
               "init_sharpness": 1.0},
