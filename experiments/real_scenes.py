@@ -206,11 +206,12 @@ def _references(desc, handle, camera, lightings, e) -> tuple[list, list]:
     from jprt.render.lights import lighting_description
     from jprt.render.scenes import describe
 
+    scene = describe(desc)  # reads and hashes the file once
     refs, refs2 = [], []
     for i, lighting in enumerate(lightings):
         spp = int(e["reference_spp"] if lighting is not None else e["reference_spp_file_emitters"])
         for seed, out in ((int(e["seed"]) + i, refs), (int(e["seed"]) + 1000 + i, refs2)):
-            spec = {"format": 1, "scene": describe(desc), "camera": camera._asdict(), "spp": spp, "seed": seed,
+            spec = {"format": 1, "scene": scene, "camera": camera._asdict(), "spp": spp, "seed": seed,
                     "lighting": None if lighting is None else lighting_description(lighting)}
 
             def render(lighting=lighting, spp=spp, seed=seed):

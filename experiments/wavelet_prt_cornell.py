@@ -447,7 +447,8 @@ def gt_transport_check(run) -> dict:
     t_true = np.asarray(jax.numpy.moveaxis(haar.forward(jax.numpy.moveaxis(jax.numpy.asarray(transport), 0, 3)), 3, 0))
     t_true = t_true.reshape(t_true.shape[0], -1, 3)
     valid = g["valid"].reshape(-1) > 0
-    top = {k: np.asarray(wp.select_wavelets(haar.forward(jax.numpy.asarray(cube)), k)[0]) for k in ks}
+    coeffs = haar.forward(jax.numpy.asarray(cube))
+    top = {k: np.asarray(wp.select_wavelets(coeffs, k)[0]) for k in ks}
 
     def learned_err(params, cfg) -> dict:
         """Relative error of a model's T_k against Mitsuba's over the top-K wavelets, by K."""

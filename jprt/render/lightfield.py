@@ -128,6 +128,20 @@ def _distance_along(handle: SceneHandle, origins, directions) -> np.ndarray:
     return np.where(valid, np.array(si.t, np.float64).reshape(-1), np.inf)
 
 
+def _jittered_directions(n: int, rng, pixels=None, lead: tuple = ()) -> np.ndarray:
+    """Unit directions uniform over the octahedral squares of an n x n map's pixels (all of them,
+    or the flat indices ``pixels``), ``lead + (pixels, 3)``: one draw of ``rng`` per call."""
+    from jprt.sphere import octahedral
+
+    centres = np.asarray(octahedral.texel_centers(n), np.float64).reshape(-1, 2)
+    if pixels is not None:
+        centres = centres[pixels]
+    uv = np.clip(centres + rng.uniform(-1.0 / n, 1.0 / n, tuple(lead) + centres.shape), -1.0, 1.0)
+    d = np.asarray(octahedral.decode(uv.reshape(-1, 2)), np.float64)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return d.reshape(uv.shape[:-1] + (3,))
+
+
 def capture_block(handle: SceneHandle, points, normal, flags, size: int, *, spp: int,
                   seed: int = 0, jitter: bool = False) -> dict:
     """The maps of one block of texels (see the module docstring): {"full", "indirect", "below"}.
@@ -148,21 +162,16 @@ def capture_block(handle: SceneHandle, points, normal, flags, size: int, *, spp:
     rows, cols = np.nonzero(traced)
     full = np.zeros((len(points), m, 3), np.float32)
     indirect = np.zeros((len(points), m, 3), np.float32)
-    if len(rows) and jitter:
-        from jprt.sphere import octahedral
-
-        n = int(size)
-        centres = np.asarray(octahedral.texel_centers(n), np.float64).reshape(-1, 2)[cols]
+    if len(rows) and jitter:  # (spp, rows) paths, one direction each
         rng = np.random.default_rng([int(seed), 17])
-        uv = np.clip(centres[None] + rng.uniform(-1.0 / n, 1.0 / n, (int(spp),) + centres.shape), -1.0, 1.0)
-        d = np.asarray(octahedral.decode(uv.reshape(-1, 2)), np.float64)
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        o = np.broadcast_to(points[rows][None], (int(spp), len(rows), 3)).reshape(-1, 3)
-        up = ((d * np.broadcast_to(normal[rows][None], (int(spp), len(rows), 3)).reshape(-1, 3)).sum(-1) > 0.0)[:, None]
-        every = np.where(up, radiance_rays(handle, o, d, spp=1, seed=seed, max_depth=-1), 0.0)
-        seen = np.where(up, radiance_rays(handle, o, d, spp=1, seed=seed, max_depth=1), 0.0)
-        full[rows, cols] = every.reshape(int(spp), len(rows), 3).mean(0)
-        indirect[rows, cols] = (every - seen).reshape(int(spp), len(rows), 3).mean(0)
+        d = _jittered_directions(int(size), rng, cols, lead=(int(spp),))
+        o = np.broadcast_to(points[rows], d.shape)
+        up = (np.einsum("srk,rk->sr", d, normal[rows]) > 0.0)[..., None]
+        every = radiance_rays(handle, o.reshape(-1, 3), d.reshape(-1, 3), spp=1, seed=seed, max_depth=-1)
+        seen = radiance_rays(handle, o.reshape(-1, 3), d.reshape(-1, 3), spp=1, seed=seed, max_depth=1)
+        every, seen = (np.where(up, x.reshape(d.shape), 0.0) for x in (every, seen))
+        full[rows, cols] = every.mean(0)
+        indirect[rows, cols] = (every - seen).mean(0)
     elif len(rows):
         o, d = points[rows], dirs[cols]
         every = radiance_rays(handle, o, d, spp=spp, seed=seed, max_depth=-1)
@@ -257,20 +266,15 @@ def visibility_block(handle: SceneHandle, points, normal, flags, size: int, *, s
                      seed: int = 0) -> dict:
     """One block's maps (``Visibility``): {"visible", "below"}; a jittered ray that points below
     the surface counts as blocked."""
-    from jprt.sphere import octahedral
-
     points = np.asarray(points, np.float64).reshape(-1, 3)
     normal = np.asarray(normal, np.float64).reshape(-1, 3)
     n = int(size)
-    centres = np.asarray(octahedral.texel_centers(n), np.float64).reshape(-1, 2)
     rng = np.random.default_rng(int(seed))
     visible = np.zeros((len(points), n * n), np.float64)
     below = (normal @ _directions(n).T) <= 0.0
     active = np.asarray(flags) != INSIDE
     for _ in range(int(samples)):
-        uv = np.clip(centres + rng.uniform(-1.0 / n, 1.0 / n, centres.shape), -1.0, 1.0)
-        dirs = np.asarray(octahedral.decode(uv), np.float64)
-        dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+        dirs = _jittered_directions(n, rng)
         above = ((normal @ dirs.T) > 0.0) & active[:, None]
         rows, cols = np.nonzero(above)
         if len(rows):
