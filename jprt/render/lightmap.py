@@ -199,8 +199,49 @@ def _raster_triangle(corners: np.ndarray, res: int, eps: float = 1e-9):
     return (ys.ravel() * res + xs.ravel())[inside], bary[inside]
 
 
+#: Version of ``build_atlas``'s layout: caches of data baked on an atlas (their spec names it)
+#: are rebuilt when it changes. 2: conservative rasterisation (charts thinner than a texel).
+ATLAS_FORMAT = 2
+
 #: At most this many planar charts per object (a box has 6); an object with more face planes is unwrapped by xatlas.
 MAX_PLANAR_CHARTS = 16
+
+
+def _closest_on_triangle(corners: np.ndarray, res: int, reach: float):
+    """The texels (flat indices) whose centres lie within ``reach`` (texel units) of a triangle
+    given in texel units, the distance, and the barycentric coordinates (n, 3) of the triangle's
+    point nearest each centre, moved a little inwards (below): the conservative rasterisation's
+    candidates."""
+    lo = np.maximum(np.floor(corners.min(0) - reach).astype(int), 0)
+    hi = np.minimum(np.ceil(corners.max(0) + reach).astype(int), res - 1)
+    if np.any(hi < lo):
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
+    xs, ys = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
+    p = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], axis=1)
+    a, b, c = corners
+    m = np.array([b - a, c - a]).T
+    if abs(np.linalg.det(m)) < 1e-14:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
+    l12 = np.linalg.solve(m, (p - a).T).T
+    bary = np.column_stack([1.0 - l12.sum(1), l12])
+    best_d = np.where(np.all(bary >= 0.0, axis=1), 0.0, np.inf)
+    best = bary.copy()
+    for i, j in ((0, 1), (1, 2), (2, 0)):  # the nearest point of each edge
+        e = corners[j] - corners[i]
+        t = np.clip((p - corners[i]) @ e / max(float(e @ e), 1e-300), 0.0, 1.0)
+        d = np.linalg.norm(corners[i] + t[:, None] * e - p, axis=1)
+        closer = d < best_d
+        w = np.zeros((p.shape[0], 3))
+        w[:, i], w[:, j] = 1.0 - t, t
+        best_d, best = np.where(closer, d, best_d), np.where(closer[:, None], w, best)
+    near = best_d <= reach
+    best, best_d = best[near], best_d[near]
+    # a point on an edge is where the triangle meets its neighbours (a crease, a wall's foot):
+    # move it towards the centroid by half the way or a quarter texel, whichever is less, so it
+    # lies inside its own surface, not on a seam that an offset ray could slip through
+    to_centre = np.linalg.norm((best - 1.0 / 3.0) @ corners, axis=1)
+    step = np.where(best_d > 0, np.minimum(0.5, 0.25 / np.maximum(to_centre, 1e-12)), 0.0)[:, None]
+    return (ys.ravel() * res + xs.ravel())[near], best_d, (1.0 - step) * best + step / 3.0
 
 
 def _uv_area(uv: np.ndarray) -> np.ndarray:
@@ -323,7 +364,9 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     smallest common texel size (found by bisection) that fits the atlas; an object with fewer
     than ``min_texels`` texels at that size is scaled up (its texel density raised) and the
     packing redone. Texel centres covered by a triangle become lightmap texels (their position
-    and geometric normal interpolated from the triangle), and uncovered atlas pixels point at
+    and geometric normal interpolated from the triangle), and so do texels a chart only overlaps
+    (conservative rasterisation: just inside the nearest triangle, by its point nearest the centre, so a chart thinner
+    than a texel still has texels of its own), and uncovered atlas pixels point at
     their nearest covered texel (``fill_index``) so a bilinear lookup never reads an empty texel.
     Zero-area triangles are left out of the charts, with a warning that counts them.
     """
@@ -384,10 +427,23 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
 
     owner = np.full(res * res, -1, np.int64)
     bary_of = np.zeros((res * res, 3))
-    for t in np.flatnonzero(_areas(all_tris) > 0):
+    live = np.flatnonzero(_areas(all_tris) > 0)
+    for t in live:
         idx, bary = _raster_triangle(atlas_uv[t] * res, res)
         free = owner[idx] < 0
         owner[idx[free]], bary_of[idx[free]] = t, bary[free]
+    # conservative rasterisation: a texel that no triangle covers at its centre but that some
+    # triangle's chart overlaps (its centre within half a texel diagonal) belongs to the nearest
+    # such triangle, at about the triangle's point nearest the centre. A chart thinner than a texel (a
+    # table's edge) otherwise has no texel at all, and its pixels read the nearest covered texel
+    # of the atlas, which can be another chart many texels away.
+    centred = owner >= 0
+    best_d = np.full(res * res, np.inf)
+    for t in live:
+        idx, d, bary = _closest_on_triangle(atlas_uv[t] * res, res, 0.5 * np.sqrt(2.0))
+        closer = ~centred[idx] & (d < best_d[idx])
+        idx = idx[closer]
+        owner[idx], bary_of[idx], best_d[idx] = t, bary[closer], d[closer]
     texel_index = np.nonzero(owner >= 0)[0].astype(np.int32)
     if texel_index.size == 0:
         raise ValueError("the atlas covers no texel centre; raise the resolution")

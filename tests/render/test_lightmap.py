@@ -196,3 +196,42 @@ def test_atlas_of_meshes_with_collapsed_overlapping_and_degenerate_uvs(mi, tmp_p
     assert hit.sum() > 200
     owner = atlas.texel_object[fill[hit]]
     assert np.mean(owner == g.object_id[hit]) > 0.97  # pixels read texels of their own object
+
+
+@pytest.mark.mitsuba
+def test_a_chart_thinner_than_a_texel_still_gets_texels(mi, tmp_path):
+    """Conservative rasterisation (issue 21: veach-bidir's table edge): a slab 1/20 of a texel
+    thick beside a large floor has texels on all six faces, each on its own face, and the pixels
+    that see the slab's thin side read a texel of that side, not the nearest covered texel of the
+    atlas (before: the side had no texel, and its pixels read texels up to 26 texels away)."""
+    slab = ('<shape type="cube" id="slab"><transform name="to_world"><scale x="0.5" y="{t}" z="0.5"/>'
+            '<translate y="{t}"/></transform><bsdf type="diffuse"/></shape>')
+    floor = ('<shape type="rectangle" id="floor"><transform name="to_world"><scale value="4"/>'
+             '<rotate x="1" angle="-90"/></transform><bsdf type="diffuse"/></shape>')
+    scene = tmp_path / "slab.xml"
+    res = 32
+    texel = 2 * 4 * 1.3 / res  # about the texel size of the floor alone at this resolution
+    scene.write_text('<scene version="3.0.0">' + floor + slab.format(t=texel / 40) + "</scene>")
+    handle = SceneHandle({"name": "xml", "path": str(scene)})
+    atlas = lightmap.build_atlas(handle, resolution=res)
+    obj = handle.object_names().index("slab")
+    mine = atlas.texel_object == obj
+    faces = np.unique(np.round(atlas.normal[mine], 3), axis=0)
+    assert len(faces) == 6, faces  # every face, the four thin sides included
+    thickness = 2 * texel / 40
+    assert thickness < 0.1 * atlas.texel_size
+    # each texel lies on the slab's surface (a thin side's texels at the side's nearest point)
+    p = np.abs(atlas.position[mine].astype(np.float64))
+    on_face = (np.abs(p[:, 0] - 0.5) < 1e-5) | (np.abs(p[:, 2] - 0.5) < 1e-5) | (p[:, 1] < 1e-5) | \
+        (np.abs(p[:, 1] - thickness) < 1e-5)
+    assert on_face.all() and (p[:, [0, 2]] <= 0.5 + 1e-5).all()
+    # a camera level with the slab's front side, close: pixels of the side read a texel within a
+    # texel of where they look
+    camera = look_at((0.0, texel / 40, 0.7), (0.0, texel / 40, 0.0), fov=40.0, width=32, height=32)
+    g = lightmap.atlas_gbuffer(handle, atlas, camera)
+    side = g.valid & (g.object_id == obj)
+    assert side.sum() >= 8
+    ij = np.clip((g.uv[side] * res).astype(int), 0, res - 1)
+    fill = atlas.fill_index[ij[:, 1] * res + ij[:, 0]]
+    dist = np.linalg.norm(atlas.position[fill] - g.position[side], axis=1) / atlas.texel_size
+    assert dist.max() < 1.0, dist.max()

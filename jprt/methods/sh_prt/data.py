@@ -69,7 +69,8 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
     cfg = resolve(DEFAULT_CONFIG, config)
     desc = describe(scene if scene is not None else cfg["scene"])
     degree = order_to_degree(cfg["sh"]["order"])
-    spec = {"format": 1, "scene": desc, "objects": list(cfg["objects"]), "lightmap": cfg["lightmap"], "sh": cfg["sh"]}
+    spec = {"format": 1, "scene": desc, "objects": list(cfg["objects"]), "lightmap": cfg["lightmap"], "sh": cfg["sh"],
+            "atlas_format": lightmap.ATLAS_FORMAT}
 
     def build() -> dict:
         t0 = time.perf_counter()
