@@ -74,7 +74,7 @@ CONFIG = {
                       "model": {"n_lobes": 8, "channels": [16, 32, 64]}, "train": {"steps": 1000, "batch": 64}},
     # views from the scene (target None: about the file's camera); one held-out view of its own (the
     # report scores the file's camera)
-    "wavelet_prt": {"envmaps": {"face_size": 16},
+    "wavelet_prt": {"envmaps": {"face_size": 16, "procedural": "lobes"},
                     "cameras": {"width": 64, "height": 64, "target": None, "sphere": {"n": 40}, "helix": {"n": 35},
                                 "near": 1, "far": 1},
                     "data": {"spp": 128, "test_spp": 64, "envs_per_view": 2, "test_pairs": "cycle"},
