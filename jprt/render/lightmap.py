@@ -365,9 +365,10 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     than ``min_texels`` texels at that size is scaled up (its texel density raised) and the
     packing redone. Texel centres covered by a triangle become lightmap texels (their position
     and geometric normal interpolated from the triangle), and so do texels a chart only overlaps
-    (conservative rasterisation: just inside the nearest triangle, by its point nearest the centre, so a chart thinner
-    than a texel still has texels of its own), and uncovered atlas pixels point at
-    their nearest covered texel (``fill_index``) so a bilinear lookup never reads an empty texel.
+    (conservative rasterisation: just inside the nearest triangle, by its point nearest the
+    centre, so a chart thinner than a texel still has texels of its own), and uncovered atlas
+    pixels point at their nearest covered texel (``fill_index``) so a bilinear lookup never reads
+    an empty texel.
     Zero-area triangles are left out of the charts, with a warning that counts them.
     """
     import warnings
@@ -434,9 +435,9 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
         owner[idx[free]], bary_of[idx[free]] = t, bary[free]
     # conservative rasterisation: a texel that no triangle covers at its centre but that some
     # triangle's chart overlaps (its centre within half a texel diagonal) belongs to the nearest
-    # such triangle, at about the triangle's point nearest the centre. A chart thinner than a texel (a
-    # table's edge) otherwise has no texel at all, and its pixels read the nearest covered texel
-    # of the atlas, which can be another chart many texels away.
+    # such triangle, at about the triangle's point nearest the centre. A chart thinner than a
+    # texel (a table's edge) otherwise has no texel at all, and its pixels read the nearest
+    # covered texel of the atlas, which can be another chart many texels away.
     centred = owner >= 0
     best_d = np.full(res * res, np.inf)
     for t in live:
