@@ -173,10 +173,9 @@ def test_the_environment_methods_evaluator_is_eq8_of_its_lobes_and_lighting():
 @pytest.mark.mitsuba
 def test_we_from_a_capture_is_near_zero_under_a_plate_and_high_under_the_open_sky(mi, tmp_path):
     """Cornell floor texels away from the open front (z <= 0.25) and half a texel or more from
-    the walls, W_E at r = n (straight up,
-    alpha 0.05, a constant sky): with the ceiling on (a plate over the floor) near 0; with it
-    removed, high (the opening above spans about 27 degrees around the normal, so the lobe's GGX
-    tails still meet the walls: not exactly 1)."""
+    the walls, W_E at r = n (straight up, alpha 0.05, a constant sky): with the ceiling on (a
+    plate over the floor) near 0; with it removed, high (the opening above spans about 27 degrees
+    around the normal, so the lobe's GGX tails still meet the walls: not exactly 1)."""
     from jprt.render import lightfield
 
     values = {}
@@ -190,8 +189,8 @@ def test_we_from_a_capture_is_near_zero_under_a_plate_and_high_under_the_open_sk
         up = np.asarray(jnp.stack([E.octahedral_lookup(w[k], jnp.asarray(vis.normal[k]))
                                    for k in range(len(vis.normal))]))[:, 0]
         values[name] = up
-        # texel centres: the conservative texels at the floor's rim sit a quarter texel from the
-        # walls, whose feet block the lobe's tails far more there
+        # texel centres: the conservative texels at the floor's rim sit within a quarter texel of
+        # the walls, whose feet block the lobe's tails far more there
         half = 0.5 * float(vis.atlas["texel_size"])
         inner = (np.abs(vis.position[:, 0]) <= 1.0 - half) & (vis.position[:, 2] >= -1.0 + half)
         keep = (vis.flags == lightfield.OK) & (vis.position[:, 2] <= 0.25) & inner
