@@ -179,24 +179,33 @@ def _uv_overlaps(uv: np.ndarray, res: int = 256) -> float:
     return float((count > 1).sum() / max(covered.sum(), 1))
 
 
+def _texel_barycentrics(corners: np.ndarray, res: int, margin: float):
+    """The texels (flat indices) of a triangle given in texel units, its bounding box grown by
+    ``margin`` texels, with their centres (n, 2) and the centres' barycentric coordinates (n, 3);
+    None for a box outside the atlas or a degenerate triangle."""
+    lo = np.maximum(np.floor(corners.min(0) - margin).astype(int), 0)
+    hi = np.minimum(np.ceil(corners.max(0) + margin).astype(int), res - 1)
+    if np.any(hi < lo):
+        return None
+    a, b, c = corners
+    m = np.array([b - a, c - a]).T
+    if abs(np.linalg.det(m)) < 1e-14:
+        return None
+    xs, ys = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
+    p = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], axis=1)
+    l12 = np.linalg.solve(m, (p - a).T).T
+    return ys.ravel() * res + xs.ravel(), p, np.column_stack([1.0 - l12.sum(1), l12])
+
+
 def _raster_triangle(corners: np.ndarray, res: int, eps: float = 1e-9):
     """Texel centres (flat indices) inside a triangle given in texel units, and their
     barycentric coordinates (n, 3)."""
-    lo = np.maximum(np.floor(corners.min(0) - 0.5).astype(int), 0)
-    hi = np.minimum(np.ceil(corners.max(0) + 0.5).astype(int), res - 1)
-    if np.any(hi < lo):
+    grid = _texel_barycentrics(corners, res, 0.5)
+    if grid is None:
         return np.zeros(0, np.int64), np.zeros((0, 3))
-    xs, ys = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
-    p = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], axis=1)
-    a, b, c = corners
-    m = np.array([b - a, c - a]).T
-    det = np.linalg.det(m)
-    if abs(det) < 1e-14:
-        return np.zeros(0, np.int64), np.zeros((0, 3))
-    l12 = np.linalg.solve(m, (p - a).T).T
-    bary = np.column_stack([1.0 - l12.sum(1), l12])
+    flat, _, bary = grid
     inside = np.all(bary >= -eps, axis=1)
-    return (ys.ravel() * res + xs.ravel())[inside], bary[inside]
+    return flat[inside], bary[inside]
 
 
 #: Version of ``build_atlas``'s layout: caches of data baked on an atlas (their spec names it)
@@ -212,18 +221,10 @@ def _closest_on_triangle(corners: np.ndarray, res: int, reach: float):
     given in texel units, the distance, and the barycentric coordinates (n, 3) of the triangle's
     point nearest each centre, moved a little inwards (below): the conservative rasterisation's
     candidates."""
-    lo = np.maximum(np.floor(corners.min(0) - reach).astype(int), 0)
-    hi = np.minimum(np.ceil(corners.max(0) + reach).astype(int), res - 1)
-    if np.any(hi < lo):
+    grid = _texel_barycentrics(corners, res, reach)
+    if grid is None:
         return np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
-    xs, ys = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
-    p = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], axis=1)
-    a, b, c = corners
-    m = np.array([b - a, c - a]).T
-    if abs(np.linalg.det(m)) < 1e-14:
-        return np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
-    l12 = np.linalg.solve(m, (p - a).T).T
-    bary = np.column_stack([1.0 - l12.sum(1), l12])
+    flat, p, bary = grid
     best_d = np.where(np.all(bary >= 0.0, axis=1), 0.0, np.inf)
     best = bary.copy()
     for i, j in ((0, 1), (1, 2), (2, 0)):  # the nearest point of each edge
@@ -241,7 +242,7 @@ def _closest_on_triangle(corners: np.ndarray, res: int, reach: float):
     # lies inside its own surface, not on a seam that an offset ray could slip through
     to_centre = np.linalg.norm((best - 1.0 / 3.0) @ corners, axis=1)
     step = np.where(best_d > 0, np.minimum(0.5, 0.25 / np.maximum(to_centre, 1e-12)), 0.0)[:, None]
-    return (ys.ravel() * res + xs.ravel())[near], best_d, (1.0 - step) * best + step / 3.0
+    return flat[near], best_d, (1.0 - step) * best + step / 3.0
 
 
 def _uv_area(uv: np.ndarray) -> np.ndarray:
