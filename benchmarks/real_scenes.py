@@ -60,7 +60,8 @@ def main() -> int:
     write_benchmark(args.out, result, "python benchmarks/real_scenes.py" + (f" --preset {args.preset}" if args.preset
                                                                               else ""),
                     notes="relative RMSE = ||prediction - reference|| / ||reference|| over an object's pixels and "
-                          "every held-out light (linear HDR indirect light, Mitsuba full minus direct); predicting "
+                          "every held-out light (linear HDR indirect light, Mitsuba full minus direct, path traced along "
+                          "the pixel-centre rays the methods' G-buffers read, not box-filtered over the pixel); predicting "
                           "zero scores 1; noise_floor: a second reference render (another seed) against the first; "
                           "noise_removed: sqrt(rel^2 - floor^2 / 2), the error against the truth with the "
                           "references' independent noise taken out; by_lighting: the same per held-out lighting, in the "

@@ -23,8 +23,10 @@ For each scene file (``scenes``, under ``assets``; default ../shared/assets/scen
   ``eval.n_lights`` point lights drawn in the same light region with another seed, or by the
   file's emitters for the baked method, or by the held-out maps (as ``face_size`` cube maps; Mitsuba
   renders the same texels) for the environment-lit ones. References: Mitsuba's indirect light (full minus direct,
-  same seed) at ``eval.reference_spp``, and a second render of them with another seed (the
-  references' own noise);
+  same seed) at ``eval.reference_spp`` along the pixel-centre rays that the methods' G-buffers
+  read (a rendered image averages each pixel's footprint, which no per-pixel prediction can
+  show: ``_centre_indirect``), and a second render of them with another seed (the references'
+  own noise);
 * per object covering at least ``eval.min_object_fraction`` of the image: the relative RMSE
   ||prediction - reference|| / ||reference|| over its pixels and all held-out lights, beside the
   noise floor ||reference' - reference|| / ||reference|| and the error with the reference's
@@ -198,13 +200,32 @@ def _environments(env: dict, face_size: int) -> tuple[list, list]:
     return [CubeMap(c) for c in cubes], [EnvMap.create(wp.render_equirect(c)) for c in cubes]
 
 
+def _centre_indirect(handle, camera, *, spp: int, seed: int) -> np.ndarray:
+    """Mitsuba's indirect light (H, W, 3) along the camera's pixel-centre rays: the rays of the
+    G-buffers every method reads (``gbuffer``, ``lightmap.atlas_gbuffer``), so a prediction and its
+    reference are the radiance of one surface point. A rendered image (rays jittered over the
+    pixel, box filter) is the pixel's average instead: where a pixel spans several texels or two
+    surfaces (a table top seen at grazing angles, a table's edge thinner than a pixel, every
+    silhouette) it holds light that no per-pixel prediction can show. Measured on veach-bidir's
+    table under the file's emitters (2026-12-01): a rendered pixel read 1.58 where the radiance
+    at its centre's point, path traced at 16384 spp, is 0.10 (a caustic elsewhere in the
+    pixel), and the table's edge read 0.05 where its points have 0.02 (the table top in the
+    pixel)."""
+    from jprt.render.cameras import camera_rays
+    from jprt.render.images import indirect_rays
+
+    o, d = camera_rays(camera)
+    rad = indirect_rays(handle, o.reshape(-1, 3), d.reshape(-1, 3), spp=int(spp), seed=int(seed))
+    return np.asarray(rad.indirect, np.float32).reshape(camera.height, camera.width, 3)
+
+
 def _references(desc, handle, camera, lightings, e) -> tuple[list, list]:
-    """Mitsuba's indirect light of ``camera`` under each lighting (None: the file's emitters, at
-    ``reference_spp_file_emitters``), at two seeds: (references, second references). Each image is
-    a ``jprt.cache`` entry (scene description, camera, lighting, spp, seed): a second run of the
-    report (another method, another setting) does not render them again."""
+    """Mitsuba's indirect light along the camera's pixel-centre rays (``_centre_indirect``) under
+    each lighting (None: the file's emitters, at ``reference_spp_file_emitters``), at two seeds:
+    (references, second references). Each image is a ``jprt.cache`` entry (scene description,
+    camera, lighting, spp, seed): a second run of the report (another method, another setting)
+    does not render them again."""
     from jprt import cache
-    from jprt.render.images import direct_indirect
     from jprt.render.lights import lighting_description
     from jprt.render.scenes import describe
 
@@ -213,29 +234,30 @@ def _references(desc, handle, camera, lightings, e) -> tuple[list, list]:
     for i, lighting in enumerate(lightings):
         spp = int(e["reference_spp"] if lighting is not None else e["reference_spp_file_emitters"])
         for seed, out in ((int(e["seed"]) + i, refs), (int(e["seed"]) + 1000 + i, refs2)):
-            spec = {"format": 1, "scene": scene, "camera": camera._asdict(), "spp": spp, "seed": seed,
+            # format 2: pixel-centre rays (format 1 was box-filtered rendered images)
+            spec = {"format": 2, "scene": scene, "camera": camera._asdict(), "spp": spp, "seed": seed,
                     "lighting": None if lighting is None else lighting_description(lighting)}
 
             def render(lighting=lighting, spp=spp, seed=seed):
                 handle.set_lighting(lighting)
-                return {"indirect": np.asarray(direct_indirect(handle, camera, spp=spp, seed=seed).indirect)}
+                return {"indirect": _centre_indirect(handle, camera, spp=spp, seed=seed)}
 
             out.append(cache.cached("real_scenes_reference", spec, render)[0]["indirect"])
     return refs, refs2
 
 
 def _pathtrace_ms(handle, camera, lighting, e) -> dict:
-    """The peer: Mitsuba's time for one reference frame (full + direct renders, the indirect light
-    at the references' spp) of the held-out view, after a 1-spp warm-up (Dr.Jit compiles per film)."""
-    from jprt.render.images import direct_indirect
-
+    """The peer: Mitsuba's time for one reference frame of the held-out view (full and direct
+    paths along the pixel-centre rays, the indirect light at the references' spp), after a 1-spp
+    warm-up (Dr.Jit compiles per ray count)."""
     handle.set_lighting(lighting)
     spp = int(e["reference_spp"] if lighting is not None else e["reference_spp_file_emitters"])
-    direct_indirect(handle, camera, spp=1, seed=3)
+    _centre_indirect(handle, camera, spp=1, seed=3)
     t0 = time.perf_counter()
-    direct_indirect(handle, camera, spp=spp, seed=3)
+    _centre_indirect(handle, camera, spp=spp, seed=3)
     return {"spp": spp, "ms": 1e3 * (time.perf_counter() - t0),
-            "note": "Mitsuba llvm_ad_rgb, full (max_depth -1) + direct (max_depth 2) renders at the references' spp"}
+            "note": "Mitsuba llvm_ad_rgb, full (max_depth -1) and direct (max_depth 2) paths along the "
+                    "pixel-centre rays at the references' spp"}
 
 
 def _face_counts(handle) -> list[int]:

@@ -159,13 +159,39 @@ def test_sg_environment_test_preset(mi, tmp_path):
     assert s["psnr_full"] is None  # the prediction is direct light: no separate direct term
 
 
-@pytest.mark.slow  # ~2 min: every method on a Bitterli scene file with nothing set per scene
-def test_real_scenes_test_preset(mi, tmp_path):
+def _real_scenes():
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("real_scenes", "experiments/real_scenes.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
+    return module
+
+
+def test_real_scenes_references_follow_the_gbuffer_rays(mi):
+    """The real-scenes references are path traced along the pixel-centre rays the G-buffers read:
+    exactly 0 wherever those rays miss the scene, also at pixels whose footprint the box partly
+    covers, and lit where they hit it; a rendered image (box-filtered over each pixel) has light
+    at such pixels, which no per-pixel prediction can show."""
+    from jprt.render import cameras, images
+    from jprt.render.gbuffer import gbuffer
+    from jprt.render.lights import PointLights
+    from jprt.render.scenes import SceneHandle, cornell_box
+
+    handle = SceneHandle(cornell_box(area_light=False), PointLights.create([0.1, 0.7, 0.2], [4.0, 4.0, 4.0]))
+    camera = cameras.look_at((0.13, 0.07, 6.3), (0.21, -0.17, 0.0), width=16, height=16)  # the box amid empty space
+    valid = gbuffer(handle, camera).valid
+    assert valid.any() and (~valid).any()
+    ref = _real_scenes()._centre_indirect(handle, camera, spp=8, seed=1)
+    assert ref.shape == (16, 16, 3) and (ref[~valid] == 0.0).all()
+    assert (ref[valid].sum(-1) > 0).mean() > 0.9
+    rendered = images.direct_indirect(handle, camera, spp=8, seed=1).indirect
+    assert (rendered[~valid].sum(-1) > 0).any()
+
+
+@pytest.mark.slow  # ~2 min: every method on a Bitterli scene file with nothing set per scene
+def test_real_scenes_test_preset(mi, tmp_path):
+    module = _real_scenes()
     path = os.path.join(module.SHARED_SCENES, "cornell_box_picture", "scene_picture.xml")
     if not os.path.isfile(path):
         pytest.skip(f"the Bitterli scenes of ../shared/assets are absent ({path})")
