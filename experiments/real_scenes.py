@@ -24,9 +24,9 @@ For each scene file (``scenes``, under ``assets``; default ../shared/assets/scen
   file's emitters for the baked method, or by the held-out maps (as ``face_size`` cube maps; Mitsuba
   renders the same texels) for the environment-lit ones. References: Mitsuba's indirect light (full minus direct,
   same seed) at ``eval.reference_spp`` along the pixel-centre rays that the methods' G-buffers
-  read (a rendered image averages each pixel's footprint, which no per-pixel prediction can
-  show: ``_centre_indirect``), and a second render of them with another seed (the references'
-  own noise);
+  read (``jprt.render.images.centre_rays``: a rendered image averages each pixel's footprint,
+  which no per-pixel prediction can show), and a second render of them with another seed (the
+  references' own noise);
 * per object covering at least ``eval.min_object_fraction`` of the image: the relative RMSE
   ||prediction - reference|| / ||reference|| over its pixels and all held-out lights, beside the
   noise floor ||reference' - reference|| / ||reference|| and the error with the reference's
@@ -200,32 +200,14 @@ def _environments(env: dict, face_size: int) -> tuple[list, list]:
     return [CubeMap(c) for c in cubes], [EnvMap.create(wp.render_equirect(c)) for c in cubes]
 
 
-def _centre_indirect(handle, camera, *, spp: int, seed: int) -> np.ndarray:
-    """Mitsuba's indirect light (H, W, 3) along the camera's pixel-centre rays: the rays of the
-    G-buffers every method reads (``gbuffer``, ``lightmap.atlas_gbuffer``), so a prediction and its
-    reference are the radiance of one surface point. A rendered image (rays jittered over the
-    pixel, box filter) is the pixel's average instead: where a pixel spans several texels or two
-    surfaces (a table top seen at grazing angles, a table's edge thinner than a pixel, every
-    silhouette) it holds light that no per-pixel prediction can show. Measured on veach-bidir's
-    table under the file's emitters (2026-12-01): a rendered pixel read 1.58 where the radiance
-    at its centre's point, path traced at 16384 spp, is 0.10 (a caustic elsewhere in the
-    pixel), and the table's edge read 0.05 where its points have 0.02 (the table top in the
-    pixel)."""
-    from jprt.render.cameras import camera_rays
-    from jprt.render.images import indirect_rays
-
-    o, d = camera_rays(camera)
-    rad = indirect_rays(handle, o.reshape(-1, 3), d.reshape(-1, 3), spp=int(spp), seed=int(seed))
-    return np.asarray(rad.indirect, np.float32).reshape(camera.height, camera.width, 3)
-
-
 def _references(desc, handle, camera, lightings, e) -> tuple[list, list]:
-    """Mitsuba's indirect light along the camera's pixel-centre rays (``_centre_indirect``) under
+    """Mitsuba's indirect light along the camera's pixel-centre rays (``images.centre_rays``) under
     each lighting (None: the file's emitters, at ``reference_spp_file_emitters``), at two seeds:
     (references, second references). Each image is a ``jprt.cache`` entry (scene description,
     camera, lighting, spp, seed): a second run of the report (another method, another setting)
     does not render them again."""
     from jprt import cache
+    from jprt.render.images import centre_rays
     from jprt.render.lights import lighting_description
     from jprt.render.scenes import describe
 
@@ -240,7 +222,7 @@ def _references(desc, handle, camera, lightings, e) -> tuple[list, list]:
 
             def render(lighting=lighting, spp=spp, seed=seed):
                 handle.set_lighting(lighting)
-                return {"indirect": _centre_indirect(handle, camera, spp=spp, seed=seed)}
+                return {"indirect": centre_rays(handle, camera, spp=spp, seed=seed).indirect}
 
             out.append(cache.cached("real_scenes_reference", spec, render)[0]["indirect"])
     return refs, refs2
@@ -250,11 +232,13 @@ def _pathtrace_ms(handle, camera, lighting, e) -> dict:
     """The peer: Mitsuba's time for one reference frame of the held-out view (full and direct
     paths along the pixel-centre rays, the indirect light at the references' spp), after a 1-spp
     warm-up (Dr.Jit compiles per ray count)."""
+    from jprt.render.images import centre_rays
+
     handle.set_lighting(lighting)
     spp = int(e["reference_spp"] if lighting is not None else e["reference_spp_file_emitters"])
-    _centre_indirect(handle, camera, spp=1, seed=3)
+    centre_rays(handle, camera, spp=1, seed=3)
     t0 = time.perf_counter()
-    _centre_indirect(handle, camera, spp=spp, seed=3)
+    centre_rays(handle, camera, spp=spp, seed=3)
     return {"spp": spp, "ms": 1e3 * (time.perf_counter() - t0),
             "note": "Mitsuba llvm_ad_rgb, full (max_depth -1) and direct (max_depth 2) paths along the "
                     "pixel-centre rays at the references' spp"}

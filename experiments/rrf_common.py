@@ -95,23 +95,9 @@ def _rmse(run, params, method_config) -> float:
 # The runner's hooks
 
 
-def _centre_rays(handle, camera, spp: int, seed: int):
-    """Mitsuba's direct and indirect radiance along the camera's pixel-centre rays, the rays the
-    G-buffer (and so the RRF) sees: (H, W, 3) each. An image path traced with rays jittered over
-    the pixel is the pixel's average instead, and at every silhouette it mixes two surfaces that
-    no G-buffer method can show: that aliasing, not the method, would then set the worst pixels."""
-    from jprt.render import cameras as cams
-    from jprt.render.images import indirect_rays
-
-    o, d = cams.camera_rays(camera)
-    rad = indirect_rays(handle, o.reshape(-1, 3), d.reshape(-1, 3), spp=spp, seed=seed)
-    shape = (camera.height, camera.width, 3)
-    return rad.direct.reshape(shape), rad.indirect.reshape(shape)
-
-
 def held_out(run) -> HeldOut:
     """The held-out (view, light) pairs: references path traced along the pixel-centre rays at
-    ``eval.reference_spp`` (``_centre_rays``), and the RRF's predictions."""
+    ``eval.reference_spp`` (``jprt.render.images.centre_rays``), and the RRF's predictions."""
     if run.config["data"]["mode"] == "material":
         raise ValueError("the RRF report evaluates view-mode RRFs; material editing is the material_edit stage")
     cameras, lightings, testset = held_out_inputs(run.config)
@@ -135,7 +121,8 @@ def held_out_inputs(config: dict):
 
 def held_out_references(config: dict, cameras, lightings, testset):
     """(direct, indirect) references of the held-out pairs along the pixel-centre rays at
-    ``eval.reference_spp`` (``_centre_rays``), 0 where the G-buffer is invalid."""
+    ``eval.reference_spp`` (``jprt.render.images.centre_rays``), 0 where the G-buffer is invalid."""
+    from jprt.render.images import centre_rays
     from jprt.render.scenes import SceneHandle
 
     e = config["eval"]
@@ -144,9 +131,9 @@ def held_out_references(config: dict, cameras, lightings, testset):
     for k, item in enumerate(testset.items):
         valid = testset.gbuffer(item.camera).valid
         handle.set_lighting(lightings[item.lighting])
-        d, i = _centre_rays(handle, cameras[item.camera], int(e["reference_spp"]), int(e["seed"]) * 1009 + k)
-        direct.append(np.where(valid[..., None], d, 0.0))
-        refs.append(np.where(valid[..., None], i, 0.0))
+        rad = centre_rays(handle, cameras[item.camera], spp=int(e["reference_spp"]), seed=int(e["seed"]) * 1009 + k)
+        direct.append(np.where(valid[..., None], rad.direct, 0.0))
+        refs.append(np.where(valid[..., None], rad.indirect, 0.0))
     return direct, refs
 
 
@@ -171,6 +158,8 @@ def frame(run):
 def pathtracer(run) -> PathTracer:
     """Mitsuba's own indirect along the same pixel-centre rays (full minus direct, a seed unlike
     the reference's) of the held-out pairs, and its time for the timing view's rays."""
+    from jprt.render.images import centre_rays
+
     handle, testset = run.state["handle"], run.state["testset"]
     cameras, lightings = run.state["cameras"], run.state["lightings"]
 
@@ -178,14 +167,14 @@ def pathtracer(run) -> PathTracer:
         images = []
         for k, item in enumerate(testset.items):
             handle.set_lighting(lightings[item.lighting])
-            images.append(_centre_rays(handle, cameras[item.camera], spp, 7777 + k)[1])
+            images.append(centre_rays(handle, cameras[item.camera], spp=spp, seed=7777 + k).indirect)
         return images
 
     def time_at(spp):
         cam = run.state["timing_camera"]
         handle.set_lighting(lightings[0])
-        _centre_rays(handle, cam, 1, 3)  # warm-up: Dr.Jit compiles its kernels for this ray count
-        return jeval.time_call(lambda: _centre_rays(handle, cam, spp, 3),
+        centre_rays(handle, cam, spp=1, seed=3)  # warm-up: Dr.Jit compiles its kernels for this ray count
+        return jeval.time_call(lambda: centre_rays(handle, cam, spp=spp, seed=3),
                                repeats=int(run.config["eval"]["pathtrace_repeats"]), warmup=0)["median_ms"]
 
     return PathTracer(render_at, time_at, "Mitsuba llvm_ad_rgb along the pixel-centre rays, indirect = full "

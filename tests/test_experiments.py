@@ -178,13 +178,16 @@ def test_real_scenes_references_follow_the_gbuffer_rays(mi):
     from jprt.render.lights import PointLights
     from jprt.render.scenes import SceneHandle, cornell_box
 
-    handle = SceneHandle(cornell_box(area_light=False), PointLights.create([0.1, 0.7, 0.2], [4.0, 4.0, 4.0]))
+    scene, light = cornell_box(area_light=False), PointLights.create([0.1, 0.7, 0.2], [4.0, 4.0, 4.0])
+    handle = SceneHandle(scene, light)
     camera = cameras.look_at((0.13, 0.07, 6.3), (0.21, -0.17, 0.0), width=16, height=16)  # the box amid empty space
     valid = gbuffer(handle, camera).valid
     assert valid.any() and (~valid).any()
-    ref = _real_scenes()._centre_indirect(handle, camera, spp=8, seed=1)
-    assert ref.shape == (16, 16, 3) and (ref[~valid] == 0.0).all()
-    assert (ref[valid].sum(-1) > 0).mean() > 0.9
+    e = {"reference_spp": 8, "reference_spp_file_emitters": 8, "seed": 1}
+    refs, refs2 = _real_scenes()._references(scene, handle, camera, [light], e)
+    for ref in refs + refs2:
+        assert ref.shape == (16, 16, 3) and (ref[~valid] == 0.0).all()
+        assert (ref[valid].sum(-1) > 0).mean() > 0.9
     rendered = images.direct_indirect(handle, camera, spp=8, seed=1).indirect
     assert (rendered[~valid].sum(-1) > 0).any()
 
