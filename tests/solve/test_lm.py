@@ -87,16 +87,25 @@ def test_mask_equals_dropping_samples():
 
 
 def test_batched_equals_sequential():
-    problems = [problem(256, seed=s) for s in range(4)]
-    params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[p for p, _ in problems])
-    data = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[d for _, d in problems])
-    mask = np.ones((4, 256), np.float32)
-    mask[1, 100:] = 0  # problem 1 has only 100 real samples
-    batched = lm.solve_batched(residual, params, data, mask=mask, settings=lm.LMSettings(max_iters=15, chunk_size=64))
-    for i, (p, d) in enumerate(problems):
-        single = lm.solve(residual, p, d, mask=mask[i], settings=lm.LMSettings(max_iters=15, chunk_size=64))
-        assert int(batched.iterations[i]) == int(single.iterations)
-        np.testing.assert_allclose(batched.loss[i], single.loss, rtol=1e-3)
+    """``solve_batched`` runs each problem as ``solve`` does: the same accepted steps, losses and
+    parameters. In float64: in float32 the vmapped reductions round in another order, and over
+    15 iterations that can flip an accept/reject decision (on one 2-core AMD EPYC problem 3
+    ended at loss 0.4195 batched against 0.4246 alone; float64 takes it to 0.0941 both ways)."""
+    with jax.enable_x64(True):
+        problems = [jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), problem(256, seed=s))
+                    for s in range(4)]
+        params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[p for p, _ in problems])
+        data = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[d for _, d in problems])
+        mask = np.ones((4, 256), np.float64)
+        mask[1, 100:] = 0  # problem 1 has only 100 real samples
+        settings = lm.LMSettings(max_iters=15, chunk_size=64)
+        batched = lm.solve_batched(residual, params, data, mask=mask, settings=settings)
+        for i, (p, d) in enumerate(problems):
+            single = lm.solve(residual, p, d, mask=mask[i], settings=settings)
+            assert int(batched.iterations[i]) == int(single.iterations)
+            np.testing.assert_allclose(batched.history[i], single.history, rtol=1e-9)
+            jax.tree_util.tree_map(lambda a, b: np.testing.assert_allclose(a[i], b, rtol=1e-7, atol=1e-10),
+                                   batched.params, single.params)
 
 
 def test_stops_on_loss_threshold():
