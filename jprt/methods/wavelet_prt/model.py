@@ -968,10 +968,10 @@ def evaluator(params, config: dict | None = None):
     ``VERTEX_FIELDS`` for the per-vertex variant); ``lighting`` a ``CubeMap`` (6, n, n, 3).
     Haar transform (Eq. 3), the top-K area-weighted wavelets (K = ``render.k``, the one place K is
     set), T_k of every pixel in chunks of ``render.chunk`` pixels (0: ``auto_chunk``), the dot product. Pixels whose
-    primary ray missed are 0. Pure and jitted.
+    primary ray missed are 0. Pure and jitted. T_k is ``head``'s run-time form, checked against
+    ``transport`` in tests/methods/test_wavelet_prt.py.
 
-    Numerics: not differentiable (builds the float32 run-time program: ``render_pixels`` of ``model``, covered;
-    T_k in the run-time form of ``head``, checked against ``transport`` in tests/methods/test_wavelet_prt.py).
+    Numerics: not differentiable (builds the float32 run-time program: ``render_pixels`` of ``model``, covered).
     """
     cfg = _cfg(config)
     m = model(cfg)
