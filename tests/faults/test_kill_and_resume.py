@@ -20,12 +20,13 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 
 
 def _env():
-    """The worker's environment: this session's XLA compilation cache (tests/conftest.py), so the
-    killed run, the resumed run and this process compile the training step once between them."""
+    """The worker's environment: this session's XLA compilation cache (tests/conftest.py), every
+    program written to it (the workers' dozens of small eager programs too), so the killed run,
+    the resumed run and this process compile each program once between them."""
     env = dict(os.environ)
     if jax.config.jax_compilation_cache_dir:
         env["JAX_COMPILATION_CACHE_DIR"] = jax.config.jax_compilation_cache_dir
-        env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = str(jax.config.jax_persistent_cache_min_compile_time_secs)
+        env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
     return env
 
 
