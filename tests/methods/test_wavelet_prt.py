@@ -187,14 +187,14 @@ def test_unbiased_training_wavelets_estimate_the_full_sum():
     c = jnp.asarray(rng.normal(size=(n_all, 3)).astype(np.float32))
     t = rng.uniform(0.5, 1.5, (n_all, 3))  # a positive "transport" per wavelet and channel
     full = np.sum(np.asarray(c) * t, axis=0)
-    draws, plain = [], []
-    for s in range(2000):
-        idx, vals, w = wp.training_wavelets(jax.random.PRNGKey(s), c, n, unbiased=True)
-        idx, vals, w = np.asarray(idx), np.asarray(vals), np.asarray(w)
-        np.testing.assert_allclose(w[10:], (n_all - 10) / 10)
-        draws.append(np.sum(w[:, None] * vals * t[idx], axis=0))
-        plain.append(np.sum(vals * t[idx], axis=0))
-    draws = np.asarray(draws)
+    # 2000 draws (keys 0..1999) as one vmapped program: 2000 eager calls took 12 s of dispatch
+    idx, vals, w = jax.jit(jax.vmap(lambda s: wp.training_wavelets(jax.random.PRNGKey(s), c, n, unbiased=True)))(
+        jnp.arange(2000))
+    idx, vals, w = np.asarray(idx), np.asarray(vals), np.asarray(w)
+    np.testing.assert_allclose(w[:, 10:], (n_all - 10) / 10)
+    assert all(len(set(row)) == n for row in idx)  # distinct wavelets in every draw
+    draws = np.sum(w[..., None] * vals * t[idx], axis=1)
+    plain = np.sum(vals * t[idx], axis=1)
     se = draws.std(axis=0) / np.sqrt(len(draws))
     assert np.all(np.abs(draws.mean(axis=0) - full) < 4 * se)
     assert np.any(np.abs(np.mean(plain, axis=0) - full) > 10 * se)
