@@ -119,9 +119,10 @@ def held_out_inputs(config: dict):
     return cameras, lightings, testset
 
 
-def held_out_references(config: dict, cameras, lightings, testset):
+def held_out_references(config: dict, cameras, lightings, testset, seed_offset: int = 0):
     """(direct, indirect) references of the held-out pairs along the pixel-centre rays at
-    ``eval.reference_spp`` (``jprt.render.images.centre_rays``), 0 where the G-buffer is invalid."""
+    ``eval.reference_spp`` (``jprt.render.images.centre_rays``), 0 where the G-buffer is invalid;
+    another ``seed_offset`` renders an independent set of the same pairs."""
     from jprt.render.images import centre_rays
     from jprt.render.scenes import SceneHandle
 
@@ -131,7 +132,7 @@ def held_out_references(config: dict, cameras, lightings, testset):
     for k, item in enumerate(testset.items):
         valid = testset.gbuffer(item.camera).valid
         handle.set_lighting(lightings[item.lighting])
-        rad = centre_rays(handle, cameras[item.camera], spp=int(e["reference_spp"]), seed=int(e["seed"]) * 1009 + k)
+        rad = centre_rays(handle, cameras[item.camera], spp=int(e["reference_spp"]), seed=int(e["seed"]) * 1009 + k + int(seed_offset))
         direct.append(np.where(valid[..., None], rad.direct, 0.0))
         refs.append(np.where(valid[..., None], rad.indirect, 0.0))
     return direct, refs

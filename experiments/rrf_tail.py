@@ -8,8 +8,12 @@ worst 0.1 % lie on ("object/normal axis": 1/1 the ceiling, 2/2 the back wall, 6/
 top face in the built-in Cornell box).
 
     python experiments/rrf_tail.py '{"small": {}, "face1": {"data": {"min_face_rays": 1}}}'
+    python experiments/rrf_tail.py --noise '{"small": {}}'
 
 One JSON line per variant on stdout. The numbers of 2026-11-30 are in experiments/rrf_cornell.py.
+With ``--noise`` a second reference set of the same pairs (other seeds) is rendered too: a first
+line gives the references' own noise (|A - B| / sqrt 2: its RMSE, 99.9th percentile and their
+ratio), and each variant is also scored against the mean of the two (half the noise variance).
 """
 
 from __future__ import annotations
@@ -25,7 +29,11 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
 
-def held_out(config: dict, cache: str):
+#: render seeds of the second reference set (``--noise``), offset from the first's
+NOISE_SEED_OFFSET = 1_000_003
+
+
+def held_out(config: dict, cache: str, seed_offset: int = 0):
     """(testset, references, valid masks) of rrf_cornell's held-out pairs; references cached in ``cache``."""
     import rrf_common
 
@@ -33,14 +41,22 @@ def held_out(config: dict, cache: str):
     valid = [np.asarray(testset.gbuffer(item.camera).valid, bool) for item in testset.items]
     if os.path.exists(cache):
         return testset, list(np.load(cache)["references"]), valid
-    refs = rrf_common.held_out_references(config, cameras, lights, testset)[1]
+    refs = rrf_common.held_out_references(config, cameras, lights, testset, seed_offset)[1]
     os.makedirs(os.path.dirname(os.path.abspath(cache)), exist_ok=True)
     np.savez(cache, references=np.stack(refs))
     return testset, refs, valid
 
 
-def score(config: dict, override: dict, testset, refs, valid) -> dict:
-    """Fit rrf_cornell's config with ``override`` merged in; its tail statistics on the held-out set."""
+def tail(preds, refs, valid) -> dict:
+    """RMSE and 99.9th percentile of |preds - refs| over every valid pixel and channel."""
+    err = np.concatenate([np.abs(p - r)[v].ravel() for p, r, v in zip(preds, refs, valid)])
+    rmse, p999 = float(np.sqrt(np.mean(err ** 2))), float(np.percentile(err, 99.9))
+    return {"rmse": rmse, "p999_abs_error": p999, "p999_over_rmse": p999 / rmse}
+
+
+def score(config: dict, override: dict, testset, refs, valid, refs2=None) -> dict:
+    """Fit rrf_cornell's config with ``override`` merged in; its tail statistics on the held-out set
+    (and with ``refs2``, a second reference set, against the mean of the two)."""
     from jprt.config import merge
     from jprt.methods import REGISTRY
     from jprt.methods.rrf import data as rrf_data
@@ -61,9 +77,11 @@ def score(config: dict, override: dict, testset, refs, valid) -> dict:
                               for g, v in zip(gbs, valid)])
     ids, counts = np.unique(surface[err >= p999], return_counts=True)
     worst = {f"{i // 10}/{i % 10}": int(c) for i, c in sorted(zip(ids, counts), key=lambda t: -t[1])}
-    return {"rmse": rmse, "p999_abs_error": p999, "p999_over_rmse": p999 / rmse,
-            "n_leaves": int(np.shape(fit.params["leaves"]["layers"][0]["w"])[0]), "worst_0.1%_by_surface": worst,
-            "seconds": round(time.perf_counter() - t0)}
+    out = {"rmse": rmse, "p999_abs_error": p999, "p999_over_rmse": p999 / rmse,
+           "n_leaves": int(np.shape(fit.params["leaves"]["layers"][0]["w"])[0]), "worst_0.1%_by_surface": worst}
+    if refs2 is not None:
+        out["against_mean_of_two_references"] = tail(preds, [(a + b) / 2 for a, b in zip(refs, refs2)], valid)
+    return {**out, "seconds": round(time.perf_counter() - t0)}
 
 
 def main() -> None:
@@ -71,13 +89,23 @@ def main() -> None:
 
     from jprt.config import merge
 
-    if len(sys.argv) != 2:
+    args = sys.argv[1:]
+    noise = "--noise" in args
+    args = [a for a in args if a != "--noise"]
+    if len(args) != 1:
         sys.exit(__doc__)
     config = merge(rrf_cornell.CONFIG, {})
-    testset, refs, valid = held_out(config, os.path.join(config["output"]["dir"], "tail_references.npz"))
-    for name, override in json.loads(sys.argv[1]).items():
-        print(json.dumps({"name": name, "override": override, **score(config, override, testset, refs, valid)}),
-              flush=True)
+    folder = config["output"]["dir"]
+    testset, refs, valid = held_out(config, os.path.join(folder, "tail_references.npz"))
+    refs2 = None
+    if noise:
+        refs2 = held_out(config, os.path.join(folder, "tail_references_2.npz"), NOISE_SEED_OFFSET)[1]
+        own = tail([a / np.sqrt(2) for a in refs], [b / np.sqrt(2) for b in refs2], valid)
+        print(json.dumps({"name": "reference noise (|A - B| / sqrt 2)", "reference_spp":
+                          int(config["eval"]["reference_spp"]), **own}), flush=True)
+    for name, override in json.loads(args[0]).items():
+        print(json.dumps({"name": name, "override": override,
+                          **score(config, override, testset, refs, valid, refs2)}), flush=True)
 
 
 if __name__ == "__main__":
