@@ -81,7 +81,7 @@ CONFIG = {
     "wavelet_prt": {"envmaps": {"face_size": 16, "procedural": "lobes"},
                     "cameras": {"width": 64, "height": 64, "target": None, "sphere": {"n": 40}, "helix": {"n": 35},
                                 "near": 1, "far": 1},
-                    "data": {"spp": 128, "test_spp": 64, "envs_per_view": 2, "test_pairs": "cycle"},
+                    "data": {"spp": 128, "test_spp": 64, "envs_per_view": 2, "test_pairs": "cycle", "rays": "image"},
                     "model": {"n_levels": 8, "log2_table_size": 14, "n_features": 32, "hidden": 128},
                     "train": {"steps": 1500, "pixels": 256, "wavelets": 300}, "render": {"k": 64}},
     "sh_prt": {"lightmap": {"resolution": 96}, "sh": {"order": 3, "spp": 64, "env_height": 32}},

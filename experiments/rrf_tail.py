@@ -9,11 +9,15 @@ top face in the built-in Cornell box).
 
     python experiments/rrf_tail.py '{"small": {}, "face1": {"data": {"min_face_rays": 1}}}'
     python experiments/rrf_tail.py --noise '{"small": {}}'
+    python experiments/rrf_tail.py --figure results/rrf_tail '{"small": {}}'
 
 One JSON line per variant on stdout. The numbers of 2026-11-30 are in experiments/rrf_cornell.py.
 With ``--noise`` a second reference set of the same pairs (other seeds) is rendered too: a first
 line gives the references' own noise (|A - B| / sqrt 2: its RMSE, 99.9th percentile and their
 ratio), and each variant is also scored against the mean of the two (half the noise variance).
+With ``--figure DIR`` each variant writes ``DIR/tail_<name>.png``: the four held-out pairs that
+hold most of the worst 0.1 %, one row each: reference | RRF | |error| (white at 0.1), the worst
+0.1 % in red.
 """
 
 from __future__ import annotations
@@ -54,7 +58,30 @@ def tail(preds, refs, valid) -> dict:
     return {"rmse": rmse, "p999_abs_error": p999, "p999_over_rmse": p999 / rmse}
 
 
-def score(config: dict, override: dict, testset, refs, valid, refs2=None) -> dict:
+def figure(path: str, preds, refs, valid, threshold: float, rows: int = 4, scale: int = 4) -> list[int]:
+    """The tail figure of ``--figure`` (module docstring); returns the pairs shown, worst first."""
+    from jprt import io
+    from jprt.metrics import tonemap
+
+    err = [np.where(v[..., None], np.abs(p - r), 0.0).max(-1) for p, r, v in zip(preds, refs, valid)]
+    counts = [int(np.sum(np.where(v[..., None], np.abs(p - r), 0.0) >= threshold))
+              for p, r, v in zip(preds, refs, valid)]
+    shown = [int(i) for i in np.argsort(counts, kind="stable")[::-1][:rows]]
+    lines = []
+    for i in shown:
+        grey = np.clip(err[i] / 0.1, 0.0, 1.0)
+        worst = err[i] >= threshold
+        panel = np.stack([grey, np.where(worst, 0.0, grey), np.where(worst, 0.0, grey)], -1)
+        panel[worst, 0] = 1.0
+        lines.append(np.concatenate([np.asarray(tonemap(refs[i])), np.asarray(tonemap(preds[i])), panel], axis=1))
+    image = np.concatenate(lines, axis=0)
+    image = np.repeat(np.repeat(image, scale, axis=0), scale, axis=1)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    io.write_png(path, image, tonemapped=True)
+    return shown
+
+
+def score(config: dict, override: dict, testset, refs, valid, refs2=None, figure_path: str | None = None) -> dict:
     """Fit rrf_cornell's config with ``override`` merged in; its tail statistics on the held-out set
     (and with ``refs2``, a second reference set, against the mean of the two)."""
     from jprt.config import merge
@@ -79,8 +106,12 @@ def score(config: dict, override: dict, testset, refs, valid, refs2=None) -> dic
     worst = {f"{i // 10}/{i % 10}": int(c) for i, c in sorted(zip(ids, counts), key=lambda t: -t[1])}
     out = {"rmse": rmse, "p999_abs_error": p999, "p999_over_rmse": p999 / rmse,
            "n_leaves": int(np.shape(fit.params["leaves"]["layers"][0]["w"])[0]), "worst_0.1%_by_surface": worst}
+    per_pair = [int(np.sum(np.where(v[..., None], np.abs(p - r), 0.0) >= p999)) for p, r, v in zip(preds, refs, valid)]
+    out["worst_0.1%_by_pair"] = per_pair
     if refs2 is not None:
         out["against_mean_of_two_references"] = tail(preds, [(a + b) / 2 for a, b in zip(refs, refs2)], valid)
+    if figure_path:
+        out["figure"] = {"path": figure_path, "pairs": figure(figure_path, preds, refs, valid, p999)}
     return {**out, "seconds": round(time.perf_counter() - t0)}
 
 
@@ -92,6 +123,13 @@ def main() -> None:
     args = sys.argv[1:]
     noise = "--noise" in args
     args = [a for a in args if a != "--noise"]
+    figures = None
+    if "--figure" in args:
+        at = args.index("--figure")
+        if at + 1 >= len(args):
+            sys.exit(__doc__)
+        figures = args[at + 1]
+        del args[at:at + 2]
     if len(args) != 1:
         sys.exit(__doc__)
     config = merge(rrf_cornell.CONFIG, {})
@@ -105,7 +143,8 @@ def main() -> None:
                           int(config["eval"]["reference_spp"]), **own}), flush=True)
     for name, override in json.loads(args[0]).items():
         print(json.dumps({"name": name, "override": override,
-                          **score(config, override, testset, refs, valid, refs2)}), flush=True)
+                          **score(config, override, testset, refs, valid, refs2,
+                                  figures and os.path.join(figures, f"tail_{name}.png"))}), flush=True)
 
 
 if __name__ == "__main__":

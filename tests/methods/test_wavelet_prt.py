@@ -491,3 +491,32 @@ def test_cameras_without_a_target_come_from_the_scene_file(mi, tmp_path):
     assert fov == pytest.approx(regions["fov"])
     orbit = wp_data._cameras(desc, wp.DEFAULT_CONFIG["cameras"], seed=0)  # a target: the orbits, as before
     np.testing.assert_array_equal(orbit[0], wp.camera_sets(wp.DEFAULT_CONFIG["cameras"], 0)[0])
+
+
+@pytest.mark.mitsuba
+def test_centre_ray_targets_are_the_radiance_at_the_gbuffers_points(mi):
+    """``data.rays = "centre"``: every training and test target is traced along the pixel-centre
+    ray the G-buffer reads, so where that ray misses the scene the indirect light is exactly 0;
+    the default rendered images ("image") average each pixel's footprint and light some of those
+    pixels from the surfaces beside them. Unknown values are refused."""
+    from jprt.methods.wavelet_prt import data as wp_data
+
+    preset = REGISTRY["wavelet_prt"].presets["test"]
+    small = {**preset, "cameras": {**preset["cameras"], "width": 8, "height": 8, "sphere": {"n": 2}, "helix": {"n": 1},
+                                   "near": 1, "far": 1}, "data": {**preset["data"], "spp": 4, "test_spp": 4}}
+    sets = {}
+    for rays in ("image", "centre"):
+        cfg = REGISTRY["wavelet_prt"].resolve({**small, "data": {**small["data"], "rays": rays}})
+        sets[rays] = wp_data.make_dataset(cfg["scene"], cfg, progress=False)
+    for rays, data in sets.items():
+        views = [data.train] + [data.tests[n] for n in ("near", "far")]
+        missed = np.concatenate([np.abs(v["indirect"][~v["valid"].astype(bool)]).max(-1).ravel() for v in views])
+        assert missed.size > 0  # the open top and the box's outline: some pixels' centre rays miss
+        if rays == "centre":
+            assert not np.any(missed)
+        else:
+            assert np.sum(missed > 0) > 0
+    np.testing.assert_array_equal(sets["image"].train["position"], sets["centre"].train["position"])  # same views
+    with pytest.raises(ValueError, match="data.rays"):
+        cfg = REGISTRY["wavelet_prt"].resolve({**small, "data": {**small["data"], "rays": "jittered"}})
+        wp_data.make_dataset(cfg["scene"], cfg, progress=False)

@@ -126,12 +126,15 @@ def load_environments(stems, rotations, face_size: int, *, normalise: bool = Tru
     return (np.stack(envs) if envs else np.zeros((0, 6, face_size, face_size, 3), np.float32)), names
 
 
-def _render_view(handle, camera, cube, spp: int, seed: int, max_depth: int):
+def _render_view(handle, camera, cube, spp: int, seed: int, max_depth: int, rays: str = "image"):
+    """(direct, indirect) of one view under one cube map: rendered over each pixel's footprint
+    (``rays="image"``) or along the pixel-centre rays (``"centre"``, ``images.centre_rays``)."""
     from jprt.render import images
     from jprt.render.lights import EnvMap
 
     handle.set_lighting(EnvMap.create(render_equirect(cube)))
-    r = images.direct_indirect(handle, camera, spp=spp, seed=seed, max_depth=max_depth)
+    render = images.centre_rays if rays == "centre" else images.direct_indirect
+    r = render(handle, camera, spp=spp, seed=seed, max_depth=max_depth)
     return r.direct, r.indirect
 
 
@@ -152,7 +155,7 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
     Each training camera is rendered under ``data.envs_per_view`` training environments, assigned
     so that every environment lights the same number V of images; each image has its G-buffer
     (exact pixel-centre rays), direct (Mitsuba ``max_depth=2``) and indirect (full minus direct,
-    same seed) radiance. Test views are lit by held-out maps only and rendered at ``test_spp``.
+    same seed) radiance, over each pixel's footprint or along its centre ray (``data.rays``). Test views are lit by held-out maps only and rendered at ``test_spp``.
     """
     from jprt.render.scenes import describe
 
@@ -166,8 +169,12 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
         folder = ecfg["folder"] or SHARED_ENVMAPS
         files_key = sorted((f, os.path.getsize(os.path.join(folder, f))) for f in os.listdir(folder)) \
             if os.path.isdir(folder) else None
+    if dcfg["rays"] not in ("image", "centre"):
+        raise ValueError(f"unknown data.rays {dcfg['rays']!r}: use 'image' (pixel footprints) or 'centre' (pixel-centre rays)")
+    # the default "image" is left out of the key, so datasets cached before the key existed stay valid
     spec = {"format": 1, "scene": desc, "envmaps": {k: v for k, v in ecfg.items() if k != "folder"},
-            "files": files_key, "cameras": ccfg, "data": dcfg}
+            "files": files_key, "cameras": ccfg,
+            "data": {k: v for k, v in dcfg.items() if not (k == "rays" and v == "image")}}
     arrays, _ = cache.cached("wavelet_prt", spec, lambda: _render(desc, cfg, progress), cache_dir=cache_dir)
     return _unpack(arrays)
 
@@ -205,7 +212,8 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
         g = gbuffer_fields(handle, cam)
         for j in range(per_view):
             e = int(assign[c * per_view + j])
-            direct, indirect = _render_view(handle, cam, envs[e], spp, seed * 100003 + c * per_view + j, max_depth)
+            direct, indirect = _render_view(handle, cam, envs[e], spp, seed * 100003 + c * per_view + j, max_depth,
+                                            dcfg["rays"])
             groups[e].append(dict(g, direct=direct, indirect=indirect))
             bar.update(1)
     train = {k: np.stack([np.stack([img[k] for img in grp]) for grp in groups])
@@ -234,7 +242,8 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
             for e in lightings:
                 direct, indirect = _render_view(handle, cam, test_envs[e], int(dcfg["test_spp"]),
                                                 seed * 7 + 1000003 + i + (0 if name == "near" else 5003)
-                                                + 100 * e * (dcfg["test_pairs"] == "all"), max_depth)
+                                                + 100 * e * (dcfg["test_pairs"] == "all"), max_depth,
+                                                dcfg["rays"])
                 views.append(dict(g, direct=direct, indirect=indirect, env=np.int32(e)))
                 bar.update(1)
         tests[name] = {k: np.stack([v[k] for v in views]) for k in views[0]} if views else {}

@@ -144,7 +144,11 @@ DEFAULT_CONFIG = {
         "far_radius": [2.4, 2.8], "far_azimuth": [-45.0, 45.0], "far_elevation": [-10.0, 55.0],
     },
     # test_pairs: "all" -> every near / far view under every held-out map; "cycle" -> view i under map i
-    "data": {"spp": 128, "test_spp": 1024, "envs_per_view": 2, "seed": 0, "max_depth": -1, "test_pairs": "all"},
+    # rays: "image" renders each pixel over its footprint (Mitsuba's box-filtered image, as the
+    # paper's training images); "centre" traces the pixel-centre rays the G-buffer reads
+    # (jprt.render.images.centre_rays), so a target is the radiance of the one point the model sees
+    "data": {"spp": 128, "test_spp": 1024, "envs_per_view": 2, "seed": 0, "max_depth": -1, "test_pairs": "all",
+             "rays": "image"},
     "model": {
         "n_levels": 8, "features_per_level": 2,  # M = n_levels x features_per_level (paper: 64)
         "log2_table_size": 14,  # paper: 19
