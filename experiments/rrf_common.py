@@ -132,7 +132,8 @@ def held_out_references(config: dict, cameras, lightings, testset, seed_offset: 
     for k, item in enumerate(testset.items):
         valid = testset.gbuffer(item.camera).valid
         handle.set_lighting(lightings[item.lighting])
-        rad = centre_rays(handle, cameras[item.camera], spp=int(e["reference_spp"]), seed=int(e["seed"]) * 1009 + k + int(seed_offset))
+        rad = centre_rays(handle, cameras[item.camera], spp=int(e["reference_spp"]),
+                          seed=int(e["seed"]) * 1009 + k + int(seed_offset))
         direct.append(np.where(valid[..., None], rad.direct, 0.0))
         refs.append(np.where(valid[..., None], rad.indirect, 0.0))
     return direct, refs

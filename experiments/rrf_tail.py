@@ -51,21 +51,25 @@ def held_out(config: dict, cache: str, seed_offset: int = 0):
     return testset, refs, valid
 
 
+def abs_errors(preds, refs, valid) -> list[np.ndarray]:
+    """|preds - refs| per pair, (H, W, 3), 0 where the G-buffer is invalid."""
+    return [np.where(v[..., None], np.abs(p - r), 0.0) for p, r, v in zip(preds, refs, valid)]
+
+
 def tail(preds, refs, valid) -> dict:
     """RMSE and 99.9th percentile of |preds - refs| over every valid pixel and channel."""
-    err = np.concatenate([np.abs(p - r)[v].ravel() for p, r, v in zip(preds, refs, valid)])
+    err = np.concatenate([e[v].ravel() for e, v in zip(abs_errors(preds, refs, valid), valid)])
     rmse, p999 = float(np.sqrt(np.mean(err ** 2))), float(np.percentile(err, 99.9))
     return {"rmse": rmse, "p999_abs_error": p999, "p999_over_rmse": p999 / rmse}
 
 
-def figure(path: str, preds, refs, valid, threshold: float, rows: int = 4, scale: int = 4) -> list[int]:
-    """The tail figure of ``--figure`` (module docstring); returns the pairs shown, worst first."""
+def figure(path: str, preds, refs, errors, counts, threshold: float, rows: int = 4, scale: int = 4) -> list[int]:
+    """The tail figure of ``--figure`` (module docstring) from each pair's ``abs_errors`` and its
+    count of channels at or above ``threshold``; returns the pairs shown, worst first."""
     from jprt import io
     from jprt.metrics import tonemap
 
-    err = [np.where(v[..., None], np.abs(p - r), 0.0).max(-1) for p, r, v in zip(preds, refs, valid)]
-    counts = [int(np.sum(np.where(v[..., None], np.abs(p - r), 0.0) >= threshold))
-              for p, r, v in zip(preds, refs, valid)]
+    err = [e.max(-1) for e in errors]
     shown = [int(i) for i in np.argsort(counts, kind="stable")[::-1][:rows]]
     lines = []
     for i in shown:
@@ -97,21 +101,21 @@ def score(config: dict, override: dict, testset, refs, valid, refs2=None, figure
     evaluate = method.evaluator(fit.params, cfg)
     gbs = [testset.gbuffer(item.camera) for item in testset.items]
     preds = [np.asarray(evaluate(g, testset.lighting(item.lighting))) for g, item in zip(gbs, testset.items)]
-    err = np.concatenate([np.abs(p - r)[v].ravel() for p, r, v in zip(preds, refs, valid)])
-    rmse = float(np.sqrt(np.mean(err ** 2)))
-    p999 = float(np.percentile(err, 99.9))
+    errors = abs_errors(preds, refs, valid)
+    err = np.concatenate([e[v].ravel() for e, v in zip(errors, valid)])
+    stats = tail(preds, refs, valid)
+    p999 = stats["p999_abs_error"]
     surface = np.concatenate([np.repeat(np.asarray(g.object_id)[v] * 10 + np.argmax(np.abs(np.asarray(g.normal)), -1)[v], 3)
                               for g, v in zip(gbs, valid)])
     ids, counts = np.unique(surface[err >= p999], return_counts=True)
     worst = {f"{i // 10}/{i % 10}": int(c) for i, c in sorted(zip(ids, counts), key=lambda t: -t[1])}
-    out = {"rmse": rmse, "p999_abs_error": p999, "p999_over_rmse": p999 / rmse,
-           "n_leaves": int(np.shape(fit.params["leaves"]["layers"][0]["w"])[0]), "worst_0.1%_by_surface": worst}
-    per_pair = [int(np.sum(np.where(v[..., None], np.abs(p - r), 0.0) >= p999)) for p, r, v in zip(preds, refs, valid)]
-    out["worst_0.1%_by_pair"] = per_pair
+    per_pair = [int(np.sum(e >= p999)) for e in errors]
+    out = {**stats, "n_leaves": int(np.shape(fit.params["leaves"]["layers"][0]["w"])[0]),
+           "worst_0.1%_by_surface": worst, "worst_0.1%_by_pair": per_pair}
     if refs2 is not None:
         out["against_mean_of_two_references"] = tail(preds, [(a + b) / 2 for a, b in zip(refs, refs2)], valid)
     if figure_path:
-        out["figure"] = {"path": figure_path, "pairs": figure(figure_path, preds, refs, valid, p999)}
+        out["figure"] = {"path": figure_path, "pairs": figure(figure_path, preds, refs, errors, per_pair, p999)}
     return {**out, "seconds": round(time.perf_counter() - t0)}
 
 

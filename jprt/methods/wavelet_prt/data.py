@@ -126,7 +126,7 @@ def load_environments(stems, rotations, face_size: int, *, normalise: bool = Tru
     return (np.stack(envs) if envs else np.zeros((0, 6, face_size, face_size, 3), np.float32)), names
 
 
-def _render_view(handle, camera, cube, spp: int, seed: int, max_depth: int, rays: str = "image"):
+def _render_view(handle, camera, cube, spp: int, seed: int, max_depth: int, rays: str):
     """(direct, indirect) of one view under one cube map: rendered over each pixel's footprint
     (``rays="image"``) or along the pixel-centre rays (``"centre"``, ``images.centre_rays``)."""
     from jprt.render import images
@@ -155,7 +155,8 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
     Each training camera is rendered under ``data.envs_per_view`` training environments, assigned
     so that every environment lights the same number V of images; each image has its G-buffer
     (exact pixel-centre rays), direct (Mitsuba ``max_depth=2``) and indirect (full minus direct,
-    same seed) radiance, over each pixel's footprint or along its centre ray (``data.rays``). Test views are lit by held-out maps only and rendered at ``test_spp``.
+    same seed) radiance, over each pixel's footprint or along its centre ray (``data.rays``).
+    Test views are lit by held-out maps only and rendered at ``test_spp``.
     """
     from jprt.render.scenes import describe
 
@@ -170,7 +171,8 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
         files_key = sorted((f, os.path.getsize(os.path.join(folder, f))) for f in os.listdir(folder)) \
             if os.path.isdir(folder) else None
     if dcfg["rays"] not in ("image", "centre"):
-        raise ValueError(f"unknown data.rays {dcfg['rays']!r}: use 'image' (pixel footprints) or 'centre' (pixel-centre rays)")
+        raise ValueError(f"unknown data.rays {dcfg['rays']!r}: use 'image' (pixel footprints) or 'centre' "
+                         "(pixel-centre rays)")
     # the default "image" is left out of the key, so datasets cached before the key existed stay valid
     spec = {"format": 1, "scene": desc, "envmaps": {k: v for k, v in ecfg.items() if k != "folder"},
             "files": files_key, "cameras": ccfg,

@@ -993,8 +993,8 @@ def evaluator(params, config: dict | None = None):
         flat = {f: jnp.asarray(inputs[f]).reshape((-1,) + jnp.asarray(inputs[f]).shape[len(shape):])
                 for f in m.fields}
         light = haar.forward(jnp.asarray(lighting.radiance))
-        b = render_pixels(lambda pc, idx: m.head(params, pc, idx), m.prepare(params, flat, exact=False), light, k, chunk=chunk,
-                          valid=flat["valid"])
+        b = render_pixels(lambda pc, idx: m.head(params, pc, idx), m.prepare(params, flat, exact=False), light, k,
+                          chunk=chunk, valid=flat["valid"])
         b = indirect_output(b, bool(cfg["model"]["nonnegative"]))
         return jnp.where(flat["valid"][:, None] > 0, b, 0.0).reshape(shape + (3,))
 
