@@ -10,6 +10,8 @@ top face in the built-in Cornell box).
     python experiments/rrf_tail.py '{"small": {}, "face1": {"data": {"min_face_rays": 1}}}'
     python experiments/rrf_tail.py --noise '{"small": {}}'
     python experiments/rrf_tail.py --figure results/rrf_tail '{"small": {}}'
+    python experiments/rrf_tail.py --timing '{"small": {}, "no_light_split": {"tree": {"split_on":
+        ["position", "view", "normal", "brdf"]}}}'
 
 One JSON line per variant on stdout. The numbers of 2026-11-30 are in experiments/rrf_cornell.py.
 With ``--noise`` a second reference set of the same pairs (other seeds) is rendered too: a first
@@ -17,7 +19,9 @@ line gives the references' own noise (|A - B| / sqrt 2: its RMSE, 99.9th percent
 ratio), and each variant is also scored against the mean of the two (half the noise variance).
 With ``--figure DIR`` each variant writes ``DIR/tail_<name>.png``: the four held-out pairs that
 hold most of the worst 0.1 %, one row each: reference | RRF | |error| (white at 0.1), the worst
-0.1 % in red.
+0.1 % in red. With ``--timing`` each variant's frame is timed too, as rrf_cornell times it: the
+first held-out view at ``eval.timing_resolution`` (512^2) with one light and with its four lights
+(median of ``eval.timing_repeats``, the two alternating), their ratio, and the FLOP counts.
 """
 
 from __future__ import annotations
@@ -85,7 +89,45 @@ def figure(path: str, preds, refs, errors, counts, threshold: float, rows: int =
     return shown
 
 
-def score(config: dict, override: dict, testset, refs, valid, refs2=None, figure_path: str | None = None) -> dict:
+def timing_inputs(config: dict):
+    """(G-buffer, one light, four lights) of rrf_cornell's timing frame (``rrf_common.frame`` and
+    ``four_light_inputs``: the first held-out view at ``eval.timing_resolution``)."""
+    import rrf_common
+
+    from jprt.render import cameras as cams
+    from jprt.render.gbuffer import gbuffer
+    from jprt.render.scenes import SceneHandle
+
+    cameras, lightings = rrf_common._test_pairs(config)
+    res = int(config["eval"]["timing_resolution"])
+    c0 = cameras[0]
+    cam = cams.look_at(c0.origin, c0.target, fov=c0.fov, width=res, height=res)
+    gb = gbuffer(SceneHandle(config["scene"], lightings[0]), cam)
+    return gb, lightings[0], rrf_common.four_light_inputs(config)
+
+
+def timing(evaluate, params, cfg, inputs, repeats: int) -> dict:
+    """Median 512^2 frame times with one and four lights, measured alternately, and the FLOPs."""
+    import jax
+
+    from jprt import eval as jeval
+    from jprt.methods.rrf import model as rrf
+
+    gb, one, four = inputs
+    fast = jax.jit(evaluate)
+    dev = jax.device_put((gb, one, four))
+    times = {1: [], 4: []}
+    for _ in range(max(1, repeats)):
+        for n, lights in ((1, dev[1]), (4, dev[2])):
+            times[n] += jeval.time_call(fast, dev[0], lights, repeats=1, warmup=1 if not times[n] else 0)["times_ms"]
+    ms1, ms4 = float(np.median(times[1])), float(np.median(times[4]))
+    f1, f4 = rrf.frame_flops(params, cfg, gb, one), rrf.frame_flops(params, cfg, gb, four)
+    return {"frame_ms": ms1, "frame_ms_4lights": ms4, "frame_ms_4lights_over_1light": ms4 / ms1,
+            "frame_flops": f1, "frame_flops_4lights": f4, "frame_flops_4lights_over_1light": f4 / f1}
+
+
+def score(config: dict, override: dict, testset, refs, valid, refs2=None, figure_path: str | None = None,
+          timing_inputs=None) -> dict:
     """Fit rrf_cornell's config with ``override`` merged in; its tail statistics on the held-out set
     (and with ``refs2``, a second reference set, against the mean of the two)."""
     from jprt.config import merge
@@ -110,8 +152,12 @@ def score(config: dict, override: dict, testset, refs, valid, refs2=None, figure
     ids, counts = np.unique(surface[err >= p999], return_counts=True)
     worst = {f"{i // 10}/{i % 10}": int(c) for i, c in sorted(zip(ids, counts), key=lambda t: -t[1])}
     per_pair = [int(np.sum(e >= p999)) for e in errors]
-    out = {**stats, "n_leaves": int(np.shape(fit.params["leaves"]["layers"][0]["w"])[0]),
+    n_leaves, n_inputs = np.shape(fit.params["leaves"]["layers"][0]["w"])[:2]
+    axes = np.asarray(fit.params["tree"]["axis"])
+    out = {**stats, "n_leaves": int(n_leaves), "splits_per_axis": np.bincount(axes[axes >= 0], minlength=n_inputs).tolist(),
            "worst_0.1%_by_surface": worst, "worst_0.1%_by_pair": per_pair}
+    if timing_inputs is not None:
+        out["timing"] = timing(evaluate, fit.params, cfg, timing_inputs, int(config["eval"]["timing_repeats"]))
     if refs2 is not None:
         out["against_mean_of_two_references"] = tail(preds, [(a + b) / 2 for a, b in zip(refs, refs2)], valid)
     if figure_path:
@@ -125,8 +171,8 @@ def main() -> None:
     from jprt.config import merge
 
     args = sys.argv[1:]
-    noise = "--noise" in args
-    args = [a for a in args if a != "--noise"]
+    noise, timed = "--noise" in args, "--timing" in args
+    args = [a for a in args if a not in ("--noise", "--timing")]
     figures = None
     if "--figure" in args:
         at = args.index("--figure")
@@ -145,10 +191,11 @@ def main() -> None:
         own = tail([a / np.sqrt(2) for a in refs], [b / np.sqrt(2) for b in refs2], valid)
         print(json.dumps({"name": "reference noise (|A - B| / sqrt 2)", "reference_spp":
                           int(config["eval"]["reference_spp"]), **own}), flush=True)
+    inputs = timing_inputs(config) if timed else None
     for name, override in json.loads(args[0]).items():
         print(json.dumps({"name": name, "override": override,
                           **score(config, override, testset, refs, valid, refs2,
-                                  figures and os.path.join(figures, f"tail_{name}.png"))}), flush=True)
+                                  figures and os.path.join(figures, f"tail_{name}.png"), inputs)}), flush=True)
 
 
 if __name__ == "__main__":

@@ -59,6 +59,18 @@ def test_discontinuity_splits_only_near_it():
     assert len(far) == tree.n_leaves - 1
 
 
+def test_dims_restrict_the_split_axes():
+    # The step lies along x0; barred from x0, the tree can only cut x1 / x2, which never isolates the
+    # step, so it still splits (the error stays over the threshold) but on the allowed axes alone.
+    x, y, is_train = _step_problem()
+    tree, _, _ = kdtree.build(x, np.zeros(len(x), int), is_train, _linear_fitter(x, y), min_samples=40,
+                              max_depth=3, expand=0.0, dims=[1, 2])
+    internal = np.flatnonzero(tree.axis >= 0)
+    assert len(internal) > 0 and set(tree.axis[internal].tolist()) <= {1, 2}
+    with pytest.raises(ValueError, match="dims"):
+        kdtree.build(x, np.zeros(len(x), int), is_train, _linear_fitter(x, y), dims=[3])
+
+
 def test_random_axis_and_guards():
     x, y, is_train = _step_problem()
     tree, _, _ = kdtree.build(x, np.zeros(len(x), int), is_train, _linear_fitter(x, y), axis="random",

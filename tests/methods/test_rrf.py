@@ -339,6 +339,36 @@ def test_render_layout_by_backend_and_config():
         rrf.render_layout({"tile": 0, "chunk": 8})
 
 
+def test_split_on_names_the_attribute_axes():
+    """``tree.split_on``: None leaves every axis to the tree (the paper's); a list of attribute
+    names gives exactly their columns of ``features``' layout (view is 2 wide in material mode), and
+    the fit splits those columns only."""
+    cfg = lambda split_on, mode="view", attributes="augmented": {  # noqa: E731
+        "tree": {"split_on": split_on}, "model": {"attributes": attributes}, "data": {"mode": mode}}
+    assert rrf.split_dims(cfg(None)) is None
+    assert rrf.split_dims(cfg(["light"])) == [6, 7, 8]
+    assert rrf.split_dims(cfg(["position", "view", "normal", "brdf"])) == [0, 1, 2, 3, 4, 5, *range(9, 19)]
+    assert rrf.split_dims(cfg(["light"], mode="material")) == [5, 6, 7]
+    assert rrf.split_dims(cfg(["brdf"], attributes="basic+a")) == list(range(9, 16))
+    for bad in (["normal"], [], "light"):
+        with pytest.raises(ValueError, match="split_on"):
+            rrf.split_dims(cfg(bad, attributes="basic"))
+    # the fit follows it: free, this tiny fit splits non-light axes (9 and 15 when written); barred
+    # from all but the light, it splits the light's columns only
+    rng = np.random.default_rng(3)
+    n = 900
+    x = np.concatenate([rng.uniform(-1, 1, (n, 6)), rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3)),
+                        rng.random((n, 7))], axis=1).astype(np.float32)
+    y = np.abs(np.sin(3 * x[:, 6:9])) + 0.1
+    axes = {}
+    for split_on in (None, ["light"]):
+        config = {**TINY, "tree": {**TINY["tree"], "axis": "all", "split_on": split_on}}
+        params, _ = rrf.fit_arrays(x, y, np.zeros(n, np.int32), config)
+        a = np.asarray(params["tree"]["axis"])
+        axes[str(split_on)] = set(a[a >= 0].tolist())
+    assert axes["None"] - {6, 7, 8} and axes["['light']"] and axes["['light']"] <= {6, 7, 8}
+
+
 def test_discontinuity_splits_only_near_it():
     """An affine target with a step at x0 = 0.3: the RRF kd-tree splits only cells that contain
     the step (along x0), and the other leaves fit below the 1 % threshold."""

@@ -7,7 +7,8 @@ training samples of its box expanded by ``expand`` (10 %) per dimension (Fig. 4 
 side), and split only while its training or validation (prediction) relative error exceeds
 ``threshold`` (5 %). The split axis is the one whose two fitted children have the smallest errors
 (every axis tried, the paper's default) or a random one (``axis="random"``, ~10 % worse in the
-paper). Guards: ``max_depth``, ``min_samples`` training samples per child, ``max_leaves`` in all
+paper), among all D axes or only those named by ``dims``. Guards: ``max_depth``, ``min_samples``
+training samples per child, ``max_leaves`` in all
 (the budget goes to the worst nodes that *can* split: a node whose children would be too small is
 passed over, not counted against the budget). Objects with fewer than ``group_below`` training
 samples (small or distant objects that the sampled rays barely reach) share one tree fitted on
@@ -198,7 +199,8 @@ def cell_members(x, lo, hi, candidates: np.ndarray) -> np.ndarray:
 def build(x, object_id, is_train, fit_nodes: Callable[[Sequence[Problem], str], Sequence[NodeFit]], *,
           threshold: float = 0.05, axis: str = "all", expand: float = 0.1, max_depth: int = 8,
           min_samples: int = 200, max_leaves: int = 256, seed: int = 0, objects: Sequence[int] | None = None,
-          group_below: int = 0, progress: Callable[[str], None] | None = None):
+          group_below: int = 0, dims: Sequence[int] | None = None,
+          progress: Callable[[str], None] | None = None):
     """Build one error-driven kd-tree per object (module docstring) and fit its leaves.
 
     Args:
@@ -218,6 +220,7 @@ def build(x, object_id, is_train, fit_nodes: Callable[[Sequence[Problem], str], 
       group_below: objects with fewer training samples than this share one tree (their samples
         pooled; module docstring); 0 groups none. Objects with no training sample always join the
         group when there is one, and are skipped (no tree, reported) otherwise.
+      dims: the input axes a node may split (default: all D, the paper's).
       progress: optional callback for one-line progress messages.
 
     Returns:
@@ -237,6 +240,9 @@ def build(x, object_id, is_train, fit_nodes: Callable[[Sequence[Problem], str], 
     if not np.all(np.isfinite(x)):
         raise ValueError("kd-tree inputs contain NaN or infinite values")
     d = x.shape[1]
+    allowed = list(range(d)) if dims is None else sorted({int(a) for a in dims})
+    if any(a < 0 or a >= d for a in allowed):
+        raise ValueError(f"dims must be axes in [0, {d}), got {list(dims)}")
     rng = np.random.default_rng(seed)
     say = progress or (lambda msg: None)
     if objects is None:
@@ -294,7 +300,7 @@ def build(x, object_id, is_train, fit_nodes: Callable[[Sequence[Problem], str], 
             sub = x[cell_members(x, n.lo, n.hi, idx)]
             box_lo = np.where(np.isfinite(n.lo), n.lo, 0.0)
             box_hi = np.where(np.isfinite(n.hi), n.hi, 1.0)
-            axes = [a for a in range(d) if sub.size and np.ptp(sub[:, a]) > 1e-9]
+            axes = [a for a in allowed if sub.size and np.ptp(sub[:, a]) > 1e-9]
             if axis == "random" and axes:
                 axes = [int(rng.choice(axes))]
             for a in axes:

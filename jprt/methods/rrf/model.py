@@ -59,7 +59,7 @@ from jprt.nn.mlp import MLP, mlp, ranges
 from jprt.solve.lm import LMSettings, solve_batched
 
 __all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features",
-           "split_samples", "input_size", "fit", "fit_arrays", "evaluator", "frame_flops", "check_inputs", "example",
+           "split_samples", "split_dims", "input_size", "fit", "fit_arrays", "evaluator", "frame_flops", "check_inputs", "example",
            "refit_leaves", "parameter_count", "light_box", "RENDER_LAYOUTS", "render_layout"]
 
 #: Inputs of Phi for each attribute set (Ren et al. Fig. 3: basic vs augmented attributes).
@@ -103,8 +103,15 @@ DEFAULT_CONFIG: dict = {
                      "view_origin": [0.0, 0.0, 3.9]},
     },
     "model": {"hidden": [20, 10], "attributes": "augmented"},
+    # split_on: the attributes (ATTRIBUTE_SETS names) whose axes a node may split; None, every
+    # axis, is the paper's. Without "light" every leaf serves every light, so a frame's lights
+    # share each pixel's traversal and the light-free part of the first layer. rrf_cornell's
+    # `small` config, 2026-12-02 (`experiments/rrf_tail.py --timing`, 2-core CPU): None: 29
+    # leaves, 20 of 22 splits on the light, RMSE 0.0062, p99.9 8.0x, 512^2 frame 17.4 ms, four
+    # lights 3.7x; without the light: 31 leaves, 0.0064, 8.2x, 24.4 ms, 2.0x (FLOPs 2.50x): the
+    # position and view splits cut the image into more (leaf, tile) items (5893 against 4459)
     "tree": {"threshold": 0.05, "axis": "all", "expand": 0.1, "max_depth": 6, "min_samples": 1500, "max_leaves": 64,
-             "group_below": 32},
+             "group_below": 32, "split_on": None},
     "train": {"max_iters": 40, "trial_iters": 10, "trial_samples": 1024, "max_fail": 6, "rtol": 1e-6, "damping": 1e-3, "chunk_size": 1024, "seed": 0,
               "subset": 1.0, "progress": True},
     # evaluator: lights outside the trained box ("error" | "clamp" | "allow", box grown by
@@ -225,6 +232,29 @@ def data_features(data: RRFData, attributes: str) -> np.ndarray:
     """
     edit = data.edit if data.meta.get("mode") == "material" else None
     return np.asarray(features(attributes, data.position, data.view, data.light, data.normal, data.brdf, edit))
+
+
+def split_dims(config: dict) -> list[int] | None:
+    """The input axes the kd-tree may split under ``config["tree"]["split_on"]``: None where that is
+    None (every axis, the paper's), else the columns of the named ``ATTRIBUTE_SETS`` attributes in
+    ``features``' layout.
+
+    Numerics: not differentiable (integer axes).
+    """
+    split_on = config["tree"].get("split_on")
+    if split_on is None:
+        return None
+    attributes = config["model"]["attributes"]
+    names = ATTRIBUTE_SETS[attributes]
+    if isinstance(split_on, str) or not set(split_on) <= set(names) or not split_on:
+        raise ValueError(f"tree.split_on must be None or a non-empty list of {list(names)}, got {split_on!r}")
+    widths = dict(_WIDTHS, view=2 if config["data"].get("mode") == "material" else 3)
+    dims, start = [], 0
+    for name in names:
+        if name in split_on:
+            dims += list(range(start, start + widths[name]))
+        start += widths[name]
+    return dims
 
 
 def input_size(attributes: str, mode: str = "view") -> int:
@@ -511,7 +541,7 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None, ch
         xn, object_id, is_train, fit_nodes, threshold=float(tree_cfg["threshold"]), axis=tree_cfg["axis"],
         expand=float(tree_cfg["expand"]), max_depth=int(tree_cfg["max_depth"]),
         min_samples=int(tree_cfg["min_samples"]), max_leaves=int(tree_cfg["max_leaves"]), seed=int(t["seed"]),
-        group_below=int(tree_cfg["group_below"]), progress=say)
+        group_below=int(tree_cfg["group_below"]), dims=split_dims(cfg), progress=say)
     params = _pack(tree, obj_lo, obj_hi, payloads)
     train_err, val_err = _leaf_errors(params, xn, x, y, object_id, is_train)
     info = {"train_s": time.perf_counter() - t0, "report": report, "leaf_train_error": train_err,
