@@ -353,16 +353,16 @@ def test_split_on_names_the_attribute_axes():
     for bad in (["normal"], [], "light"):
         with pytest.raises(ValueError, match="split_on"):
             rrf.split_dims(cfg(bad, attributes="basic"))
-    # the fit follows it: free, this tiny fit splits non-light axes (9 and 15 when written); barred
-    # from all but the light, it splits the light's columns only
+    # the fit follows it: free, this tiny fit's root splits a non-light axis (5 when written);
+    # barred from all but the light, it splits a light column
     rng = np.random.default_rng(3)
-    n = 900
+    n = 600
     x = np.concatenate([rng.uniform(-1, 1, (n, 6)), rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3)),
                         rng.random((n, 7))], axis=1).astype(np.float32)
     y = np.abs(np.sin(3 * x[:, 6:9])) + 0.1
     axes = {}
     for split_on in (None, ["light"]):
-        config = {**TINY, "tree": {**TINY["tree"], "axis": "all", "split_on": split_on}}
+        config = {**TINY, "tree": {**TINY["tree"], "axis": "all", "max_depth": 1, "split_on": split_on}}
         params, _ = rrf.fit_arrays(x, y, np.zeros(n, np.int32), config)
         a = np.asarray(params["tree"]["axis"])
         axes[str(split_on)] = set(a[a >= 0].tolist())
