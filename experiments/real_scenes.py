@@ -77,8 +77,9 @@ CONFIG = {
     # views from the scene (target None: about the file's camera); one held-out view of its own (the
     # report scores the file's camera); the procedural training skies named so that `--set
     # wavelet_prt.envmaps.procedural=sun` can try suns (2026-12-01, Cornell picture: worst / mean
-    # object 0.590 / 0.500 with suns against 0.598 / 0.428 with the default lobes)
-    "wavelet_prt": {"envmaps": {"face_size": 16, "procedural": "lobes"},
+    # object 0.590 / 0.500 with suns against 0.598 / 0.428 with the default lobes); its training maps
+    # named too (`[]`: every map not held out) so a validation run can leave one out
+    "wavelet_prt": {"envmaps": {"face_size": 16, "procedural": "lobes", "train": []},
                     "cameras": {"width": 64, "height": 64, "target": None, "sphere": {"n": 40}, "helix": {"n": 35},
                                 "near": 1, "far": 1},
                     "data": {"spp": 128, "test_spp": 64, "envs_per_view": 2, "test_pairs": "cycle", "rays": "image"},
