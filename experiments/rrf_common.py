@@ -139,15 +139,22 @@ def held_out_references(config: dict, cameras, lightings, testset, seed_offset: 
     return direct, refs
 
 
+def timing_camera(config: dict, cameras):
+    """The timing frame's camera: the first held-out view (``cameras[0]``) at
+    ``eval.timing_resolution``."""
+    from jprt.render import cameras as cams
+
+    res = int(config["eval"]["timing_resolution"])
+    c0 = cameras[0]
+    return cams.look_at(c0.origin, c0.target, fov=c0.fov, width=res, height=res)
+
+
 def frame(run):
     """The first held-out view at ``eval.timing_resolution`` under its first light."""
-    from jprt.render import cameras as cams
     from jprt.render.gbuffer import gbuffer
     from jprt.render.scenes import SceneHandle
 
-    res = int(run.config["eval"]["timing_resolution"])
-    c0 = run.state["cameras"][0]
-    cam = cams.look_at(c0.origin, c0.target, fov=c0.fov, width=res, height=res)
+    cam = timing_camera(run.config, run.state["cameras"])
     handle = SceneHandle(run.config["scene"], run.state["lightings"][0])
     run.state.update(timing_camera=cam, handle=handle)
     gb = gbuffer(handle, cam)

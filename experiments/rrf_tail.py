@@ -94,15 +94,11 @@ def timing_inputs(config: dict):
     ``four_light_inputs``: the first held-out view at ``eval.timing_resolution``)."""
     import rrf_common
 
-    from jprt.render import cameras as cams
     from jprt.render.gbuffer import gbuffer
     from jprt.render.scenes import SceneHandle
 
     cameras, lightings = rrf_common._test_pairs(config)
-    res = int(config["eval"]["timing_resolution"])
-    c0 = cameras[0]
-    cam = cams.look_at(c0.origin, c0.target, fov=c0.fov, width=res, height=res)
-    gb = gbuffer(SceneHandle(config["scene"], lightings[0]), cam)
+    gb = gbuffer(SceneHandle(config["scene"], lightings[0]), rrf_common.timing_camera(config, cameras))
     return gb, lightings[0], rrf_common.four_light_inputs(config)
 
 
@@ -127,7 +123,7 @@ def timing(evaluate, params, cfg, inputs, repeats: int) -> dict:
 
 
 def score(config: dict, override: dict, testset, refs, valid, refs2=None, figure_path: str | None = None,
-          timing_inputs=None) -> dict:
+          frame_inputs=None) -> dict:
     """Fit rrf_cornell's config with ``override`` merged in; its tail statistics on the held-out set
     (and with ``refs2``, a second reference set, against the mean of the two)."""
     from jprt.config import merge
@@ -156,8 +152,8 @@ def score(config: dict, override: dict, testset, refs, valid, refs2=None, figure
     axes = np.asarray(fit.params["tree"]["axis"])
     out = {**stats, "n_leaves": int(n_leaves), "splits_per_axis": np.bincount(axes[axes >= 0], minlength=n_inputs).tolist(),
            "worst_0.1%_by_surface": worst, "worst_0.1%_by_pair": per_pair}
-    if timing_inputs is not None:
-        out["timing"] = timing(evaluate, fit.params, cfg, timing_inputs, int(config["eval"]["timing_repeats"]))
+    if frame_inputs is not None:  # ``timing_inputs``
+        out["timing"] = timing(evaluate, fit.params, cfg, frame_inputs, int(config["eval"]["timing_repeats"]))
     if refs2 is not None:
         out["against_mean_of_two_references"] = tail(preds, [(a + b) / 2 for a, b in zip(refs, refs2)], valid)
     if figure_path:

@@ -234,6 +234,17 @@ def data_features(data: RRFData, attributes: str) -> np.ndarray:
     return np.asarray(features(attributes, data.position, data.view, data.light, data.normal, data.brdf, edit))
 
 
+def _columns(attributes: str, mode: str = "view") -> dict:
+    """{attribute name: (first, end) columns of x} in ``features``' layout for an attribute set
+    (the view is 2 wide, the edit, in material mode)."""
+    widths = dict(_WIDTHS, view=2 if mode == "material" else 3)
+    out, start = {}, 0
+    for name in ATTRIBUTE_SETS[attributes]:
+        out[name] = (start, start + widths[name])
+        start += widths[name]
+    return out
+
+
 def split_dims(config: dict) -> list[int] | None:
     """The input axes the kd-tree may split under ``config["tree"]["split_on"]``: None where that is
     None (every axis, the paper's), else the columns of the named ``ATTRIBUTE_SETS`` attributes in
@@ -244,17 +255,10 @@ def split_dims(config: dict) -> list[int] | None:
     split_on = config["tree"].get("split_on")
     if split_on is None:
         return None
-    attributes = config["model"]["attributes"]
-    names = ATTRIBUTE_SETS[attributes]
-    if isinstance(split_on, str) or not set(split_on) <= set(names) or not split_on:
-        raise ValueError(f"tree.split_on must be None or a non-empty list of {list(names)}, got {split_on!r}")
-    widths = dict(_WIDTHS, view=2 if config["data"].get("mode") == "material" else 3)
-    dims, start = [], 0
-    for name in names:
-        if name in split_on:
-            dims += list(range(start, start + widths[name]))
-        start += widths[name]
-    return dims
+    columns = _columns(config["model"]["attributes"], config["data"].get("mode", "view"))
+    if isinstance(split_on, str) or not set(split_on) <= set(columns) or not split_on:
+        raise ValueError(f"tree.split_on must be None or a non-empty list of {list(columns)}, got {split_on!r}")
+    return [c for name, (a, b) in columns.items() if name in split_on for c in range(a, b)]
 
 
 def input_size(attributes: str, mode: str = "view") -> int:
@@ -262,8 +266,7 @@ def input_size(attributes: str, mode: str = "view") -> int:
 
     Numerics: not differentiable (an integer size).
     """
-    widths = dict(_WIDTHS, view=2 if mode == "material" else 3)
-    return sum(widths[name] for name in ATTRIBUTE_SETS[attributes])
+    return max(end for _, end in _columns(attributes, mode).values())
 
 
 # --------------------------------------------------------------------------------------------
@@ -891,9 +894,7 @@ def _render(params, gb: dict, light_pos, light_rgb, edit, *, attributes: str, ma
              "view": [jnp.broadcast_to(edit, (h, w, 2)) if material else gb["view"]],
              "brdf": [gb["diffuse_albedo"], gb["specular_albedo"], gb["roughness"][..., None]]}
     names = ATTRIBUTE_SETS[attributes]
-    widths = dict(_WIDTHS, view=2 if material else 3)
-    start = sum(widths[n] for n in names[:names.index("light")])
-    light_cols = (start, start + 1, start + 2)
+    light_cols = tuple(range(*_columns(attributes, "material" if material else "view")["light"]))
     # x of ``features`` without its light columns, as (H, W, c) parts: every pixel's own inputs
     shared = [jnp.asarray(q, jnp.float32) for n in names if n != "light" for q in parts[n]]
     obj = jnp.where(gb["valid"], gb["object_id"], -1)
