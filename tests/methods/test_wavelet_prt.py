@@ -452,20 +452,50 @@ def test_per_vertex_variant_trains_and_renders():
     assert out.shape == g["valid"].shape + (3,) and np.all(np.isfinite(out))
 
 
+def test_turned_maps_follow_the_rotation():
+    """turn_equirect: the identity keeps the map; a turn about +Y is rotate_equirect's column roll;
+    a seeded random_rotation is a rotation, and turns a sun to R times its direction; the
+    rotations are uniform (the mean matrix of many is near 0)."""
+    rng = np.random.default_rng(0)
+    eq = rng.uniform(0.5, 2.0, (32, 64, 3)).astype(np.float32)
+    np.testing.assert_array_equal(wp.turn_equirect(eq, np.eye(3)), eq)
+    a = np.radians(90.0)
+    about_y = np.array([[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]])
+    np.testing.assert_array_equal(wp.turn_equirect(eq, about_y), wp.rotate_equirect(eq, 90.0))
+    rs = np.stack([wp.random_rotation(np.random.default_rng([5, i])) for i in range(500)])
+    np.testing.assert_allclose(rs @ np.swapaxes(rs, 1, 2), np.broadcast_to(np.eye(3), rs.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(rs), 1.0, atol=1e-12)
+    assert np.abs(rs.mean(axis=0)).max() < 0.1  # E[R] = 0 for the uniform (Haar) measure; 500 draws
+    sun = np.zeros((64, 128, 3), np.float32)
+    d = np.asarray(cubemap.equirect_directions(64, 128))
+    sun[20, 30] = 1.0
+    turned = wp.turn_equirect(sun, rs[0])
+    hit = np.unravel_index(np.argmax(turned[..., 0]), turned.shape[:2])
+    assert np.dot(d[hit], rs[0] @ d[20, 30]) > np.cos(np.radians(4.0))  # within a texel or so
+
+
 @pytest.mark.mitsuba
-@pytest.mark.parametrize("fraction", [0.0, 0.5])
-def test_per_image_lightings_never_use_a_held_out_map(mi, assets, fraction):
+@pytest.mark.parametrize("fraction, tilt", [(0.0, 0.0), (0.5, 0.0), (0.0, 1.0)])
+def test_per_image_lightings_never_use_a_held_out_map(mi, assets, fraction, tilt):
     from jprt.methods.wavelet_prt import data as wp_data
 
     ecfg = dict(wp.DEFAULT_CONFIG["envmaps"], folder=os.path.join(assets, "envmaps"), face_size=4,
-                procedural_fraction=fraction)
+                procedural_fraction=fraction, tilt=tilt)
     envs, names, tests, held = wp_data._environment_sets(ecfg, 0, 12)
     assert envs.shape == (12, 6, 4, 4, 3) and len(names) == 12 and np.all(envs >= 0)
     assert tests.shape[0] == len(held) == 6
-    assert not any(name.split("@")[0] in held for name in names)
+    assert not any(name.split("@")[0].split(" turned")[0] in held for name in names)
     n_proc = sum(name.startswith("procedural") for name in names)
     assert (n_proc == 0) == (fraction == 0.0)
     assert len(set(names)) == 12  # twelve distinct lightings (uniform angles), not maps x 3 rotations
+    assert all((" turned " in name) == (tilt == 1.0) for name in names)
+    if tilt:  # turned in 3D, the sky is no longer always above: the +Y face's share of the light varies
+        omega = np.asarray(cubemap.texel_solid_angles(4))
+        energy = envs.mean(-1) * omega  # (E, 6, n, n)
+        up = energy[:, 2].sum(axis=(1, 2)) / energy.sum(axis=(1, 2, 3))
+        assert up.min() < 0.1 < 0.3 < up.max()
+    with pytest.raises(ValueError, match="envmaps.tilt"):
+        wp_data._environment_sets(dict(ecfg, tilt=1.5), 0, 12)
 
 
 @pytest.mark.mitsuba

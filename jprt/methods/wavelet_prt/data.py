@@ -14,8 +14,8 @@ import numpy as np
 from jprt import cache
 from jprt.methods.base import resolve
 from jprt.methods.wavelet_prt.model import (DEFAULT_CONFIG, GBUFFER_FIELDS, WaveletData, camera_sets, cubemap, haar,
-                                            importance_maps, prepare_environment, render_equirect, rotate_equirect,
-                                            sun_skies, synthetic_environments)
+                                            importance_maps, prepare_environment, random_rotation, render_equirect,
+                                            rotate_equirect, sun_skies, synthetic_environments, turn_equirect)
 
 __all__ = ["make_dataset", "add_vertex_interpolation", "gbuffer_fields", "load_environments", "SHARED_ENVMAPS", "TASK_LIGHTINGS",
            "task_inputs", "task_lighting"]
@@ -30,7 +30,8 @@ def _environment_sets(ecfg: dict, seed: int, n_images: int):
 
     ``envmaps.lighting = "shared"``: every training map at every rotation of ``rotations_deg``
     (§5), each lighting ``n_images / E`` images. ``"per_image"``: ``n_images`` lightings, one per
-    image: a training map turned about +Y by a uniform angle, mirrored left-right with
+    image: a training map turned about +Y by a uniform angle (or, with probability ``tilt``, by a
+    uniformly random 3D rotation: ``random_rotation``, ``turn_equirect``), mirrored left-right with
     probability 1/2 when ``mirror``, or (with probability ``procedural_fraction``) a seeded
     procedural sky (``envmaps.procedural``: broad lobes, ``synthetic_environments``, or a clear
     sky with a one-texel sun, ``sun_skies``)."""
@@ -67,6 +68,9 @@ def _environment_sets(ecfg: dict, seed: int, n_images: int):
     radiance = {s: EnvMap.from_file(_map_file(folder, s)).radiance for s in train_stems}
     rng = np.random.default_rng([seed, 11])
     frac = float(ecfg["procedural_fraction"])
+    tilt = float(ecfg["tilt"])
+    if not 0.0 <= tilt <= 1.0:
+        raise ValueError(f"envmaps.tilt must be in [0, 1] (a fraction of the file maps), got {tilt}")
     procedural = rng.uniform(size=n_images) < frac
     n_synth = int(procedural.sum())
     kinds = {"lobes": synthetic_environments, "sun": sun_skies}
@@ -83,6 +87,11 @@ def _environment_sets(ecfg: dict, seed: int, n_images: int):
         deg = float(rng.uniform(0.0, 360.0))
         flip = bool(ecfg["mirror"]) and bool(rng.uniform() < 0.5)
         e = radiance[stem][:, ::-1] if flip else radiance[stem]
+        if tilt > 0 and rng.uniform() < tilt:  # drawn only with a tilt: tilt 0 keeps the earlier draws
+            r = random_rotation(rng)
+            envs.append(prepare_environment(turn_equirect(e, r), n, normalise=normalise))
+            names.append(f"{stem} turned {np.round(r, 3).tolist()}{' mirrored' if flip else ''}")
+            continue
         envs.append(prepare_environment(rotate_equirect(e, deg), n, normalise=normalise))
         names.append(f"{stem}@{deg:.1f}{' mirrored' if flip else ''}")
     if frac > 0:  # procedural maps at the mean radiance of the files' (normalised: 1)
