@@ -89,11 +89,11 @@ def _environment_sets(ecfg: dict, seed: int, n_images: int):
         e = radiance[stem][:, ::-1] if flip else radiance[stem]
         if tilt > 0 and rng.uniform() < tilt:  # drawn only with a tilt: tilt 0 keeps the earlier draws
             r = random_rotation(rng)
-            envs.append(prepare_environment(turn_equirect(e, r), n, normalise=normalise))
-            names.append(f"{stem} turned {np.round(r, 3).tolist()}{' mirrored' if flip else ''}")
-            continue
-        envs.append(prepare_environment(rotate_equirect(e, deg), n, normalise=normalise))
-        names.append(f"{stem}@{deg:.1f}{' mirrored' if flip else ''}")
+            e, turn = turn_equirect(e, r), f" turned {np.round(r, 3).tolist()}"
+        else:
+            e, turn = rotate_equirect(e, deg), f"@{deg:.1f}"
+        envs.append(prepare_environment(e, n, normalise=normalise))
+        names.append(f"{stem}{turn}{' mirrored' if flip else ''}")
     if frac > 0:  # procedural maps at the mean radiance of the files' (normalised: 1)
         envs = [e if not p else e / max(_mean_radiance(e), 1e-12) for e, p in zip(envs, procedural)]
     return np.stack(envs).astype(np.float32), names, tests, held
