@@ -50,7 +50,7 @@ EVAL_DEFAULTS = {
 # samples, every candidate fitted to convergence. For a machine with an accelerator.
 PAPER_PRESET = {
     "data": {"n_lights": 200, "n_views": 200, "n_rays": 250, "spp": 4096},
-    "tree": {"max_depth": 12, "min_samples": 6500, "max_leaves": 4096},
+    "tree": {"max_depth": 12, "min_samples": 6500, "max_leaves": 4096, "split_on": None},
     "train": {"max_iters": 200, "trial_iters": 200, "trial_samples": 0},
     "eval": {"n_views": 20, "n_lights": 20, "resolution": 512, "reference_spp": 16384, "robustness": 10,
              "sizes": [0.01, 0.1, 0.3], "train_spp": [256, 1024, 16384],
@@ -242,6 +242,53 @@ def four_lights(run) -> dict:
     return out
 
 
+#: ``tree.split_on`` without the light: every leaf serves every light (``split_rule_ablation``).
+NO_LIGHT_SPLIT = ["position", "view", "normal", "brdf"]
+
+
+def split_rule_ablation(run) -> dict:
+    """The kd-tree's split rule: the paper's (every axis, ``tree.split_on`` None) against the
+    light barred from the splits, whichever the config does not use, same samples. Held-out RMSE
+    and 99.9th-percentile error, leaves, and the timing frame with one and four lights for both
+    models, timed alternately in this stage (so machine drift cancels between the two)."""
+    if not run.config["eval"]["ablations"]:
+        return {}
+    mine = run.method_config["tree"].get("split_on")
+    other = NO_LIGHT_SPLIT if mine is None else None
+    cfg = run.with_config({"tree": {"split_on": other}})
+    p, _ = rrf.fit(run.dataset, cfg)
+    held = run.state["held_out"]
+    preds = _predict(rrf.evaluator(p, cfg), run.state["testset"])
+    err = np.concatenate([np.abs(np.asarray(q) - np.asarray(r))[np.asarray(v, bool)].ravel()
+                          for q, r, v in zip(preds, held.references, held.valid)])
+    rmse = jeval.set_rmse(preds, held.references, held.valid)
+    host = (run.state["timing_gbuffer"], run.state["lightings"][0], four_light_inputs(run.config))
+    dev = jax.device_put(host)
+    fns = {"config": jax.jit(run.evaluate), "other": jax.jit(rrf.evaluator(p, cfg))}
+    times = {(name, n): [] for name in fns for n in (1, 4)}
+    for r in range(max(1, int(run.config["eval"]["timing_repeats"]))):
+        for name, fn in fns.items():
+            for n, lights in ((1, dev[1]), (4, dev[2])):
+                times[(name, n)] += jeval.time_call(fn, dev[0], lights, repeats=1, warmup=0 if r else 1)["times_ms"]
+    ms = {key: float(np.median(v)) for key, v in times.items()}
+    flops = {n: rrf.frame_flops(p, cfg, host[0], lights) for n, lights in ((1, host[1]), (4, host[2]))}
+    splits = np.asarray(p["tree"]["axis"])
+    light = rrf.split_dims({**cfg, "tree": {"split_on": ["light"]}})  # the light's columns of x
+    out = {"split_on": other, "rmse": rmse, "p999_abs_error": float(np.percentile(err, 99.9)),
+           "p999_over_rmse": float(np.percentile(err, 99.9)) / rmse,
+           "n_leaves": kdtree.KDTree(**p["tree"]).n_leaves,
+           "splits_on_light": int(np.isin(splits, light).sum()), "splits": int(np.sum(splits >= 0)),
+           "frame_ms": ms[("other", 1)], "frame_ms_4lights": ms[("other", 4)],
+           "frame_ms_4lights_over_1light": ms[("other", 4)] / ms[("other", 1)],
+           "frame_flops": flops[1], "frame_flops_4lights": flops[4],
+           "config_frame_ms": ms[("config", 1)], "config_frame_ms_4lights": ms[("config", 4)],
+           "config_frame_ms_4lights_over_1light": ms[("config", 4)] / ms[("config", 1)]}
+    run.say(f"split_on {other}: RMSE {rmse:.5f}, p99.9 / RMSE {out['p999_over_rmse']:.1f}, {out['n_leaves']} leaves; "
+            f"frames {out['frame_ms']:.1f} / {out['frame_ms_4lights']:.1f} ms against this config's "
+            f"{out['config_frame_ms']:.1f} / {out['config_frame_ms_4lights']:.1f} ms (1 / 4 lights, alternately)")
+    return {"split_rule_ablation": out}
+
+
 def sampling_ablation(run) -> dict:
     """The training rays: uniform over the screen (``data.oversample`` 1, the paper's) against
     the surface-balanced draw (the default), same budget, RMSE and 99.9th-percentile error."""
@@ -271,7 +318,9 @@ def attribute_ablation(run) -> dict:
         if attrs == run.method_config["model"]["attributes"]:
             out[key] = run.summary["indirect_rmse"]
             continue
-        cfg = run.with_config({"model": {"attributes": attrs}})
+        split_on = run.method_config["tree"].get("split_on")  # the config's rule, on this set's attributes
+        kept = None if split_on is None else [a for a in split_on if a in rrf.ATTRIBUTE_SETS[attrs]]
+        cfg = run.with_config({"model": {"attributes": attrs}, "tree": {"split_on": kept}})
         p, _ = rrf.fit(run.dataset, cfg)
         out[key] = _rmse(run, p, cfg)
         out[key.replace("rmse_", "n_leaves_")] = kdtree.KDTree(**p["tree"]).n_leaves
@@ -436,5 +485,5 @@ def material_edit(run) -> dict:
 
 
 #: The stages of an RRF report, in order.
-STAGES = [tree_stats, four_lights, sampling_ablation, attribute_ablation, single_mlp, robustness, training_size,
+STAGES = [tree_stats, four_lights, split_rule_ablation, sampling_ablation, attribute_ablation, single_mlp, robustness, training_size,
           training_spp]

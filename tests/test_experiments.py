@@ -45,6 +45,9 @@ def test_rrf_cornell_test_preset(mi, tmp_path, capsys):
     assert len(e["robustness"]["rmse_subsets"]) == 2 and e["std_subsets"] >= 0
     assert e["fig6_training_size"]["n_train"][-1] > e["fig6_training_size"]["n_train"][0]
     assert e["fig7_training_spp"]["spp"] == [4, 8]
+    split = e["split_rule_ablation"]  # the paper's split rule against the config's (no light splits)
+    assert split["split_on"] is None and split["splits"] >= split["splits_on_light"] >= 0
+    assert split["rmse"] > 0 and split["frame_ms"] > 0 and split["config_frame_ms_4lights"] > 0
     for name in ("equal_error.png", "fig6_training_size.png", "fig7_training_spp.png"):
         assert os.path.isfile(os.path.join(folder, name)), name
     assert folder in capsys.readouterr().out  # says where the report is
