@@ -20,7 +20,8 @@ ROOT = os.path.dirname(HERE)
 
 KEYS = ("indirect_rmse", "indirect_rel_rmse", "p999_abs_error", "psnr_indirect", "ssim_indirect", "psnr_full",
         "reference_spp", "equal_error_spp", "pathtrace_ms_equal_error", "frame_ms", "frame_ms_min", "frame_resolution",
-        "frame_ms_4lights", "frame_ms_4lights_min", "frame_ms_4lights_over_1light", "frame_flops",
+        "frame_ms_4lights", "frame_ms_4lights_min", "frame_ms_1light_interleaved", "frame_ms_1light_interleaved_min",
+        "frame_ms_4lights_over_1light", "frame_flops",
         "frame_flops_4lights_over_1light",
         "frame_flops_4lights", "matmul_peak_gflops",
         "flops_fraction_of_peak", "flops_fraction_of_peak_4lights", "gbuffer_ms", "speedup_equal_error",
@@ -28,7 +29,7 @@ KEYS = ("indirect_rmse", "indirect_rel_rmse", "p999_abs_error", "psnr_indirect",
         "rmse_augmented", "rmse_single_mlp_same_params", "std_subsets", "std_inits")
 CONTEXT = ("n_samples", "n_params", "test_pairs", "pathtrace_rmse_by_spp", "pathtrace_note", "single_mlp",
            "robustness", "fig6_training_size", "fig7_training_spp", "tree_levels", "leaves_per_object", "total_s",
-           "sampling_ablation", "frame_flops_source")
+           "sampling_ablation", "split_rule_ablation", "frame_flops_source")
 
 
 def main() -> int:
@@ -45,13 +46,16 @@ def main() -> int:
     s = flat_summary(run_file(os.path.join(ROOT, "experiments", "rrf_cornell.py"), args.preset, args.overrides))
     result = {k: s.get(k) for k in KEYS}
     at_512 = list(s["frame_resolution"]) == [512, 512]
-    result["eval_ms_512_1light"] = s["frame_ms"] if at_512 else None
-    result["eval_ms_512_4lights"] = s["frame_ms_4lights"] if at_512 else None
+    # one and four lights timed interleaved, call by call (the four_lights stage): both see the same
+    # machine state; the runner's frame_ms (20 consecutive one-light calls) is kept beside them
+    one, four = s["frame_ms_1light_interleaved"], s["frame_ms_4lights"]
+    result["eval_ms_512_1light"] = one if at_512 else None
+    result["eval_ms_512_4lights"] = four if at_512 else None
     ratio = s["p999_abs_error"] / s["indirect_rmse"]
     result["p999_over_rmse"] = ratio
     result["targets"] = {
-        "eval_ms_512_1light <= 20": at_512 and s["frame_ms"] <= 20,
-        "eval_ms_512_4lights <= 2.5 x eval_ms_512_1light": at_512 and s["frame_ms_4lights"] <= 2.5 * s["frame_ms"],
+        "eval_ms_512_1light <= 20": at_512 and one <= 20,
+        "eval_ms_512_4lights <= 2.5 x eval_ms_512_1light": at_512 and four <= 2.5 * one,
         "speedup_equal_error >= 1000 (without the G-buffer)": s["speedup_equal_error"] >= 1000,
         "p999_abs_error <= 6 x indirect_rmse": ratio <= 6,
         "speedup_equal_error >= 50": s["speedup_equal_error"] >= 50,
