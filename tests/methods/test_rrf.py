@@ -186,6 +186,42 @@ def test_traversal_in_evaluator_matches_brute_force(model):
     np.testing.assert_array_equal(np.asarray(kdtree.traverse(tree, obj, x)), kdtree.brute_force_lookup(tree, obj, x))
 
 
+def test_raw_thresholds_traverse_raw_inputs_as_the_tree_does_normalised(model):
+    """``raw_thresholds``: the renderer's traversal of raw inputs against split values mapped back
+    through each object's box finds the leaf that the normalised traversal finds."""
+    params, _ = model
+    rng = np.random.default_rng(4)
+    lo, hi = np.asarray(params["obj_lo"]), np.asarray(params["obj_hi"])
+    obj = rng.integers(0, lo.shape[0], 2000)
+    x = (lo[obj] + rng.uniform(-0.1, 1.1, (2000, lo.shape[1])) * (hi - lo)[obj]).astype(np.float32)
+    tree = kdtree.KDTree(**{k: np.asarray(v) for k, v in params["tree"].items()})
+    want = kdtree.traverse(tree, obj, rrf._normalise(x, obj, lo, hi), xp=np)
+    got = kdtree.traverse(tree._replace(threshold=rrf.raw_thresholds(params)), obj, x, xp=np)
+    assert len(np.unique(want)) > 2
+    np.testing.assert_array_equal(got, want)
+
+
+def test_lights_share_each_pixels_leaf_without_light_splits():
+    """With ``tree.split_on`` barring the light, the renderer traverses once for all of a frame's
+    lights; Eq. 9 stays linear in the lights and equals the per-light frames."""
+    rng = np.random.default_rng(2)
+    n = 600
+    x = np.concatenate([rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3)), rng.uniform([-0.5, 0.3, -0.5],
+                        [0.5, 0.9, 0.5], (n, 3)), rng.normal(size=(n, 3)), rng.random((n, 7))], axis=1)
+    y = np.abs(np.sin(x[:, :3] + x[:, 6:9]))
+    config = {**TINY, "tree": {**TINY["tree"], "split_on": ["position", "view", "normal", "brdf"]}}
+    params, _ = rrf.fit_arrays(x, y, rng.integers(0, 2, n), config)
+    params["light_lo"], params["light_hi"] = jnp.asarray([-0.5, 0.3, -0.5]), jnp.asarray([0.5, 0.9, 0.5])
+    axes = np.asarray(params["tree"]["axis"])
+    assert kdtree.KDTree(**params["tree"]).n_leaves > 2 and not np.isin(axes, [6, 7, 8]).any()
+    evaluate, gb = rrf.evaluator(params, config), _fake_gbuffer()
+    spots, colours = [[0.1, 0.5, 0.0], [-0.3, 0.8, 0.2], [0.4, 0.4, -0.4]], [[1.0, 0.5, 2.0], [0.3, 1.0, 0.7], [1, 1, 1]]
+    each = [np.asarray(evaluate(gb, PointLights.create([p], [c]))) for p, c in zip(spots, colours)]
+    np.testing.assert_allclose(np.asarray(evaluate(gb, PointLights.create(spots, colours))), sum(each),
+                               rtol=1e-5, atol=1e-6)
+    assert np.abs(each[0]).max() > 0
+
+
 def test_bad_input(model):
     params, _ = model
     evaluate = rrf.evaluator(params)

@@ -28,7 +28,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["KDTree", "Problem", "NodeFit", "BuildReport", "build", "traverse", "brute_force_lookup",
+__all__ = ["KDTree", "Problem", "NodeFit", "BuildReport", "build", "traverse", "brute_force_lookup", "node_objects",
            "leaf_cells", "leaf_stats", "node_samples", "cell_members"]
 
 
@@ -137,7 +137,7 @@ def brute_force_lookup(tree: KDTree, object_id, x) -> np.ndarray:
     tree = KDTree(*map(np.asarray, tree))
     x = np.asarray(x)
     object_id = np.asarray(object_id)
-    owner = _node_objects(tree)
+    owner = node_objects(tree)
     out = np.full(object_id.shape, -1, np.int32)
     for node in np.flatnonzero(tree.leaf >= 0):
         inside = np.all((x >= tree.cell_lo[node]) & (x < tree.cell_hi[node]), axis=-1) & (object_id == owner[node])
@@ -147,7 +147,12 @@ def brute_force_lookup(tree: KDTree, object_id, x) -> np.ndarray:
     return out
 
 
-def _node_objects(tree: KDTree) -> np.ndarray:
+def node_objects(tree: KDTree) -> np.ndarray:
+    """The object each node belongs to (M,) int64, -1 for nodes of no object's tree.
+
+    Numerics: not differentiable (integer tree structure).
+    """
+    tree = KDTree(*(np.asarray(a) for a in tree))
     owner = np.full(tree.axis.shape, -1, np.int64)
     for obj, root in enumerate(tree.roots):
         if root < 0:
@@ -167,7 +172,7 @@ def leaf_cells(tree: KDTree) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     nodes = np.flatnonzero(tree.leaf >= 0)
     order = np.argsort(tree.leaf[nodes])
     nodes = nodes[order]
-    return _node_objects(tree)[nodes], tree.cell_lo[nodes], tree.cell_hi[nodes]
+    return node_objects(tree)[nodes], tree.cell_lo[nodes], tree.cell_hi[nodes]
 
 
 def node_samples(x, lo, hi, expand: float, candidates: np.ndarray) -> np.ndarray:

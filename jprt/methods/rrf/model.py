@@ -60,7 +60,7 @@ from jprt.solve.lm import LMSettings, solve_batched
 
 __all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features",
            "split_samples", "split_dims", "input_size", "fit", "fit_arrays", "evaluator", "frame_flops", "check_inputs", "example",
-           "refit_leaves", "parameter_count", "light_box", "RENDER_LAYOUTS", "render_layout"]
+           "refit_leaves", "parameter_count", "light_box", "raw_thresholds", "RENDER_LAYOUTS", "render_layout"]
 
 #: Inputs of Phi for each attribute set (Ren et al. Fig. 3: basic vs augmented attributes).
 ATTRIBUTE_SETS = {
@@ -769,31 +769,34 @@ def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols
         parts = [jnp.pad(q, pad + ((0, 0),)) for q in parts]
         object_id = jnp.pad(object_id, pad, constant_values=-1)
     where = np.cumsum([0] + [int(q.shape[-1]) for q in parts])  # x column c_s of shared is in part i
-    safe_obj = jnp.clip(object_id, 0, params["obj_lo"].shape[0] - 1)
-    # the axes the trees split (params are constants of the program): each pixel's normalised
-    # input on them, selected per node without a per-pixel gather of x's columns
+    # params are constants of the program: the trees' thresholds are mapped once from each object's
+    # unit box back to x's own units (``raw_thresholds``), so traversal compares each pixel's raw
+    # inputs, selected per node without a per-pixel gather of x's columns or a division
+    tree = _tree(params)
+    tree = tree._replace(threshold=jnp.asarray(raw_thresholds(params)))
     split_axes = [int(a) for a in np.unique(np.asarray(params["tree"]["axis"])) if a >= 0]
+    # no node splits the light: every light of the frame falls in each pixel's one leaf
+    shared_leaf = not any(a in light_cols for a in split_axes)
 
     def column(cs):  # column cs of the shared inputs, (H, W)
         i = int(np.searchsorted(where, cs, side="right") - 1)
         return parts[i][..., cs - where[i]]
 
     def leaf_under(lp):  # kd-tree leaf of every pixel under light lp, x never materialised
-        normalised = {}
-        for a in split_axes:
-            raw = lp[a - int(lc[0])] if a in light_cols else column(int(np.flatnonzero(rest == a)[0]))
-            normalised[a] = _unit(raw, params["obj_lo"][:, a][safe_obj], params["obj_hi"][:, a][safe_obj], jnp)
+        raw = {a: lp[a - int(lc[0])] if a in light_cols else column(int(np.flatnonzero(rest == a)[0]))
+               for a in split_axes}
 
         def value(axis):
             out = jnp.zeros(axis.shape, jnp.float32)
-            for a, v in normalised.items():
+            for a, v in raw.items():
                 out = jnp.where(axis == a, v, out)
             return out
 
-        return kdtree.traverse(_tree(params), object_id, None, column=value)
+        return kdtree.traverse(tree, object_id, None, column=value)
 
-    leaf = jnp.stack([leaf_under(light_pos[kk]) for kk in range(k)])  # (K, H, W)
-    present = _tile_leaves(leaf.reshape(k, th, tile, tw, tile), n_leaves).reshape(n_leaves, n_tiles)  # (L, T)
+    leaf = jnp.stack([leaf_under(light_pos[kk]) for kk in range(1 if shared_leaf else k)])  # (K or 1, H, W)
+    kl = leaf.shape[0]
+    present = _tile_leaves(leaf.reshape(kl, th, tile, tw, tile), n_leaves).reshape(n_leaves, n_tiles)  # (L, T)
     rank = jnp.cumsum(present.astype(jnp.int32), axis=1)  # (L, T): 1 + the item's rank in its leaf's list
     count = rank[:, -1]
     padded = (count + chunk - 1) // chunk * chunk
@@ -820,8 +823,8 @@ def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols
         live = r < count[lf]
         tl = jnp.searchsorted(keys, lf * (n_tiles + 1) + r + 1, side="left", method="scan_unrolled") - lf * n_tiles
         tl = jnp.where(live, jnp.clip(tl, 0, n_tiles - 1), 0)
-        mine = (leaf_t[:, tl] == lf) & live[None, :, None]  # (K, chunk, tile^2)
-        mine = mine.reshape(k, chunk * tp)
+        mine = (leaf_t[:, tl] == lf) & live[None, :, None]  # (K or 1, chunk, tile^2)
+        mine = mine.reshape(kl, chunk * tp)
         s = jax.tree_util.tree_map(lambda a: a[lf], leaves["scaling"])
         y0, x0 = tl // tw * tile, tl % tw * tile
         z = jnp.concatenate([tiles_of(q, y0, x0) for q in parts], axis=-1).reshape(chunk * tp, ds)  # (N, Ds)
@@ -846,12 +849,15 @@ def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols
                 h = _tanh(h) if i < len(layers) - 1 else h
             y = h * s["out_halfrange"][:, None] + s["out_center"][:, None]
             y = jnp.maximum(y, 0.0) if nonnegative else y
-            return y_sum + jnp.where(mine[kk][None, :], y * light_rgb[kk][:, None], 0.0)
+            y = y * light_rgb[kk][:, None]
+            return y_sum + (y if kl == 1 else jnp.where(mine[kk][None, :], y, 0.0))
 
         y_sum = jnp.zeros((n_out, chunk * tp), h0.dtype)
-        for kk in range(k):  # Eq. 9's sum; the trees split on the light too: skip lights not in this leaf
-            y_sum = light_term(kk, y_sum) if k == 1 else jax.lax.cond(
+        for kk in range(k):  # Eq. 9's sum; where the trees split on the light: skip lights not in this leaf
+            y_sum = light_term(kk, y_sum) if kl == 1 else jax.lax.cond(
                 jnp.any(mine[kk]), functools.partial(light_term, kk), lambda v: v, y_sum)
+        if kl == 1:  # one leaf for every light: the pixels of other leaves masked once
+            y_sum = jnp.where(mine[0][None, :], y_sum, 0.0)
         # into each item's tile, one indexed add for the chunk (padding items add zeros to tile 0)
         return out.at[:, tl].add(y_sum.reshape(n_out, chunk, tp))
 
@@ -860,6 +866,25 @@ def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols
     out = jnp.moveaxis(out.reshape(n_out, th, tw, tile, tile), 0, -1)  # (th, tw, tile, tile, R)
     out = jnp.swapaxes(out, 1, 2).reshape(th * tile, tw * tile, n_out)
     return out[:hh, :ww]
+
+
+def raw_thresholds(params) -> np.ndarray:
+    """Every kd-tree node's split value in the units of x (M,) float32: the normalised threshold
+    t of its axis a mapped back through its object's box, lo_a + t (hi_a - lo_a) (``_unit``'s
+    inverse, a constant axis's span taken as 1, as there); leaves keep their value. Comparing raw
+    inputs against these is the traversal of normalised inputs up to float rounding at the
+    boundary itself, without a per-sample division.
+
+    Numerics: not differentiable (split values of a trained tree).
+    """
+    tree = kdtree.KDTree(*(np.asarray(a) for a in _tree(params)))
+    owner = np.maximum(kdtree.node_objects(tree), 0)
+    axis = np.maximum(tree.axis, 0)
+    lo = np.asarray(params["obj_lo"], np.float64)[owner, axis]
+    span = np.asarray(params["obj_hi"], np.float64)[owner, axis] - lo
+    span = np.where(span > 1e-8, span, 1.0)
+    return np.where(tree.axis >= 0, lo + np.asarray(tree.threshold, np.float64) * span,
+                    tree.threshold).astype(np.float32)
 
 
 def light_box(params) -> tuple[np.ndarray, np.ndarray]:
