@@ -105,11 +105,11 @@ DEFAULT_CONFIG: dict = {
     "model": {"hidden": [20, 10], "attributes": "augmented"},
     # split_on: the attributes (ATTRIBUTE_SETS names) whose axes a node may split; None, every
     # axis, is the paper's. Without "light" every leaf serves every light, so a frame's lights
-    # share each pixel's traversal and the light-free part of the first layer. rrf_cornell's
-    # `small` config, 2026-12-02 (`experiments/rrf_tail.py --timing`, 2-core CPU): None: 29
-    # leaves, 20 of 22 splits on the light, RMSE 0.0062, p99.9 8.0x, 512^2 frame 17.4 ms, four
-    # lights 3.7x; without the light: 31 leaves, 0.0064, 8.2x, 24.4 ms, 2.0x (FLOPs 2.50x): the
-    # position and view splits cut the image into more (leaf, tile) items (5893 against 4459)
+    # share each pixel's traversal and the light-free part of the first layer (experiments/
+    # rrf_cornell.py's `small` config bars it). That config on 2026-12-02 (benchmarks/results/
+    # rrf_cornell.json, 2-core AMD CPU, both rules on the same samples, frames timed interleaved):
+    # without the light 31 leaves, RMSE 0.0065, p99.9 8.4x, 512^2 frame 16.3 ms, four lights 1.83x;
+    # None: 28 leaves (20 of 21 splits on the light), 0.0067, 7.6x, 12.2 ms, 3.68x
     "tree": {"threshold": 0.05, "axis": "all", "expand": 0.1, "max_depth": 6, "min_samples": 1500, "max_leaves": 64,
              "group_below": 32, "split_on": None},
     "train": {"max_iters": 40, "trial_iters": 10, "trial_samples": 1024, "max_fail": 6, "rtol": 1e-6, "damping": 1e-3, "chunk_size": 1024, "seed": 0,
