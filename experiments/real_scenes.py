@@ -79,13 +79,15 @@ CONFIG = {
     # wavelet_prt.envmaps.procedural=sun` can try suns (2026-12-01, Cornell picture: worst / mean
     # object 0.590 / 0.500 with suns against 0.598 / 0.428 with the default lobes); its training maps
     # named too (`[]`: every map not held out) so a validation run can leave one out; `envmaps.tilt`
-    # and `train.objective` named so validation runs can try them (README, 2026-12-02)
+    # and `train.objective` named so validation runs can try them (README, 2026-12-02), and so is
+    # `train.fine_penalty` (the light the finest Haar levels carry, penalised; 0: off)
     "wavelet_prt": {"envmaps": {"face_size": 16, "procedural": "lobes", "train": [], "tilt": 0.0},
                     "cameras": {"width": 64, "height": 64, "target": None, "sphere": {"n": 40}, "helix": {"n": 35},
                                 "near": 1, "far": 1},
                     "data": {"spp": 128, "test_spp": 64, "envs_per_view": 2, "test_pairs": "cycle", "rays": "image"},
                     "model": {"n_levels": 8, "log2_table_size": 14, "n_features": 32, "hidden": 128},
-                    "train": {"steps": 1500, "pixels": 256, "wavelets": 300, "objective": "paper"}, "render": {"k": 64}},
+                    "train": {"steps": 1500, "pixels": 256, "wavelets": 300, "objective": "paper",
+                              "fine_penalty": 0.0, "fine_levels": 2}, "render": {"k": 64}},
     "sh_prt": {"lightmap": {"resolution": 96}, "sh": {"order": 3, "spp": 64, "env_height": 32}},
     "output": {"dir": "results/real_scenes"},
 }

@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from jax.test_util import check_grads
 
+from jprt.config import stable_hash
 from jprt.inputs import CubeMap
 from jprt.methods import REGISTRY
 from jprt.methods.wavelet_prt import model as wp
@@ -400,6 +401,52 @@ def test_exact_objective_trains_on_every_wavelet_and_unknown_objectives_raise():
     assert len(res.info["losses"]) == 3 and np.all(np.isfinite(res.info["losses"]))
     with pytest.raises(ValueError, match="unknown train.objective 'all'"):
         wp.fit(data, dict(TINY, train=dict(TINY["train"], objective="all")), progress=False)
+
+
+def _fine_share(params, data, cfg, first_fine: int) -> float:
+    """The share of sum |L_k T_k|^2 over every training pixel and wavelet that the detail levels
+    >= ``first_fine`` carry, under the training lightings."""
+    m = wp.model(cfg)
+    n = m.face_size
+    idx = jnp.arange(6 * n * n, dtype=jnp.int32)
+    w = haar.unflatten_index(idx, n)
+    fine = np.asarray((w.level >= first_fine) & (w.band != haar.BAND_SCALING))
+    dev = wp._device_data(data)
+    total = carried = 0.0
+    for e in range(dev["coeffs"].shape[0]):
+        g = {f: dev[f][e] for f in m.fields}
+        light = np.square(np.asarray(m.transport(params, g, idx)) * np.asarray(dev["coeffs"][e])[None])
+        light = light[np.asarray(dev["valid"][e], bool)]
+        total, carried = total + light.sum(), carried + light[:, fine].sum()
+    return carried / total
+
+
+@pytest.mark.slow  # ~10 s: two 100-step fits (the switch is off by default; its key and checks are below)
+def test_fine_penalty_moves_light_out_of_the_fine_levels():
+    """``train.fine_penalty``: the finest level's share of the light falls to under a quarter of
+    what the same fit without it puts there."""
+    data = _fake_data(n=4)
+    base = dict(TINY, train=dict(TINY["train"], steps=100))
+    shares = {}
+    for penalty in (0.0, 30.0):
+        cfg = dict(base, train=dict(base["train"], fine_penalty=penalty, fine_levels=1))
+        shares[penalty] = _fine_share(wp.fit(data, cfg, progress=False).params, data, cfg, first_fine=1)
+    assert shares[0.0] > 0.02 and shares[30.0] < 0.25 * shares[0.0], shares  # measured 0.042 and 0.0023
+
+
+def test_fine_penalty_off_keeps_the_run_key_and_bad_values_raise():
+    """``train.fine_penalty`` 0 (the default) leaves ``run_key`` as it was before the switch
+    existed (whatever ``fine_levels`` says); negative penalties and more levels than the face has
+    raise before training."""
+    base = dict(TINY, train=dict(TINY["train"], steps=100))
+    cfg = wp._cfg(base)
+    before = {**{k: cfg[k] for k in ("scene", "envmaps", "cameras", "data", "model")},  # the key's old content
+              "train": {k: v for k, v in cfg["train"].items() if k not in ("fine_penalty", "fine_levels")}}
+    assert wp.run_key(base) == stable_hash(before) == wp.run_key(dict(base, train=dict(base["train"], fine_levels=1)))
+    assert wp.run_key(base) != wp.run_key(dict(base, train=dict(base["train"], fine_penalty=1.0)))
+    for bad in ({"fine_penalty": -1.0}, {"fine_levels": 3}):
+        with pytest.raises(ValueError, match="fine_"):
+            wp.fit(_fake_data(n=4), dict(base, train=dict(base["train"], **bad)), progress=False)
 
 
 def test_sun_skies_hold_a_sun_in_one_texel():
