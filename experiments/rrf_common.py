@@ -85,6 +85,14 @@ def _predict(evaluate, testset) -> list:
             for item in testset.items]
 
 
+def _rmse_p999(preds, held) -> tuple[float, float]:
+    """Indirect RMSE and 99.9th percentile of |error| over every valid pixel and channel of the
+    held-out set, for an ablation's predictions."""
+    err = np.concatenate([np.abs(np.asarray(q) - np.asarray(r))[np.asarray(v, bool)].ravel()
+                          for q, r, v in zip(preds, held.references, held.valid)])
+    return jeval.set_rmse(preds, held.references, held.valid), float(np.percentile(err, 99.9))
+
+
 def _rmse(run, params, method_config) -> float:
     held = run.state["held_out"]
     preds = _predict(rrf.evaluator(params, method_config), run.state["testset"])
@@ -274,11 +282,7 @@ def split_rule_ablation(run) -> dict:
     other = NO_LIGHT_SPLIT if mine is None else None
     cfg = run.with_config({"tree": {"split_on": other}})
     p, _ = rrf.fit(run.dataset, cfg)
-    held = run.state["held_out"]
-    preds = _predict(rrf.evaluator(p, cfg), run.state["testset"])
-    err = np.concatenate([np.abs(np.asarray(q) - np.asarray(r))[np.asarray(v, bool)].ravel()
-                          for q, r, v in zip(preds, held.references, held.valid)])
-    rmse = jeval.set_rmse(preds, held.references, held.valid)
+    rmse, p999 = _rmse_p999(_predict(rrf.evaluator(p, cfg), run.state["testset"]), run.state["held_out"])
     host = (run.state["timing_gbuffer"], run.state["lightings"][0], four_light_inputs(run.config))
     dev = jax.device_put(host)
     fns = {"config": jax.jit(run.evaluate), "other": jax.jit(rrf.evaluator(p, cfg))}
@@ -287,8 +291,7 @@ def split_rule_ablation(run) -> dict:
     flops = {n: rrf.frame_flops(p, cfg, host[0], lights) for n, lights in ((1, host[1]), (4, host[2]))}
     splits = np.asarray(p["tree"]["axis"])
     light = rrf.split_dims({**cfg, "tree": {"split_on": ["light"]}})  # the light's columns of x
-    out = {"split_on": other, "rmse": rmse, "p999_abs_error": float(np.percentile(err, 99.9)),
-           "p999_over_rmse": float(np.percentile(err, 99.9)) / rmse,
+    out = {"split_on": other, "rmse": rmse, "p999_abs_error": p999, "p999_over_rmse": p999 / rmse,
            "n_leaves": kdtree.KDTree(**p["tree"]).n_leaves,
            "splits_on_light": int(np.isin(splits, light).sum()), "splits": int(np.sum(splits >= 0)),
            "frame_ms": ms[("other", 1)], "frame_ms_4lights": ms[("other", 4)],
@@ -311,12 +314,8 @@ def sampling_ablation(run) -> dict:
     other = 1 if over > 1 else 8
     cfg = run.with_config({"data": {"oversample": other}})
     p, _ = rrf.fit(rrf_data.make_dataset(run.config["scene"], cfg), cfg)
-    held = run.state["held_out"]
-    preds = _predict(rrf.evaluator(p, cfg), run.state["testset"])
-    err = np.concatenate([np.abs(np.asarray(q) - np.asarray(r))[np.asarray(v, bool)].ravel()
-                          for q, r, v in zip(preds, held.references, held.valid)])
-    out = {"oversample": other, "rmse": jeval.set_rmse(preds, held.references, held.valid),
-           "p999_abs_error": float(np.percentile(err, 99.9))}
+    rmse, p999 = _rmse_p999(_predict(rrf.evaluator(p, cfg), run.state["testset"]), run.state["held_out"])
+    out = {"oversample": other, "rmse": rmse, "p999_abs_error": p999}
     run.say(f"training rays with oversample {other}: RMSE {out['rmse']:.5f}, p99.9 {out['p999_abs_error']:.4f}")
     return {"sampling_ablation": out}
 
@@ -498,5 +497,5 @@ def material_edit(run) -> dict:
 
 
 #: The stages of an RRF report, in order.
-STAGES = [tree_stats, four_lights, split_rule_ablation, sampling_ablation, attribute_ablation, single_mlp, robustness, training_size,
-          training_spp]
+STAGES = [tree_stats, four_lights, split_rule_ablation, sampling_ablation, attribute_ablation, single_mlp, robustness,
+          training_size, training_spp]

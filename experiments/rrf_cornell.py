@@ -39,7 +39,7 @@ from jprt.methods import REGISTRY
 # splits every axis): every leaf then serves every light, so a frame's lights share each pixel's
 # traversal and the light-free part of the first layer, and four lights cost about 2x one light
 # instead of about 3.7x, at about the paper rule's accuracy (the split_rule_ablation stage fits
-# the paper's rule on the same samples and times both models alternately; README, issue 17).
+# the paper's rule on the same samples and times both models interleaved; README, issue 17).
 CONFIG = config("results/rrf_cornell", {"scene": {"name": "cornell_box", "area_light": False},
                                         "data": {"n_lights": 100, "n_rays": 20},
                                         "tree": {"min_samples": 800, "split_on": NO_LIGHT_SPLIT},

@@ -103,20 +103,17 @@ def timing_inputs(config: dict):
 
 
 def timing(evaluate, params, cfg, inputs, repeats: int) -> dict:
-    """Median 512^2 frame times with one and four lights, measured alternately, and the FLOPs."""
+    """Median 512^2 frame times with one and four lights, measured interleaved
+    (``rrf_common._interleaved``), and the FLOPs."""
     import jax
+    import rrf_common
 
-    from jprt import eval as jeval
     from jprt.methods.rrf import model as rrf
 
     gb, one, four = inputs
-    fast = jax.jit(evaluate)
     dev = jax.device_put((gb, one, four))
-    times = {1: [], 4: []}
-    for _ in range(max(1, repeats)):
-        for n, lights in ((1, dev[1]), (4, dev[2])):
-            times[n] += jeval.time_call(fast, dev[0], lights, repeats=1, warmup=1 if not times[n] else 0)["times_ms"]
-    ms1, ms4 = float(np.median(times[1])), float(np.median(times[4]))
+    timed = rrf_common._interleaved({"rrf": jax.jit(evaluate)}, dev[0], {1: dev[1], 4: dev[2]}, repeats)
+    ms1, ms4 = timed[("rrf", 1)]["median_ms"], timed[("rrf", 4)]["median_ms"]
     f1, f4 = rrf.frame_flops(params, cfg, gb, one), rrf.frame_flops(params, cfg, gb, four)
     return {"frame_ms": ms1, "frame_ms_4lights": ms4, "frame_ms_4lights_over_1light": ms4 / ms1,
             "frame_flops": f1, "frame_flops_4lights": f4, "frame_flops_4lights_over_1light": f4 / f1}

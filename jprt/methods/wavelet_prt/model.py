@@ -945,11 +945,11 @@ def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str |
         n_wav = 6 * m.face_size**2
         n_pix = max(4, 4 * round(n_pix * min(int(tc["wavelets"]), n_wav) / n_wav / 4))
     nonneg = bool(cfg["model"]["nonnegative"])
-    fine, n_fine = float(tc["fine_penalty"]), int(tc["fine_levels"])
-    if fine < 0 or not 0 <= n_fine <= haar.check_face_size(m.face_size):
+    fine, n_fine, levels = float(tc["fine_penalty"]), int(tc["fine_levels"]), haar.check_face_size(m.face_size)
+    if fine < 0 or not 0 <= n_fine <= levels:
         raise ValueError(f"train.fine_penalty must be >= 0 and train.fine_levels in [0, log2(face_size)], got "
                          f"{fine} and {n_fine}")
-    first_fine = haar.check_face_size(m.face_size) - n_fine  # the coarsest penalised detail level
+    first_fine = levels - n_fine  # the coarsest penalised detail level
     stops, wb = float(tc["exposure_stops"]), float(tc["white_balance"])
     if stops < 0 or wb < 0:
         raise ValueError(f"train.exposure_stops and train.white_balance must be >= 0, got {stops} and {wb}")
