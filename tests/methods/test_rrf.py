@@ -304,6 +304,9 @@ def test_make_dataset_tiny(mi, tmp_path):
     np.testing.assert_array_equal(again.indirect, data.indirect)
     x = rrf.data_features(data, "augmented")
     assert x.shape == (len(data), rrf.input_size("augmented")) and rrf.input_size("basic") == 9
+    # "diffuse" is "augmented" without the view's three columns
+    np.testing.assert_array_equal(rrf.data_features(data, "diffuse"), np.delete(x, [3, 4, 5], axis=1))
+    assert rrf.input_size("diffuse") == 16
 
 
 def test_make_dataset_material_mode(mi, tmp_path):
@@ -313,6 +316,8 @@ def test_make_dataset_material_mode(mi, tmp_path):
     assert data.edit.shape == (len(data), 2)
     assert len(np.unique(data.edit[:, 0])) == 2
     assert rrf.data_features(data, "augmented").shape[1] == rrf.input_size("augmented", "material")
+    with pytest.raises(ValueError, match="has no view"):  # the edit parameters take the view's place
+        rrf.fit(data, {"data": {"mode": "material"}, "model": {"attributes": "diffuse"}})
     with pytest.raises(ValueError, match="without emitters"):
         rrf_data.make_dataset("cornell_box", cfg, cache_dir=str(tmp_path), progress=False)  # has its area light
     with pytest.raises(ValueError, match="not an object"):

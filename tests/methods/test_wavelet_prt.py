@@ -440,13 +440,51 @@ def test_fine_penalty_off_keeps_the_run_key_and_bad_values_raise():
     raise before training."""
     base = dict(TINY, train=dict(TINY["train"], steps=100))
     cfg = wp._cfg(base)
-    before = {**{k: cfg[k] for k in ("scene", "envmaps", "cameras", "data", "model")},  # the key's old content
+    before = {**{k: cfg[k] for k in ("scene", "envmaps", "cameras", "data")},  # the key's old content
+              "model": {k: v for k, v in cfg["model"].items() if k != "lighting_levels"},
               "train": {k: v for k, v in cfg["train"].items() if k not in ("fine_penalty", "fine_levels")}}
     assert wp.run_key(base) == stable_hash(before) == wp.run_key(dict(base, train=dict(base["train"], fine_levels=1)))
     assert wp.run_key(base) != wp.run_key(dict(base, train=dict(base["train"], fine_penalty=1.0)))
     for bad in ({"fine_penalty": -1.0}, {"fine_levels": 3}):
         with pytest.raises(ValueError, match="fine_"):
             wp.fit(_fake_data(n=4), dict(base, train=dict(base["train"], **bad)), progress=False)
+
+
+def test_lighting_levels_read_the_box_filtered_map():
+    """``model.lighting_levels`` D: the kept coefficients are each face's 2^D x 2^D Mallat block
+    (6 x 4^D of them), and zeroing the others is the cube map box-filtered to face 2^D (energy
+    kept), so the evaluator gives the same image under a map and under its box-filtered copy;
+    training draws only kept wavelets; None keeps the run key; bad values raise."""
+    n = 8
+    assert [int(wp.lighting_mask(n, d).sum()) for d in (0, 1, 2, 3, None)] == [6, 24, 96, 384, 384]
+    rng = np.random.default_rng(4)
+    cube = rng.lognormal(size=(6, n, n, 3)).astype(np.float32)
+    mask = wp.lighting_mask(n, 1).reshape(6, n, n, 1)
+    kept = np.asarray(haar.inverse(haar.forward(jnp.asarray(cube)) * mask))
+    box = np.repeat(np.repeat(cube.reshape(6, 2, 4, 2, 4, 3).mean(axis=(2, 4)), 4, axis=1), 4, axis=2)
+    np.testing.assert_allclose(kept, box, rtol=1e-5, atol=1e-6)
+    allowed = wp.lighting_mask(n, 2)
+    idx, _, _ = wp.training_wavelets(jax.random.PRNGKey(0), jnp.asarray(cube.reshape(-1, 3)), 40, allowed=allowed)
+    assert allowed[np.asarray(idx)].all() and len(set(np.asarray(idx).tolist())) == 40
+    with pytest.raises(ValueError, match="cannot select 97"):
+        wp.training_wavelets(jax.random.PRNGKey(0), jnp.asarray(cube.reshape(-1, 3)), 97, allowed=allowed)
+    data = _fake_data(n=4)
+    cfg = dict(TINY, model=dict(TINY["model"], lighting_levels=1), train=dict(TINY["train"], steps=3))
+    res = wp.fit(data, cfg, progress=False)
+    g = {f: data.train[f][0, 0] for f in wp.GBUFFER_FIELDS}
+    env = data.envs[0]
+    box4 = np.repeat(np.repeat(env.reshape(6, 2, 2, 2, 2, 3).mean(axis=(2, 4)), 2, axis=1), 2, axis=2)
+    ev = wp.evaluator(res.params, cfg)
+    out, out_box = np.asarray(ev(g, CubeMap(env))), np.asarray(ev(g, CubeMap(box4)))
+    assert np.abs(out).max() > 0
+    np.testing.assert_allclose(out, out_box, rtol=1e-4, atol=1e-6 * np.abs(out).max())
+    assert wp.run_key(TINY) == wp.run_key(dict(TINY, model=dict(TINY["model"], lighting_levels=None)))
+    assert wp.run_key(TINY) != wp.run_key(cfg)
+    with pytest.raises(ValueError, match="render.k must be in \\[1, 24\\]"):  # 6 x 4^1 wavelets to choose from
+        wp.evaluator(res.params, dict(cfg, render={"k": 25}))
+    for bad in (3, -1, 1.5, True):
+        with pytest.raises(ValueError, match="lighting_levels"):
+            wp.lighting_mask(4, bad)
 
 
 def test_sun_skies_hold_a_sun_in_one_texel():

@@ -67,6 +67,10 @@ ATTRIBUTE_SETS = {
     "basic": ("position", "view", "light"),
     "basic+a": ("position", "view", "light", "brdf"),
     "augmented": ("position", "view", "light", "normal", "brdf"),
+    # without v: for a scene whose surfaces are all Lambertian the indirect radiance leaving x does
+    # not depend on the view direction (L_o = rho / pi * int L_i cos), so v can only carry the
+    # finite set of training views' directions, which a held-out view leaves (view mode only)
+    "diffuse": ("position", "light", "normal", "brdf"),
 }
 _WIDTHS = {"position": 3, "view": 3, "light": 3, "normal": 3, "brdf": 7}
 
@@ -456,6 +460,9 @@ def fit(data: RRFData, config: dict | None = None, *, is_train=None, checkpoint_
     Numerics: not differentiable (a fitting or training procedure).
     """
     cfg = _cfg(config)
+    if data.meta.get("mode") == "material" and "view" not in ATTRIBUTE_SETS[cfg["model"]["attributes"]]:
+        raise ValueError(f"model.attributes {cfg['model']['attributes']!r} has no view, where material mode "
+                         "puts the edit parameters (Appendix B); use one with a view")
     x = data_features(data, cfg["model"]["attributes"])
     if is_train is None:
         is_train = split_samples(len(data), float(cfg["data"]["val_fraction"]), int(cfg["train"]["seed"]))

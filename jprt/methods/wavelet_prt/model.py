@@ -87,6 +87,7 @@ __all__ = [
     "pixel_features",
     "Model",
     "model",
+    "lighting_mask",
     "training_wavelets",
     "indirect_output",
     "indirect_loss",
@@ -184,6 +185,14 @@ DEFAULT_CONFIG = {
         # Haar details at the sun all have the sun's sign, and with "free" their sum lit the scene
         # 3-4x too bright (issue 18: rooitou_park 14.1 dB with "free", 18.7 with "zero", `small`)
         "null_transport": "zero",
+        # the Haar detail levels of the lighting the model reads, coarsest first; None: every level
+        # (the paper). An integer D keeps the scaling wavelets and the D coarsest detail levels (each
+        # face's top-left 2^D x 2^D block of coefficients) and drops the finer ones at training and at
+        # run time: the lighting is then exactly the cube map box-filtered to face 2^D (energy kept),
+        # the targets stay rendered under the full map. Indirect light is smooth in the light's
+        # direction, and 6 x 4^D transport functions are learnt instead of 6 n^2 from the same
+        # training lightings (lighting_levels, README, issue 21)
+        "lighting_levels": None,
     },
     "train": {
         # paper: 2048 pixels per step; 256 keeps the `small` run near 0.5 s per step on 2 CPU cores
@@ -726,23 +735,47 @@ def model_bytes(params) -> int:
 # --------------------------------------------------------------------------------------------
 
 
-def training_wavelets(key, coeffs, n: int, *, unbiased: bool = False):
+def lighting_mask(face_size: int, levels: int | None) -> np.ndarray:
+    """The flat Haar coefficients (``haar.flat_index`` order, (6 n^2,) bool) a model with
+    ``model.lighting_levels`` = ``levels`` reads: each face's scaling wavelet and its ``levels``
+    coarsest detail levels (in the Mallat layout, rows and columns below 2^levels); every
+    coefficient when ``levels`` is None. ValueError unless 0 <= levels <= log2(face_size).
+
+    Numerics: not differentiable (a boolean mask).
+    """
+    n_levels = haar.check_face_size(int(face_size))
+    if levels is None:
+        return np.ones(6 * face_size * face_size, bool)
+    if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or not 0 <= int(levels) <= n_levels:
+        raise ValueError(f"model.lighting_levels must be None or an integer in [0, {n_levels}] (log2 of the face "
+                         f"size {face_size}), got {levels!r}")
+    block = np.arange(face_size) < 2 ** int(levels)
+    return np.broadcast_to(block[:, None] & block[None, :], (6, face_size, face_size)).reshape(-1).copy()
+
+
+def training_wavelets(key, coeffs, n: int, *, unbiased: bool = False, allowed=None):
     """§5's training selection from flat coefficients (N, 3): the n // 2 largest |L_k| (no area
     weighting) and n - n // 2 distinct others uniformly at random. Returns (indices (n,), values
     (n, 3), weights (n,)): weights 1, or with ``unbiased`` (N - n // 2) / (n - n // 2) for the
     uniform half, which makes sum_k w_k L_k T_k an unbiased estimate of the sum over all N
-    wavelets (each of the other wavelets is drawn with that inverse probability).
+    wavelets (each of the other wavelets is drawn with that inverse probability). ``allowed`` (N,)
+    bool restricts both halves to those wavelets (``lighting_mask``; N then counts them only, and
+    n must not exceed it).
 
     Numerics: not differentiable (a random selection of wavelet indices).
     """
     coeffs = jnp.asarray(coeffs)
     mag = jnp.sqrt(jnp.sum(jnp.square(coeffs), axis=-1))
+    allowed = np.ones(mag.shape[0], bool) if allowed is None else np.asarray(allowed, bool)
+    total = int(allowed.sum())
+    if n > total:
+        raise ValueError(f"cannot select {n} training wavelets of {total}")
     half = n // 2
-    _, top = jax.lax.top_k(mag, half)
-    rest = jnp.ones(mag.shape[0], bool).at[top].set(False)
+    _, top = jax.lax.top_k(jnp.where(allowed, mag, -1.0), half)
+    rest = jnp.asarray(allowed).at[top].set(False)
     others = jax.random.choice(key, mag.shape[0], (n - half,), replace=False, p=rest / jnp.sum(rest))
     idx = jnp.concatenate([top, others]).astype(jnp.int32)
-    scale = (mag.shape[0] - half) / max(n - half, 1) if unbiased else 1.0
+    scale = (total - half) / max(n - half, 1) if unbiased else 1.0
     weights = jnp.concatenate([jnp.ones(half, coeffs.dtype), jnp.full(n - half, scale, coeffs.dtype)])
     return idx, coeffs[idx], weights
 
@@ -910,7 +943,11 @@ def run_key(config: dict | None = None) -> str:
     train = cfg["train"]
     if not float(train["fine_penalty"]):  # off: left out, so models trained before the keys existed keep their key
         train = {k: v for k, v in train.items() if k not in ("fine_penalty", "fine_levels")}
-    return stable_hash({**{k: cfg[k] for k in ("scene", "envmaps", "cameras", "data", "model")}, "train": train})
+    model_cfg = cfg["model"]
+    if model_cfg["lighting_levels"] is None:  # every level: left out, as above
+        model_cfg = {k: v for k, v in model_cfg.items() if k != "lighting_levels"}
+    return stable_hash({**{k: cfg[k] for k in ("scene", "envmaps", "cameras", "data")}, "model": model_cfg,
+                        "train": train})
 
 
 def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str | None = None,
@@ -933,7 +970,9 @@ def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str |
     missing = [f for f in m.fields if f not in data.train]
     if missing:
         raise ValueError(f"data lacks {missing} (model.spatial='vertex' needs add_vertex_interpolation)")
-    n_wav = min(int(tc["wavelets"]), 6 * m.face_size**2)
+    kept = lighting_mask(m.face_size, cfg["model"]["lighting_levels"])
+    n_kept = int(kept.sum())
+    n_wav = min(int(tc["wavelets"]), n_kept)
     n_pix = int(tc["pixels"])
     if n_pix % 4:
         raise ValueError(f"train.pixels must be a multiple of 4 (four sampling strategies), got {n_pix}")
@@ -942,8 +981,9 @@ def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str |
         raise ValueError(f"unknown train.objective {tc['objective']!r}: use 'unbiased', 'paper' or 'exact'")
     unbiased, exact = tc["objective"] == "unbiased", tc["objective"] == "exact"
     if exact:  # all N wavelets per pixel: as many (pixel, wavelet) products per step as n_wav wavelets
-        n_wav = 6 * m.face_size**2
+        n_wav = n_kept
         n_pix = max(4, 4 * round(n_pix * min(int(tc["wavelets"]), n_wav) / n_wav / 4))
+    kept_idx = jnp.asarray(np.flatnonzero(kept), jnp.int32)
     nonneg = bool(cfg["model"]["nonnegative"])
     fine, n_fine, levels = float(tc["fine_penalty"]), int(tc["fine_levels"]), haar.check_face_size(m.face_size)
     if fine < 0 or not 0 <= n_fine <= levels:
@@ -962,9 +1002,10 @@ def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str |
         ke, kw, kp, kj, kb = jax.random.split(k, 5)
         e = jax.random.randint(ke, (), 0, n_env)
         if exact:
-            idx, vals, weights = jnp.arange(n_wav, dtype=jnp.int32), d["coeffs"][e], jnp.ones(n_wav)
+            idx, vals, weights = kept_idx, d["coeffs"][e][kept_idx], jnp.ones(n_wav)
         else:
-            idx, vals, weights = training_wavelets(kw, d["coeffs"][e], n_wav, unbiased=unbiased)
+            idx, vals, weights = training_wavelets(kw, d["coeffs"][e], n_wav, unbiased=unbiased,
+                                                   allowed=None if n_kept == kept.size else kept)
         logits = d["log_importance"][e]  # (4, V H W)
         pix = jax.vmap(lambda kk, lg: jax.random.categorical(kk, lg, shape=(n_pix // 4,)))(
             jax.random.split(kp, 4), logits).reshape(-1)
@@ -1039,8 +1080,11 @@ def evaluator(params, config: dict | None = None):
     m = model(cfg)
     params = jax.tree_util.tree_map(jnp.asarray, params)
     k, chunk = int(cfg["render"]["k"]), int(cfg["render"]["chunk"])
-    if not 1 <= k <= 6 * m.face_size**2:
-        raise ValueError(f"render.k must be in [1, {6 * m.face_size ** 2}], got {k}")
+    kept = lighting_mask(m.face_size, cfg["model"]["lighting_levels"])
+    if not 1 <= k <= int(kept.sum()):
+        raise ValueError(f"render.k must be in [1, {int(kept.sum())}] (the wavelets of model.lighting_levels "
+                         f"{cfg['model']['lighting_levels']}), got {k}")
+    band = None if kept.all() else jnp.asarray(kept.reshape(6, m.face_size, m.face_size, 1), jnp.float32)
     if chunk < 0:
         raise ValueError(f"render.chunk must be >= 0 (0: automatic), got {chunk}")
     chunk = chunk or auto_chunk(k)
@@ -1051,6 +1095,8 @@ def evaluator(params, config: dict | None = None):
         flat = {f: jnp.asarray(inputs[f]).reshape((-1,) + jnp.asarray(inputs[f]).shape[len(shape):])
                 for f in m.fields}
         light = haar.forward(jnp.asarray(lighting.radiance))
+        if band is not None:  # model.lighting_levels: the finer detail levels are not read
+            light = light * band
         b = render_pixels(lambda pc, idx: m.head(params, pc, idx), m.prepare(params, flat, exact=False), light, k,
                           chunk=chunk, valid=flat["valid"])
         b = indirect_output(b, bool(cfg["model"]["nonnegative"]))
