@@ -33,7 +33,9 @@ GGX parameters rho = (k_d, k_s, remapped roughness log(25 sigma + 1) / log 26).
   alike (exact: B is linear in each colour channel of the lighting); the model is the moving
   average of the Adam iterates (``train.ema``), which moves less between two machines' runs;
   ``train.fine_penalty`` > 0 adds a penalty on the light the finest Haar levels carry (off by
-  default).
+  default); ``model.lighting_levels`` D reads only the scaling wavelets and the D coarsest detail
+  levels of every lighting, in training and at run time (the cube map box-filtered to face 2^D;
+  off, every level, by default).
 * Rendering (Algorithm 1): the K largest area-weighted wavelets of the new lighting, the
   transport coefficients of all pixels in one jit-compiled pass over pixel chunks (memory bounded
   by the chunk), then the dot product; final = direct (Mitsuba) + indirect.
