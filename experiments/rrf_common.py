@@ -279,7 +279,8 @@ def split_rule_ablation(run) -> dict:
     if not run.config["eval"]["ablations"]:
         return {}
     mine = run.method_config["tree"].get("split_on")
-    other = NO_LIGHT_SPLIT if mine is None else None
+    own = rrf.ATTRIBUTE_SETS[run.method_config["model"]["attributes"]]  # NO_LIGHT_SPLIT on this set's attributes
+    other = [a for a in NO_LIGHT_SPLIT if a in own] if mine is None else None
     cfg = run.with_config({"tree": {"split_on": other}})
     p, _ = rrf.fit(run.dataset, cfg)
     rmse, p999 = _rmse_p999(_predict(rrf.evaluator(p, cfg), run.state["testset"]), run.state["held_out"])

@@ -450,6 +450,14 @@ def test_fine_penalty_off_keeps_the_run_key_and_bad_values_raise():
             wp.fit(_fake_data(n=4), dict(base, train=dict(base["train"], **bad)), progress=False)
 
 
+def _box_filtered(cube, face: int):
+    """A (6, n, n, 3) cube map box-filtered to face size ``face`` and repeated back to n."""
+    n = cube.shape[1]
+    r = n // face
+    means = cube.reshape(6, face, r, face, r, 3).mean(axis=(2, 4))
+    return np.repeat(np.repeat(means, r, axis=1), r, axis=2)
+
+
 def test_lighting_levels_read_the_box_filtered_map():
     """``model.lighting_levels`` D: the kept coefficients are each face's 2^D x 2^D Mallat block
     (6 x 4^D of them), and zeroing the others is the cube map box-filtered to face 2^D (energy
@@ -461,8 +469,7 @@ def test_lighting_levels_read_the_box_filtered_map():
     cube = rng.lognormal(size=(6, n, n, 3)).astype(np.float32)
     mask = wp.lighting_mask(n, 1).reshape(6, n, n, 1)
     kept = np.asarray(haar.inverse(haar.forward(jnp.asarray(cube)) * mask))
-    box = np.repeat(np.repeat(cube.reshape(6, 2, 4, 2, 4, 3).mean(axis=(2, 4)), 4, axis=1), 4, axis=2)
-    np.testing.assert_allclose(kept, box, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(kept, _box_filtered(cube, 2), rtol=1e-5, atol=1e-6)
     allowed = wp.lighting_mask(n, 2)
     idx, _, _ = wp.training_wavelets(jax.random.PRNGKey(0), jnp.asarray(cube.reshape(-1, 3)), 40, allowed=allowed)
     assert allowed[np.asarray(idx)].all() and len(set(np.asarray(idx).tolist())) == 40
@@ -473,9 +480,8 @@ def test_lighting_levels_read_the_box_filtered_map():
     res = wp.fit(data, cfg, progress=False)
     g = {f: data.train[f][0, 0] for f in wp.GBUFFER_FIELDS}
     env = data.envs[0]
-    box4 = np.repeat(np.repeat(env.reshape(6, 2, 2, 2, 2, 3).mean(axis=(2, 4)), 2, axis=1), 2, axis=2)
     ev = wp.evaluator(res.params, cfg)
-    out, out_box = np.asarray(ev(g, CubeMap(env))), np.asarray(ev(g, CubeMap(box4)))
+    out, out_box = np.asarray(ev(g, CubeMap(env))), np.asarray(ev(g, CubeMap(_box_filtered(env, 2))))
     assert np.abs(out).max() > 0
     np.testing.assert_allclose(out, out_box, rtol=1e-4, atol=1e-6 * np.abs(out).max())
     assert wp.run_key(TINY) == wp.run_key(dict(TINY, model=dict(TINY["model"], lighting_levels=None)))

@@ -1006,8 +1006,7 @@ def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str |
         if exact:
             idx, vals, weights = kept_idx, d["coeffs"][e][kept_idx], jnp.ones(n_wav)
         else:
-            idx, vals, weights = training_wavelets(kw, d["coeffs"][e], n_wav, unbiased=unbiased,
-                                                   allowed=None if n_kept == kept.size else kept)
+            idx, vals, weights = training_wavelets(kw, d["coeffs"][e], n_wav, unbiased=unbiased, allowed=kept)
         logits = d["log_importance"][e]  # (4, V H W)
         pix = jax.vmap(lambda kk, lg: jax.random.categorical(kk, lg, shape=(n_pix // 4,)))(
             jax.random.split(kp, 4), logits).reshape(-1)
@@ -1083,8 +1082,9 @@ def evaluator(params, config: dict | None = None):
     params = jax.tree_util.tree_map(jnp.asarray, params)
     k, chunk = int(cfg["render"]["k"]), int(cfg["render"]["chunk"])
     kept = lighting_mask(m.face_size, cfg["model"]["lighting_levels"])
-    if not 1 <= k <= int(kept.sum()):
-        raise ValueError(f"render.k must be in [1, {int(kept.sum())}] (the wavelets of model.lighting_levels "
+    n_kept = int(kept.sum())
+    if not 1 <= k <= n_kept:
+        raise ValueError(f"render.k must be in [1, {n_kept}] (the wavelets of model.lighting_levels "
                          f"{cfg['model']['lighting_levels']}), got {k}")
     band = None if kept.all() else jnp.asarray(kept.reshape(6, m.face_size, m.face_size, 1), jnp.float32)
     if chunk < 0:
