@@ -29,7 +29,7 @@ KEYS = ("indirect_rmse", "indirect_rel_rmse", "p999_abs_error", "psnr_indirect",
         "rmse_augmented", "rmse_single_mlp_same_params", "std_subsets", "std_inits")
 CONTEXT = ("n_samples", "n_params", "test_pairs", "pathtrace_rmse_by_spp", "pathtrace_note", "single_mlp",
            "robustness", "fig6_training_size", "fig7_training_spp", "tree_levels", "leaves_per_object", "total_s",
-           "sampling_ablation", "split_rule_ablation", "frame_flops_source")
+           "sampling_ablation", "split_rule_ablation", "frame_flops_source", "reference_noise")
 
 
 def main() -> int:
@@ -53,6 +53,8 @@ def main() -> int:
     result["eval_ms_512_4lights"] = four if at_512 else None
     ratio = s["p999_abs_error"] / s["indirect_rmse"]
     result["p999_over_rmse"] = ratio
+    # what a perfect predictor scores against these references (rrf_common.reference_noise)
+    result["reference_noise_p999_over_rmse"] = (s.get("reference_noise") or {}).get("p999_over_rmse")
     result["targets"] = {
         "eval_ms_512_1light <= 20": at_512 and one <= 20,
         "eval_ms_512_4lights <= 2.5 x eval_ms_512_1light": at_512 and four <= 2.5 * one,

@@ -43,6 +43,7 @@ EVAL_DEFAULTS = {
     "timing_repeats": 20,
     "pathtrace_repeats": 1,    # renders at the equal-error spp take minutes; one is enough
     "single_mlp_steps": 3000,
+    "reference_noise": True,   # a second reference set: the references' own noise (reference_noise)
 }
 
 # Ren et al. 2013: ~10M training samples (N_l = N_v = 200), 4096-spp training data, 20 x 20
@@ -85,12 +86,18 @@ def _predict(evaluate, testset) -> list:
             for item in testset.items]
 
 
-def _rmse_p999(preds, held) -> tuple[float, float]:
-    """Indirect RMSE and 99.9th percentile of |error| over every valid pixel and channel of the
-    held-out set, for an ablation's predictions."""
+def _rmse_p999(preds, refs, valid) -> tuple[float, float]:
+    """Indirect RMSE and 99.9th percentile of |preds - refs| over every valid pixel and channel
+    of the held-out set (an ablation's predictions against ``held.references``, ``held.valid``)."""
     err = np.concatenate([np.abs(np.asarray(q) - np.asarray(r))[np.asarray(v, bool)].ravel()
-                          for q, r, v in zip(preds, held.references, held.valid)])
-    return jeval.set_rmse(preds, held.references, held.valid), float(np.percentile(err, 99.9))
+                          for q, r, v in zip(preds, refs, valid)])
+    return jeval.set_rmse(preds, refs, valid), float(np.percentile(err, 99.9))
+
+
+def _held(run) -> tuple[list, list]:
+    """(references, valid masks) of the run's held-out set."""
+    held = run.state["held_out"]
+    return held.references, held.valid
 
 
 def _rmse(run, params, method_config) -> float:
@@ -283,7 +290,7 @@ def split_rule_ablation(run) -> dict:
     other = [a for a in NO_LIGHT_SPLIT if a in own] if mine is None else None
     cfg = run.with_config({"tree": {"split_on": other}})
     p, _ = rrf.fit(run.dataset, cfg)
-    rmse, p999 = _rmse_p999(_predict(rrf.evaluator(p, cfg), run.state["testset"]), run.state["held_out"])
+    rmse, p999 = _rmse_p999(_predict(rrf.evaluator(p, cfg), run.state["testset"]), *_held(run))
     host = (run.state["timing_gbuffer"], run.state["lightings"][0], four_light_inputs(run.config))
     dev = jax.device_put(host)
     fns = {"config": jax.jit(run.evaluate), "other": jax.jit(rrf.evaluator(p, cfg))}
@@ -315,7 +322,7 @@ def sampling_ablation(run) -> dict:
     other = 1 if over > 1 else 8
     cfg = run.with_config({"data": {"oversample": other}})
     p, _ = rrf.fit(rrf_data.make_dataset(run.config["scene"], cfg), cfg)
-    rmse, p999 = _rmse_p999(_predict(rrf.evaluator(p, cfg), run.state["testset"]), run.state["held_out"])
+    rmse, p999 = _rmse_p999(_predict(rrf.evaluator(p, cfg), run.state["testset"]), *_held(run))
     out = {"oversample": other, "rmse": rmse, "p999_abs_error": p999}
     run.say(f"training rays with oversample {other}: RMSE {out['rmse']:.5f}, p99.9 {out['p999_abs_error']:.4f}")
     return {"sampling_ablation": out}
@@ -341,7 +348,7 @@ def attribute_ablation(run) -> dict:
         if own in ("basic", "augmented"):
             out[key] = _rmse(run, p, cfg)
         else:
-            out[key], p999 = _rmse_p999(_predict(rrf.evaluator(p, cfg), run.state["testset"]), run.state["held_out"])
+            out[key], p999 = _rmse_p999(_predict(rrf.evaluator(p, cfg), run.state["testset"]), *_held(run))
             out[key.replace("rmse_", "p999_over_rmse_")] = p999 / out[key]
         out[key.replace("rmse_", "n_leaves_")] = kdtree.KDTree(**p["tree"]).n_leaves
         run.say(f"{attrs} attributes: RMSE {out[key]:.5f}")
@@ -504,6 +511,33 @@ def material_edit(run) -> dict:
     return {"material_edit": summary}
 
 
+#: render seeds of the second reference set (``reference_noise``), offset from the first's
+NOISE_SEED_OFFSET = 1_000_003
+
+
+def reference_noise(run) -> dict:
+    """The references' own noise in the report's statistics: a second reference set of the same
+    held-out pairs (other seeds, same ``eval.reference_spp``), and (A - B) / sqrt 2 scored as an
+    error image: its RMSE, 99.9th percentile and their ratio are what a perfect predictor scores
+    against one set. Beside them, this fit against the mean of the two sets (half the noise
+    variance). Monte Carlo noise is heavier-tailed than a Gaussian's (3.3x): brighter pixels are
+    noisier. Skipped with ``eval.reference_noise`` False."""
+    if not run.config["eval"]["reference_noise"]:
+        return {}
+    refs, valid = _held(run)
+    second = held_out_references(run.config, run.state["cameras"], run.state["lightings"], run.state["testset"],
+                                 NOISE_SEED_OFFSET)[1]
+    rmse, p999 = _rmse_p999([a / math.sqrt(2.0) for a in refs], [b / math.sqrt(2.0) for b in second], valid)
+    fit_rmse, fit_p999 = _rmse_p999(run.state["held_out"].predictions, [(a + b) / 2 for a, b in zip(refs, second)],
+                                    valid)
+    out = {"reference_spp": int(run.config["eval"]["reference_spp"]), "rmse": rmse, "p999_abs_error": p999,
+           "p999_over_rmse": p999 / rmse, "fit_against_mean_of_two": {
+               "rmse": fit_rmse, "p999_abs_error": fit_p999, "p999_over_rmse": fit_p999 / fit_rmse}}
+    run.say(f"reference noise at {out['reference_spp']} spp: RMSE {rmse:.5f}, p99.9 / RMSE {p999 / rmse:.2f}; "
+            f"the fit against the mean of two sets: RMSE {fit_rmse:.5f}, p99.9 / RMSE {fit_p999 / fit_rmse:.2f}")
+    return {"reference_noise": out}
+
+
 #: The stages of an RRF report, in order.
-STAGES = [tree_stats, four_lights, split_rule_ablation, sampling_ablation, attribute_ablation, single_mlp, robustness,
+STAGES = [tree_stats, reference_noise, four_lights, split_rule_ablation, sampling_ablation, attribute_ablation, single_mlp, robustness,
           training_size, training_spp]

@@ -37,10 +37,6 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
 
-#: render seeds of the second reference set (``--noise``), offset from the first's
-NOISE_SEED_OFFSET = 1_000_003
-
-
 def held_out(config: dict, cache: str, seed_offset: int = 0):
     """(testset, references, valid masks) of rrf_cornell's held-out pairs; references cached in ``cache``."""
     import rrf_common
@@ -61,9 +57,11 @@ def abs_errors(preds, refs, valid) -> list[np.ndarray]:
 
 
 def tail(preds, refs, valid) -> dict:
-    """RMSE and 99.9th percentile of |preds - refs| over every valid pixel and channel."""
-    err = np.concatenate([e[v].ravel() for e, v in zip(abs_errors(preds, refs, valid), valid)])
-    rmse, p999 = float(np.sqrt(np.mean(err ** 2))), float(np.percentile(err, 99.9))
+    """RMSE and 99.9th percentile of |preds - refs| over every valid pixel and channel
+    (``rrf_common._rmse_p999``), and their ratio."""
+    import rrf_common
+
+    rmse, p999 = rrf_common._rmse_p999(preds, refs, valid)
     return {"rmse": rmse, "p999_abs_error": p999, "p999_over_rmse": p999 / rmse}
 
 
@@ -180,7 +178,9 @@ def main() -> None:
     testset, refs, valid = held_out(config, os.path.join(folder, "tail_references.npz"))
     refs2 = None
     if noise:
-        refs2 = held_out(config, os.path.join(folder, "tail_references_2.npz"), NOISE_SEED_OFFSET)[1]
+        import rrf_common
+
+        refs2 = held_out(config, os.path.join(folder, "tail_references_2.npz"), rrf_common.NOISE_SEED_OFFSET)[1]
         own = tail([a / np.sqrt(2) for a in refs], [b / np.sqrt(2) for b in refs2], valid)
         print(json.dumps({"name": "reference noise (|A - B| / sqrt 2)", "reference_spp":
                           int(config["eval"]["reference_spp"]), **own}), flush=True)

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["MLP", "mlp", "ranges", "with_scaling", "ACTIVATIONS", "count_parameters"]
+__all__ = ["MLP", "mlp", "ranges", "constant_up_to_rounding", "with_scaling", "ACTIVATIONS", "count_parameters"]
 
 ACTIVATIONS: dict[str, Callable] = {
     "tanh": jnp.tanh,
@@ -151,7 +151,19 @@ def ranges(a, *, eps: float = 1e-5):
     lo, hi = a.min(axis=0), a.max(axis=0)
     half = 0.5 * (hi - lo)
     centre = 0.5 * (hi + lo)
-    return centre, xp.where(half > eps * xp.maximum(1.0, xp.abs(centre)), half, xp.ones_like(half))
+    return centre, xp.where(constant_up_to_rounding(lo, hi, eps=eps), xp.ones_like(half), half)
+
+
+def constant_up_to_rounding(lo, hi, *, eps: float = 1e-5):
+    """Whether a feature whose samples span [lo, hi] is constant up to float rounding (elementwise
+    bool): its half-range (hi - lo) / 2 is at most ``eps`` x max(1, |centre|). The rule of
+    ``ranges``; the RRF's per-object kd-tree boxes use it too (a wall's constant coordinate
+    spans one or two float32 ulps, which a unit box would stretch to [0, 1]).
+
+    Numerics: not differentiable (a comparison).
+    """
+    xp = np if isinstance(lo, np.ndarray) and isinstance(hi, np.ndarray) else jnp
+    return 0.5 * (hi - lo) <= eps * xp.maximum(1.0, xp.abs(0.5 * (hi + lo)))
 
 
 def with_scaling(params, x=None, y=None, *, eps: float = 1e-5):

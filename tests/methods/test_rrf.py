@@ -431,6 +431,29 @@ def test_discontinuity_splits_only_near_it():
     assert away.sum() == tree.n_leaves - 1 and np.all(info["leaf_val_error"][away] < 0.01)
 
 
+def test_a_wall_coordinate_constant_up_to_rounding_is_never_split():
+    """A wall's constant coordinate carries float32 rounding from the ray intersections (x = -1
+    and the next float up). The object's kd-tree box must not stretch that to [0, 1]: the tree
+    split the Cornell box's floor, ceiling and side walls on it at their roots (each leaf a
+    random half of the wall, the leaves alternating pixel by pixel). Here the target does not
+    depend on that coordinate at all, and a split on it halves each child's samples."""
+    rng = np.random.default_rng(5)
+    n = 2000
+    wall = np.where(rng.random(n) < 0.5, np.float32(-1.0), np.nextafter(np.float32(-1.0), np.float32(0.0)))
+    x = np.concatenate([wall[:, None], rng.uniform(-1, 1, (n, 2))], axis=1).astype(np.float32)
+    y = (1.0 + np.where(x[:, 1] < 0.0, 0.0, 1.0) + 0.2 * x[:, 2])[:, None]  # a step in x1
+    cfg = {"model": {"hidden": [3]}, "tree": {"min_samples": 100, "max_depth": 2, "threshold": 0.01, "axis": "all"},
+           "train": {"max_iters": 10, "trial_iters": 10, "progress": False}}
+    params, _ = rrf.fit_arrays(x, y, np.zeros(n, np.int32), cfg)
+    axes = np.asarray(params["tree"]["axis"])
+    assert (axes >= 0).any() and not (axes == 0).any()
+    assert float(params["obj_hi"][0, 0] - params["obj_lo"][0, 0]) == 0.0  # the box is flat there
+    # both roundings of the wall go through the same leaf
+    probe = np.array([[-1.0, 0.5, 0.3], [np.nextafter(np.float32(-1.0), np.float32(0.0)), 0.5, 0.3]], np.float32)
+    leaf = np.asarray(rrf._leaf_of(params, jnp.asarray(probe), jnp.zeros(2, jnp.int32)))
+    assert leaf[0] == leaf[1]
+
+
 def test_renderer_tanh_matches_float64():
     """The renderer's rational tanh against numpy's float64 tanh, over the float32 range that
     matters and past its clamp (+-7.9: exactly +-1 in float32), including 0 and denormal-small."""

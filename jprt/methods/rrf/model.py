@@ -55,7 +55,7 @@ from jprt.config import stable_hash
 from jprt.inputs import GBuffer, PointLights
 from jprt.methods.base import FitResult, resolve
 from jprt.methods.rrf import kdtree
-from jprt.nn.mlp import MLP, mlp, ranges
+from jprt.nn.mlp import MLP, constant_up_to_rounding, mlp, ranges
 from jprt.solve.lm import LMSettings, solve_batched
 
 __all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features",
@@ -521,6 +521,11 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None, ch
             continue
         sel = x[object_id == o]
         obj_lo[o], obj_hi[o] = sel.min(axis=0), sel.max(axis=0)
+    # A coordinate constant up to rounding (a wall's x spans an ulp or two) gets a zero span, so
+    # ``_unit`` keeps it at x - lo ~ 1e-7 instead of stretching its rounding to [0, 1]: the tree
+    # split the floor, the ceiling and both side walls at their root on that noise (two leaves per
+    # wall, each fitted on a random half of its samples, alternating pixel by pixel in a frame)
+    obj_hi = np.where(constant_up_to_rounding(obj_lo, obj_hi), obj_lo, obj_hi)
     xn = _normalise(x, object_id, obj_lo, obj_hi)
 
     fitter = _NodeFitter(x, y, sizes, cfg, int(t["seed"]), say)
