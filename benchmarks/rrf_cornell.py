@@ -54,7 +54,9 @@ def main() -> int:
     ratio = s["p999_abs_error"] / s["indirect_rmse"]
     result["p999_over_rmse"] = ratio
     # what a perfect predictor scores against these references (rrf_common.reference_noise)
-    result["reference_noise_p999_over_rmse"] = (s.get("reference_noise") or {}).get("p999_over_rmse")
+    noise = s.get("reference_noise") or {}
+    result["reference_noise_p999_over_rmse"] = noise.get("p999_over_rmse")
+    result["uniform_relative_error_p999_over_rmse"] = noise.get("uniform_relative_error_p999_over_rmse")
     result["targets"] = {
         "eval_ms_512_1light <= 20": at_512 and one <= 20,
         "eval_ms_512_4lights <= 2.5 x eval_ms_512_1light": at_512 and four <= 2.5 * one,

@@ -521,7 +521,9 @@ def reference_noise(run) -> dict:
     error image: its RMSE, 99.9th percentile and their ratio are what a perfect predictor scores
     against one set. Beside them, this fit against the mean of the two sets (half the noise
     variance). Monte Carlo noise is heavier-tailed than a Gaussian's (3.3x): brighter pixels are
-    noisier. Skipped with ``eval.reference_noise`` False."""
+    noisier. A yardstick beside them: the ratio of an error of one relative size everywhere (the
+    reference times seeded standard normals), which depends only on how the held-out radiance is
+    spread. Skipped with ``eval.reference_noise`` False."""
     if not run.config["eval"]["reference_noise"]:
         return {}
     refs, valid = _held(run)
@@ -530,10 +532,14 @@ def reference_noise(run) -> dict:
     rmse, p999 = _rmse_p999([a / math.sqrt(2.0) for a in refs], [b / math.sqrt(2.0) for b in second], valid)
     fit_rmse, fit_p999 = _rmse_p999(run.state["held_out"].predictions, [(a + b) / 2 for a, b in zip(refs, second)],
                                     valid)
+    rng = np.random.default_rng(0)
+    relative = _rmse_p999([a * rng.standard_normal(a.shape) for a in refs], [np.zeros_like(a) for a in refs], valid)
     out = {"reference_spp": int(run.config["eval"]["reference_spp"]), "rmse": rmse, "p999_abs_error": p999,
-           "p999_over_rmse": p999 / rmse, "fit_against_mean_of_two": {
+           "p999_over_rmse": p999 / rmse, "uniform_relative_error_p999_over_rmse": relative[1] / relative[0],
+           "fit_against_mean_of_two": {
                "rmse": fit_rmse, "p999_abs_error": fit_p999, "p999_over_rmse": fit_p999 / fit_rmse}}
-    run.say(f"reference noise at {out['reference_spp']} spp: RMSE {rmse:.5f}, p99.9 / RMSE {p999 / rmse:.2f}; "
+    run.say(f"reference noise at {out['reference_spp']} spp: RMSE {rmse:.5f}, p99.9 / RMSE {p999 / rmse:.2f} (an "
+            f"error of one relative size everywhere: {relative[1] / relative[0]:.2f}); "
             f"the fit against the mean of two sets: RMSE {fit_rmse:.5f}, p99.9 / RMSE {fit_p999 / fit_rmse:.2f}")
     return {"reference_noise": out}
 

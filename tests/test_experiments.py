@@ -51,7 +51,7 @@ def test_rrf_cornell_test_preset(mi, tmp_path, capsys):
     assert split["rmse"] > 0 and split["frame_ms"] > 0 and split["config_frame_ms_4lights"] > 0
     noise = e["reference_noise"]  # a second reference set of the same pairs: the references' own noise
     assert noise["reference_spp"] == e["reference_spp"] and noise["rmse"] > 0 and noise["p999_over_rmse"] >= 1
-    assert noise["fit_against_mean_of_two"]["rmse"] > 0
+    assert noise["fit_against_mean_of_two"]["rmse"] > 0 and noise["uniform_relative_error_p999_over_rmse"] >= 1
     for name in ("equal_error.png", "fig6_training_size.png", "fig7_training_spp.png"):
         assert os.path.isfile(os.path.join(folder, name)), name
     assert folder in capsys.readouterr().out  # says where the report is
