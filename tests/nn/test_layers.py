@@ -122,3 +122,11 @@ def test_mlp_host_init_and_ranges():
     x[:, 3] = np.float32(-1.0) + np.random.default_rng(2).integers(-2, 3, 50) * np.spacing(np.float32(1.0))
     assert ranges(x)[1][3] == 1.0 and ranges(x * 1e3)[1][3] == 1.0
     assert ranges(x)[1][0] != 1.0
+    # the rule on its own (the RRF's kd-tree boxes), NumPy and JAX alike
+    from jprt.nn.mlp import constant_up_to_rounding
+
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    np.testing.assert_array_equal(constant_up_to_rounding(lo, hi), [False, False, True, True])
+    np.testing.assert_array_equal(np.asarray(constant_up_to_rounding(jnp.asarray(lo), jnp.asarray(hi))),
+                                  [False, False, True, True])
+    assert not constant_up_to_rounding(np.float32(0.0), np.float32(1e-3))  # a small real spread is kept
