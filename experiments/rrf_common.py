@@ -94,16 +94,16 @@ def _rmse_p999(preds, refs, valid) -> tuple[float, float]:
     return jeval.set_rmse(preds, refs, valid), float(np.percentile(err, 99.9))
 
 
-def _held(run) -> tuple[list, list]:
-    """(references, valid masks) of the run's held-out set."""
+def _fit_tail(run, params, method_config) -> tuple[float, float]:
+    """``_rmse_p999`` of an ablation's model (``params`` under ``method_config``) on the run's
+    held-out set."""
     held = run.state["held_out"]
-    return held.references, held.valid
+    preds = _predict(rrf.evaluator(params, method_config), run.state["testset"])
+    return _rmse_p999(preds, held.references, held.valid)
 
 
 def _rmse(run, params, method_config) -> float:
-    held = run.state["held_out"]
-    preds = _predict(rrf.evaluator(params, method_config), run.state["testset"])
-    return jeval.set_rmse(preds, held.references, held.valid)
+    return _fit_tail(run, params, method_config)[0]
 
 
 # --------------------------------------------------------------------------------------------
@@ -290,7 +290,7 @@ def split_rule_ablation(run) -> dict:
     other = [a for a in NO_LIGHT_SPLIT if a in own] if mine is None else None
     cfg = run.with_config({"tree": {"split_on": other}})
     p, _ = rrf.fit(run.dataset, cfg)
-    rmse, p999 = _rmse_p999(_predict(rrf.evaluator(p, cfg), run.state["testset"]), *_held(run))
+    rmse, p999 = _fit_tail(run, p, cfg)
     host = (run.state["timing_gbuffer"], run.state["lightings"][0], four_light_inputs(run.config))
     dev = jax.device_put(host)
     fns = {"config": jax.jit(run.evaluate), "other": jax.jit(rrf.evaluator(p, cfg))}
@@ -322,7 +322,7 @@ def sampling_ablation(run) -> dict:
     other = 1 if over > 1 else 8
     cfg = run.with_config({"data": {"oversample": other}})
     p, _ = rrf.fit(rrf_data.make_dataset(run.config["scene"], cfg), cfg)
-    rmse, p999 = _rmse_p999(_predict(rrf.evaluator(p, cfg), run.state["testset"]), *_held(run))
+    rmse, p999 = _fit_tail(run, p, cfg)
     out = {"oversample": other, "rmse": rmse, "p999_abs_error": p999}
     run.say(f"training rays with oversample {other}: RMSE {out['rmse']:.5f}, p99.9 {out['p999_abs_error']:.4f}")
     return {"sampling_ablation": out}
@@ -348,7 +348,7 @@ def attribute_ablation(run) -> dict:
         if own in ("basic", "augmented"):
             out[key] = _rmse(run, p, cfg)
         else:
-            out[key], p999 = _rmse_p999(_predict(rrf.evaluator(p, cfg), run.state["testset"]), *_held(run))
+            out[key], p999 = _fit_tail(run, p, cfg)
             out[key.replace("rmse_", "p999_over_rmse_")] = p999 / out[key]
         out[key.replace("rmse_", "n_leaves_")] = kdtree.KDTree(**p["tree"]).n_leaves
         run.say(f"{attrs} attributes: RMSE {out[key]:.5f}")
@@ -526,12 +526,12 @@ def reference_noise(run) -> dict:
     spread. Skipped with ``eval.reference_noise`` False."""
     if not run.config["eval"]["reference_noise"]:
         return {}
-    refs, valid = _held(run)
+    held = run.state["held_out"]
+    refs, valid = held.references, held.valid
     second = held_out_references(run.config, run.state["cameras"], run.state["lightings"], run.state["testset"],
                                  NOISE_SEED_OFFSET)[1]
     rmse, p999 = _rmse_p999([a / math.sqrt(2.0) for a in refs], [b / math.sqrt(2.0) for b in second], valid)
-    fit_rmse, fit_p999 = _rmse_p999(run.state["held_out"].predictions, [(a + b) / 2 for a, b in zip(refs, second)],
-                                    valid)
+    fit_rmse, fit_p999 = _rmse_p999(held.predictions, [(a + b) / 2 for a, b in zip(refs, second)], valid)
     rng = np.random.default_rng(0)
     relative = _rmse_p999([a * rng.standard_normal(a.shape) for a in refs], [np.zeros_like(a) for a in refs], valid)
     out = {"reference_spp": int(run.config["eval"]["reference_spp"]), "rmse": rmse, "p999_abs_error": p999,
