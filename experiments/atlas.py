@@ -39,6 +39,7 @@ import math
 import os
 import sys
 import time
+import traceback
 import types
 
 import numpy as np
@@ -399,7 +400,7 @@ def experiment(task_name: str, task: dict, name: str, e: dict, out: str) -> type
 def main(config: dict) -> dict:
     """Run every applicable (task, method) sweep and Mitsuba's curve per task; write atlas.json,
     the figures and the table to ``output.dir``; return the record."""
-    from jprt.sweep import PARETO_AXES, parse_grid, pareto_front, run_sweep
+    from jprt.sweep import PARETO_AXES, pareto_front
 
     t_start = time.perf_counter()
     e, out = config["eval"], os.path.abspath(config["output"]["dir"])
@@ -425,19 +426,12 @@ def main(config: dict) -> dict:
                 entry["methods"][name] = {"status": "skipped", "reason": why}
                 say(f"{name}: skipped ({why})")
                 continue
-            module = experiment(task_name, task, name, e, out)
-            grid = parse_grid(task["methods"][name]["grid"])
-            sweep = run_sweep(module, module.CONFIG, grid, label=f"{task_name}/{name}")
-            rows = []
-            for r in sweep["rows"]:
-                row = {k: v for k, v in r.items() if k != "pathtrace_curve"}
-                row.update(equal_error(curve, r.get("indirect_rmse"), r.get("frame_ms")))
-                rows.append(row)
-            entry["methods"][name] = {"status": "done", "knobs": list(grid), "points": rows,
-                                      "pareto": sweep["pareto"], "sweep_folder": sweep["folder"],
-                                      "counts": sweep["counts"]}
-            if e["select"]:
-                entry["methods"][name]["selected"] = _select(config, task_name, name, rows, grid, out, say)
+            try:  # one method failing never loses the others: its error and traceback go in the record
+                entry["methods"][name] = _method_sweep(config, task_name, task, name, curve, out, say)
+            except Exception as err:
+                entry["methods"][name] = {"status": "failed", "error": f"{type(err).__name__}: {err}",
+                                          "traceback": traceback.format_exc()}
+                say(f"{name}: FAILED: {type(err).__name__}: {err}")
         # the front over every method of the task (frame time against error)
         pts = [(n, i, r) for n, m in entry["methods"].items() if m["status"] == "done"
                for i, r in enumerate(m["points"]) if r["status"] != "failed"]
@@ -460,6 +454,27 @@ def main(config: dict) -> dict:
         f.write(table(record))
     print(f"atlas (atlas.json, atlas_<task>.png, atlas.md) written to {out}")
     return record
+
+
+def _method_sweep(config: dict, task_name: str, task: dict, name: str, curve: list, out: str, say) -> dict:
+    """One method's sweep on a task: its points (with the equal-error reading off Mitsuba's
+    ``curve``), front and, with ``eval.select``, the selected point."""
+    from jprt.sweep import parse_grid, run_sweep
+
+    e = config["eval"]
+    module = experiment(task_name, task, name, e, out)
+    grid = parse_grid(task["methods"][name]["grid"])
+    sweep = run_sweep(module, module.CONFIG, grid, label=f"{task_name}/{name}")
+    rows = []
+    for r in sweep["rows"]:
+        row = {k: v for k, v in r.items() if k != "pathtrace_curve"}
+        row.update(equal_error(curve, r.get("indirect_rmse"), r.get("frame_ms")))
+        rows.append(row)
+    result = {"status": "done", "knobs": list(grid), "points": rows, "pareto": sweep["pareto"],
+              "sweep_folder": sweep["folder"], "counts": sweep["counts"]}
+    if e["select"]:
+        result["selected"] = _select(config, task_name, name, rows, grid, out, say)
+    return result
 
 
 def _select(config: dict, task_name: str, name: str, rows: list, grid: dict, out: str, say) -> dict:
@@ -545,7 +560,8 @@ def table(record: dict) -> str:
                   f"{t['reference_spp']} spp)", "",
                   "| method | point | RMSE | PSNR | SSIM | FLIP | LPIPS | frame ms | model KB | train s | "
                   "equal-error spp | speedup |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-        skipped = [f"{name} ({m['reason']})" for name, m in t["methods"].items() if m["status"] != "done"]
+        skipped = [f"{name} ({m['reason'] if m['status'] == 'skipped' else 'failed: ' + m['error']})"
+                   for name, m in t["methods"].items() if m["status"] != "done"]
         for name, m in t["methods"].items():
             if m["status"] != "done":
                 continue

@@ -22,7 +22,7 @@ import numpy as np
 from jprt import io
 from jprt.metrics import error_map, tonemap
 
-__all__ = ["set_rmse", "time_call", "xla_flops", "matmul_peak_gflops", "roofline", "equal_error_spp", "side_by_side",
+__all__ = ["set_rmse", "object_scores", "noise_removed", "DARK_OBJECT_SCALE", "time_call", "xla_flops", "matmul_peak_gflops", "roofline", "equal_error_spp", "side_by_side",
            "plot_series"]
 
 
@@ -49,6 +49,91 @@ def set_rmse(predictions: Sequence, references: Sequence, valids: Sequence | Non
         total += float(np.sum(np.square(p - r)[m]))
         count += int(m.sum()) * p.shape[-1]
     return float(np.sqrt(total / max(count, 1)))
+
+
+#: An object whose reference RMS is below this fraction of the RMS of every labelled pixel of the
+#: same images is scored on that image scale instead of its own (``object_scores``).
+DARK_OBJECT_SCALE = 0.1
+
+
+def object_scores(predictions: Sequence, references: Sequence, object_id, names: Sequence[str], *,
+                  min_fraction: float = 0.0, dark_scale: float = DARK_OBJECT_SCALE) -> dict:
+    """Relative RMSE of each object over a set of predictions, defined for dark objects too.
+
+    ``predictions`` and ``references`` are equally long lists of arrays (..., C) (images
+    (H, W, C), lightmap texels (T, C)); ``object_id`` is one integer array of their leading shape
+    (-1: no object), shared by every item, or a list of one per item. For object k the score is
+
+        rel_k = RMS(p - r over k's entries) / max(RMS(r over k), dark_scale * RMS(r over every
+        labelled entry))
+
+    pooled over all items (the brightest lighting weighs most). For a lit object it is
+    ||p - r|| / ||r|| (predicting zero scores 1); an object whose reference is dark against its
+    image (``scale`` "image") is judged on the image's own level, so a black reference never
+    divides by zero or gives a huge number. Where every reference is black there is no scale:
+    the score is 0 for a black prediction and 1 otherwise (``scale`` "none").
+
+    Returns {name: {"pixels", "fraction", "rel_rmse", "scale", "rel_rmse_by_lighting",
+    "mean_ratio"}} for objects with at least ``min_fraction`` of the labelled-or-not entries of
+    the first item; ``mean_ratio`` is sum(p) / sum(r) on the object (None where it is scored on
+    the image scale: a ratio of near-zero sums means nothing).
+    """
+    if len(predictions) != len(references) or not len(predictions):
+        raise ValueError(f"need equally many (>0) predictions and references, got {len(predictions)} and "
+                         f"{len(references)}")
+    ids = list(object_id) if isinstance(object_id, (list, tuple)) else [object_id] * len(references)
+    if len(ids) != len(references):
+        raise ValueError(f"got {len(ids)} object-id arrays for {len(references)} items")
+    preds = [np.asarray(p, np.float64) for p in predictions]
+    refs = [np.asarray(r, np.float64) for r in references]
+    ids = [np.asarray(i) for i in ids]
+    for k, (p, r, i) in enumerate(zip(preds, refs, ids)):
+        if p.shape != r.shape or p.shape[:-1] != i.shape:
+            raise ValueError(f"item {k}: prediction {p.shape}, reference {r.shape} and object ids {i.shape} "
+                             "do not match (ids have the items' leading shape)")
+
+    def ms(x):  # mean square over entries and channels, and the entry count
+        return float(np.sum(x * x)), x.size
+
+    image_sq = [ms(r[i >= 0]) for r, i in zip(refs, ids)]
+    image_rms = np.sqrt(sum(s for s, _ in image_sq) / max(sum(n for _, n in image_sq), 1))
+    image_rms_each = [np.sqrt(s / max(n, 1)) for s, n in image_sq]
+
+    def score(err_sq, n, ref_rms, scale_rms):
+        floor = float(dark_scale) * scale_rms
+        err = np.sqrt(err_sq / max(n, 1))
+        if ref_rms >= floor and ref_rms > 0:
+            return float(err / ref_rms), "object"
+        if floor > 0:
+            return float(err / floor), "image"
+        return (0.0 if err == 0 else 1.0), "none"
+
+    out = {}
+    total = ids[0].size
+    for k in np.unique(np.concatenate([i[i >= 0].ravel() for i in ids])):
+        masks = [i == k for i in ids]
+        count = int(masks[0].sum())
+        fraction = count / max(total, 1)
+        if fraction < float(min_fraction):
+            continue
+        p = np.concatenate([x[m].ravel() for x, m in zip(preds, masks)])
+        r = np.concatenate([x[m].ravel() for x, m in zip(refs, masks)])
+        rel, scale = score(float(np.sum((p - r) ** 2)), p.size, np.sqrt(ms(r)[0] / max(r.size, 1)), image_rms)
+        by = []
+        for x, y, m, s in zip(preds, refs, masks, image_rms_each):
+            a, b = x[m], y[m]
+            by.append(score(float(np.sum((a - b) ** 2)), a.size, np.sqrt(ms(b)[0] / max(b.size, 1)), s)[0])
+        out[str(names[int(k)])] = {"pixels": count, "fraction": fraction, "rel_rmse": rel, "scale": scale,
+                                   "rel_rmse_by_lighting": by,
+                                   "mean_ratio": float(p.sum() / r.sum()) if scale == "object" else None}
+    return out
+
+
+def noise_removed(rel: float, floor: float) -> float:
+    """The error against the truth with the reference's own noise taken out: sqrt(rel^2 - floor^2 / 2),
+    where ``floor`` is two references of independent seeds scored against each other (so their
+    difference carries the noise twice: E|p - r|^2 = |p - truth|^2 + |n|^2)."""
+    return float(np.sqrt(max(float(rel) ** 2 - 0.5 * float(floor) ** 2, 0.0)))
 
 
 def time_call(fn: Callable, *args, repeats: int = 10, warmup: int = 2) -> dict:

@@ -140,3 +140,30 @@ def test_atlas_test_preset(mi, tmp_path):
         for m in task["methods"].values():
             if m["status"] == "done":
                 assert m["counts"]["cached"] == len(m["points"]) and m["counts"]["done"] == 0
+
+
+def test_one_method_failing_keeps_the_others(tmp_path, monkeypatch):
+    """A method whose sweep raises is recorded as failed (error, traceback) and the task's other
+    methods, its front and table are still written."""
+    from types import SimpleNamespace
+
+    def sweep(config, task_name, task, name, curve, out, say):
+        if name == "datadriven":
+            raise RuntimeError("a method broke")
+        row = {"status": "done", "indirect_rmse": 0.1, "frame_ms": 2.0}
+        return {"status": "done", "knobs": [], "points": [row], "pareto": {"frame_ms": [0]}, "sweep_folder": "",
+                "counts": {"done": 1, "cached": 0, "failed": 0}}
+
+    monkeypatch.setattr(ATLAS, "_method_sweep", sweep)
+    monkeypatch.setattr(ATLAS, "task_data", lambda task: SimpleNamespace(dataset=[0], cameras=[0], lightings=[0]))
+    monkeypatch.setattr(ATLAS, "mitsuba_curve", lambda task, e, say: [])
+    monkeypatch.setattr(ATLAS, "plot_task", lambda path, entry: None)
+    monkeypatch.setattr(ATLAS, "table", lambda record: "")
+    config = merge(ATLAS.CONFIG, {"eval": {"tasks": ["local_lights"], "methods": ["rrf", "datadriven", "sh_prt"]},
+                                  "output": {"dir": str(tmp_path)}})
+    record = ATLAS.main(config)
+    methods = record["tasks"]["local_lights"]["methods"]
+    assert methods["datadriven"]["status"] == "failed" and methods["datadriven"]["error"] == "RuntimeError: a method broke"
+    assert "Traceback" in methods["datadriven"]["traceback"]
+    assert {n for n, m in methods.items() if m["status"] == "done"} >= {"sh_prt"}
+    assert record["tasks"]["local_lights"]["front_frame_ms"]

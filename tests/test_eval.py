@@ -4,6 +4,8 @@ import os
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from jprt import eval as jeval
 
@@ -74,3 +76,60 @@ def test_roofline_counts_a_matmul_and_judges_it_against_the_peak():
     # nothing to count (a copy): no fraction rather than a zero
     assert jeval.roofline(jax.jit(lambda x: x[::-1]), a, frame_ms=1.0, peak_gflops=10.0)["flops_fraction_of_peak"] is None
     assert jeval.matmul_peak_gflops(n=64, repeats=2) > 0
+
+
+def test_object_scores_relative_rmse_on_lit_objects():
+    """On a lit object the score is ||p - r|| / ||r||: predicting zero scores 1, a 10 % error 0.1."""
+    ref = np.ones((4, 4, 3))
+    ids = np.zeros((4, 4), int)
+    ids[:, 2:] = 1
+    ref[:, 2:] *= 3.0
+    pred = ref.copy()
+    pred[:, :2] = 0.0
+    pred[:, 2:] *= 1.1
+    out = jeval.object_scores([pred], [ref], ids, ["a", "b"])
+    assert out["a"]["rel_rmse"] == pytest.approx(1.0) and out["a"]["scale"] == "object"
+    assert out["b"]["rel_rmse"] == pytest.approx(0.1) and out["b"]["mean_ratio"] == pytest.approx(1.1)
+    assert out["a"]["fraction"] == 0.5 and out["a"]["pixels"] == 8
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(0.0, 1e-30), st.floats(0.0, 10.0), st.integers(0, 2**31 - 1))
+def test_object_scores_a_black_reference_never_gives_a_huge_number(dark, error, seed):
+    """An object whose reference is black (or nearly) is judged on its image's scale: its score is
+    the error over a tenth of the image's RMS, never infinite or astronomically large; a black
+    image everywhere scores 0 for a black prediction and 1 otherwise."""
+    rng = np.random.default_rng(seed)
+    ref = rng.uniform(0.5, 2.0, (6, 6, 3))
+    ids = np.zeros((6, 6), int)
+    ids[:2] = 1
+    ref[:2] = dark
+    pred = ref.copy()
+    pred[:2] += error
+    out = jeval.object_scores([pred], [ref], ids, ["lit", "dark"])
+    image_rms = np.sqrt(np.mean(ref ** 2))
+    assert out["dark"]["scale"] == "image" and out["dark"]["mean_ratio"] is None
+    assert np.isfinite(out["dark"]["rel_rmse"])
+    assert out["dark"]["rel_rmse"] == pytest.approx(error / (jeval.DARK_OBJECT_SCALE * image_rms), rel=1e-6, abs=1e-12)
+    black = jeval.object_scores([np.zeros((2, 2, 3)), np.full((2, 2, 3), error)], [np.zeros((2, 2, 3))] * 2,
+                                np.zeros((2, 2), int), ["x"])
+    assert black["x"]["scale"] == "none" and black["x"]["rel_rmse"] == (0.0 if error == 0 else 1.0)
+
+
+def test_object_scores_checks_shapes_and_takes_ids_per_item():
+    ref = [np.ones((2, 2, 3)), np.ones((3, 3))[..., None] * np.ones(3)]
+    ids = [np.zeros((2, 2), int), np.full((3, 3), -1)]
+    ids[1][0, 0] = 0
+    out = jeval.object_scores(ref, ref, ids, ["a"])
+    assert out["a"]["rel_rmse"] == 0.0 and len(out["a"]["rel_rmse_by_lighting"]) == 2
+    with pytest.raises(ValueError, match="do not match"):
+        jeval.object_scores([np.ones((2, 2, 3))], [np.ones((2, 2, 3))], np.zeros((3, 2), int), ["a"])
+    with pytest.raises(ValueError, match="equally many"):
+        jeval.object_scores([], [], np.zeros(1), [])
+
+
+def test_noise_removed_takes_half_the_floor_out():
+    assert jeval.noise_removed(0.5, 0.0) == 0.5
+    assert jeval.noise_removed(0.5, np.sqrt(2) * 0.3) == pytest.approx(0.4)
+    assert jeval.noise_removed(0.1, 1.0) == 0.0
+

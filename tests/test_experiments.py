@@ -190,8 +190,9 @@ def test_real_scenes_references_follow_the_gbuffer_rays(mi):
     camera = cameras.look_at((0.13, 0.07, 6.3), (0.21, -0.17, 0.0), width=16, height=16)  # the box amid empty space
     valid = gbuffer(handle, camera).valid
     assert valid.any() and (~valid).any()
-    e = {"reference_spp": 8, "reference_spp_file_emitters": 8, "seed": 1}
-    refs, refs2 = _real_scenes()._references(scene, handle, camera, [light], e)
+    e = {"reference_spp": 8, "reference_spp_max": 8, "reference_noise": 1 / 3, "target": 0.35, "seed": 1}
+    refs, refs2, spp = _real_scenes()._references(scene, handle, camera, [light], e)
+    assert spp == [8]
     for ref in refs + refs2:
         assert ref.shape == (16, 16, 3) and (ref[~valid] == 0.0).all()
         assert (ref[valid].sum(-1) > 0).mean() > 0.9
@@ -199,7 +200,7 @@ def test_real_scenes_references_follow_the_gbuffer_rays(mi):
     assert (rendered[~valid].sum(-1) > 0).any()
 
 
-@pytest.mark.slow  # ~2 min: every method on a Bitterli scene file with nothing set per scene
+@pytest.mark.slow  # ~2.5 min: every method on a Bitterli scene file with nothing set per scene
 def test_real_scenes_test_preset(mi, tmp_path):
     module = _real_scenes()
     path = os.path.join(module.SHARED_SCENES, "cornell_box_picture", "scene_picture.xml")
@@ -215,9 +216,88 @@ def test_real_scenes_test_preset(mi, tmp_path):
     assert set(entry["methods"]) == {"rrf", "datadriven", "sg_lightfield", "wavelet_prt", "sh_prt"}
     assert entry["methods"]["wavelet_prt"]["lighting"] == entry["methods"]["sh_prt"]["lighting"] == "environment"
     assert entry["environment"]["opened"] == {"Ceiling": "removed"}  # the environment lights it from above
+    assert len(entry["cameras"]) == 2  # the file's view and one drawn about it
+    assert entry["setups"]["file emitters"]["apart"] == {"Light": "an emitter (its look is its emission)"}
     for m in entry["methods"].values():
+        assert "failed" not in m, m.get("traceback")
         assert m["per_object"] and all(np.isfinite(v["rel_rmse"]) for v in m["per_object"].values())
-        for v in m["per_object"].values():  # one lighting in the test preset: the pooled score is its score
-            assert v["rel_rmse_by_lighting"] == [pytest.approx(v["rel_rmse"])] and np.isfinite(v["mean_ratio"])
+        for v in m["per_object"].values():  # one lighting, two views: a score per view, the pooled one between
+            by = v["rel_rmse_by_lighting"]
+            assert len(by) == 2 and min(by) - 1e-9 <= v["rel_rmse"] <= max(by) + 1e-9
         assert m["frame_ms"] > 0
+        assert m["self_check"] is None or np.isfinite(m["self_check"]["rel_rmse"])
     assert os.path.isfile(os.path.join(out, folder, "cornell_box_picture_side_by_side.png"))
+
+
+def test_real_scenes_references_double_until_their_noise_is_small(mi):
+    """Each reference set doubles its samples until the two sets' difference says its own noise is
+    at most reference_noise x target on every judged object (or the cap): a strict bound takes
+    more samples than a loose one, and the cap holds."""
+    from jprt.render import cameras
+    from jprt.render.gbuffer import gbuffer
+    from jprt.render.lights import PointLights
+    from jprt.render.scenes import SceneHandle, cornell_box
+
+    scene, light = cornell_box(area_light=False), PointLights.create([0.1, 0.7, 0.2], [4.0, 4.0, 4.0])
+    handle = SceneHandle(scene, light)
+    camera = cameras.look_at((0.0, 0.0, 3.9), (0.0, 0.0, 0.0), width=8, height=8)
+    g = gbuffer(handle, camera)
+    scored = (g.object_id, handle.object_names(), None)
+    base = {"reference_spp": 2, "target": 0.35, "seed": 3}
+    _, _, loose = _real_scenes()._references(scene, handle, camera, [light], {**base, "reference_spp_max": 64,
+                                                                              "reference_noise": 100.0}, scored)
+    refs, refs2, strict = _real_scenes()._references(scene, handle, camera, [light],
+                                                     {**base, "reference_spp_max": 16, "reference_noise": 1e-6}, scored)
+    assert loose == [2] and strict == [16]
+    assert refs[0].shape == refs2[0].shape == (8, 8, 3) and not np.array_equal(refs[0], refs2[0])
+
+
+def test_real_scenes_one_method_failing_keeps_the_others(mi, tmp_path, monkeypatch):
+    """A method that raises is recorded with its error and traceback; the methods after it still
+    run and their results stay in the report."""
+    module = _real_scenes()
+    scene = tmp_path / "room.xml"
+    scene.write_text(_SMALL_ROOM)
+    calls = []
+
+    def predict(name, s, cameras, config, regions, e):
+        calls.append(name)
+        if name == "datadriven":
+            raise RuntimeError("a method broke")
+        first = np.zeros_like(s["refs"][0])
+        scores = {k: {"rel_rmse": 1.0, "rel_rmse_noise_removed": 1.0} for k in s["judged"]}
+        return {"per_object": scores, "apart": {}, "worst_rel_rmse_noise_removed": 1.0,
+                "mean_rel_rmse_noise_removed": 1.0, "target_met": False, "self_check": None, "frame_ms": 1.0,
+                "dataset_s": 0.0, "fit_s": 0.0}, first
+
+    monkeypatch.setattr(module, "_predict", predict)
+    config = module.CONFIG | {"methods": ["rrf", "datadriven", "sh_prt"],
+                              "eval": module.CONFIG["eval"] | {"resolution": 8, "n_lights": 1, "reference_spp": 2,
+                                                                "reference_spp_max": 2, "extra_views": 1},
+                              "environment": module.CONFIG["environment"] | {"maps": ["rooitou_park_1k"]},
+                              "wavelet_prt": module.CONFIG["wavelet_prt"] | {
+                                  "envmaps": module.CONFIG["wavelet_prt"]["envmaps"] | {"face_size": 2}}}
+    config["_peak_gflops"] = 1.0
+    entry = module.run_scene(str(scene), config, str(tmp_path))
+    assert calls == ["rrf", "datadriven", "sh_prt"]
+    failed = entry["methods"]["datadriven"]
+    assert failed["failed"] == "RuntimeError: a method broke" and "Traceback" in failed["traceback"]
+    assert not failed["target_met"]
+    assert entry["methods"]["rrf"]["per_object"] and entry["methods"]["sh_prt"]["per_object"]
+    assert len(entry["cameras"]) == 2 and entry["cameras"][0] != entry["cameras"][1]
+
+
+#: A closed grey room with a white box and a point-lit ceiling opening's worth of height.
+_SMALL_ROOM = """<scene version="3.0.0">
+  <bsdf type="diffuse" id="grey"><rgb name="reflectance" value="0.5"/></bsdf>
+  <sensor type="perspective">
+    <float name="fov" value="60"/>
+    <transform name="to_world"><lookat origin="0, 1, 2.5" target="0, 1, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
+  </sensor>
+  <shape type="cube" id="room"><ref id="grey"/><boolean name="flip_normals" value="true"/>
+    <transform name="to_world"><scale x="2" y="1.5" z="3"/><translate y="1.5"/></transform></shape>
+  <shape type="cube" id="box"><ref id="grey"/>
+    <transform name="to_world"><scale value="0.4"/><translate y="0.4"/></transform></shape>
+</scene>
+"""
