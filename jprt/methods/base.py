@@ -10,6 +10,7 @@ A method is a ``Method`` NamedTuple of plain functions::
     evaluate = m.evaluator(result.params, config)      # pure: (inputs, lighting) -> (H, W, 3)
     inputs, lighting = m.example(dataset, config)      # a held-out input / lighting pair
     image = jax.jit(evaluate)(inputs, lighting)
+    check = m.self_check(dataset, result, config)      # held-out lights / maps of its own renders
 
 * ``inputs`` is a G-buffer-like pytree of arrays (``jprt.inputs.GBuffer`` or a dict of its
   fields), ``lighting`` the method's lighting pytree (``Method.lighting``, a ``jprt.inputs``
@@ -20,6 +21,11 @@ A method is a ``Method`` NamedTuple of plain functions::
 * ``fit`` returns ``FitResult(params, info)`` for every method: ``params`` a pytree of arrays
   (nothing else: it is checkpointed and exported), ``info`` a plain dict (timings, losses, choices
   made during the fit).
+* ``self_check`` (optional, ``data.self_check`` of the package): the fit scored on held-out
+  lights or maps of the method's own training renders, without a path-traced reference, scored
+  as the references are (``jprt.eval.object_scores``), with a one-line warning when the fit is
+  worse than predicting zero on an object or far worse than on its training items
+  (``jprt.methods.selfcheck``).
 """
 
 from __future__ import annotations
@@ -65,6 +71,10 @@ class Method(NamedTuple):
         evaluator call needs by the method's own count (``model.frame_flops`` when the package
         has one), for evaluators whose loops XLA's cost analysis counts once; None: the runner
         reports XLA's count (``jprt.eval.xla_flops``).
+      self_check: optional ``(dataset, result, config) -> dict`` (``data.self_check`` when the
+        package has one): the fit scored on held-out lights or maps of its own training renders,
+        {"rel_rmse", "per_object", "train_rel_rmse", "held_out", "warning"}
+        (``jprt.methods.selfcheck``); None: the method has no self-check.
     """
 
     name: str
@@ -77,6 +87,7 @@ class Method(NamedTuple):
     evaluator: Callable
     example: Callable
     frame_flops: Callable | None = None
+    self_check: Callable | None = None
 
     def resolve(self, config: Mapping | None = None) -> dict:
         """``default_config`` deep-merged with ``config``; an unknown key raises ConfigError."""
@@ -86,9 +97,11 @@ class Method(NamedTuple):
     def of_package(cls, name: str, paper: str, lighting: type, model, data, presets: dict, *,
                    fit: Callable | None = None) -> "Method":
         """The method of a package laid out as DESIGN.md says: ``model.DEFAULT_CONFIG``,
-        ``data.make_dataset``, ``model.fit`` (or ``fit``), ``model.evaluator``, ``model.example``."""
+        ``data.make_dataset``, ``model.fit`` (or ``fit``), ``model.evaluator``, ``model.example``;
+        ``model.frame_flops`` and ``data.self_check`` where the package has them."""
         return cls(name, paper, lighting, model.DEFAULT_CONFIG, presets, data.make_dataset, fit or model.fit,
-                   checked_evaluator(model.evaluator, lighting), model.example, getattr(model, "frame_flops", None))
+                   checked_evaluator(model.evaluator, lighting), model.example, getattr(model, "frame_flops", None),
+                   getattr(data, "self_check", None))
 
 
 def checked_evaluator(evaluator: Callable, lighting_type: type) -> Callable:

@@ -15,7 +15,8 @@ from jprt.config import stable_hash
 from jprt.methods.base import resolve
 from jprt.methods.datadriven.model import DEFAULT_CONFIG, DDData
 
-__all__ = ["make_dataset", "random_lights", "render_examples", "TASK_LIGHTINGS", "task_inputs", "task_lighting"]
+__all__ = ["make_dataset", "random_lights", "render_examples", "self_check", "TASK_LIGHTINGS", "task_inputs",
+           "task_lighting"]
 
 
 def random_lights(rng: np.random.Generator, n: int, lights_cfg: dict, accept=None) -> list:
@@ -186,6 +187,46 @@ def _unpack(arrays: dict, spec: dict, path: str) -> DDData:
                   indirect_test=arrays["indirect_test"],
                   lights=cache.unprefixed(arrays, "lights_", exclude="lights_test_"),
                   lights_test=cache.unprefixed(arrays, "lights_test_"), meta=meta)
+
+
+# --------------------------------------------------------------------------------------------
+# Self-check (issue 45; ``jprt.methods.selfcheck``)
+
+#: Training configurations scored for the self-check's training error (evenly spaced, at most).
+CHECK_TRAIN = 32
+
+
+def self_check(dataset: DDData, result, config: dict | None = None) -> dict:
+    """The fit scored on the dataset's held-out configurations (``data.n_test`` lights drawn from
+    their own stream, never fitted): the lightmap (``model.lightmap``) of each one's direct radiance
+    at the fine measurement points against its rendered indirect lightmap (``data.test_spp``), per
+    object (the atlas texels' objects); the training error the same way on up to ``CHECK_TRAIN``
+    training configurations. No Mitsuba."""
+    from jprt.methods import selfcheck
+    from jprt.methods.datadriven.model import lightmap
+
+    cfg = resolve(DEFAULT_CONFIG, config)
+    names = list(dataset.meta["object_names"])
+    ids = np.asarray(dataset.atlas["texel_object"])
+    fine = np.asarray(result.params["fine_index"])
+    n_test, texels = len(dataset.indirect_test), int(ids.shape[0])
+    kind = cfg["lights"]["kind"]
+
+    def score(direct, indirect):
+        pred = np.asarray(lightmap(result.params, np.asarray(direct)[:, fine], cfg))
+        return selfcheck.scores(list(pred), list(np.asarray(indirect)), ids, names)
+
+    pick = np.unique(np.linspace(0, len(dataset.indirect) - 1, min(CHECK_TRAIN, len(dataset.indirect))).round()
+                     .astype(int))
+    train, _ = score(dataset.direct[pick], dataset.indirect[pick])
+    if not n_test:
+        return selfcheck.result("datadriven", {}, float("nan"), train,
+                                "nothing held out (data.n_test = 0): no self-check")
+    rel, per = score(dataset.direct_test, dataset.indirect_test)
+    return selfcheck.result("datadriven", per, rel, train,
+                            f"{n_test} held-out {kind}-light configurations at {texels} lightmap texels, "
+                            f"{int(cfg['data']['test_spp'])} spp (data.n_test, data.test_spp); training error on "
+                            f"{len(pick)} training configurations")
 
 
 # --------------------------------------------------------------------------------------------

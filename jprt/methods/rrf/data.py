@@ -29,7 +29,7 @@ from jprt.methods.rrf.model import DEFAULT_CONFIG, RRFData, brdf_vector
 from jprt.render.sampling import CORNELL_REGIONS, REGION_KEYS, free_lights, scene_regions  # noqa: F401 (re-exported)
 
 __all__ = ["make_dataset", "edit_description", "scene_regions", "resolve_regions", "REGION_KEYS", "CORNELL_REGIONS",
-           "TASK_LIGHTINGS", "task_inputs", "task_lighting"]
+           "self_check", "TASK_LIGHTINGS", "task_inputs", "task_lighting"]
 
 
 def edit_description(desc: dict, obj: str, roughness: float, albedo: float) -> dict:
@@ -52,8 +52,7 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
     The cache entry ``$JPRT_CACHE/rrf/<hash>.npz`` is reused when the scene description and the
     ``data`` section are unchanged.
     """
-    from jprt.render import cameras as cams
-    from jprt.render.sampling import check_box, latin_hypercube
+    from jprt.render.sampling import check_box
     from jprt.render.scenes import describe
 
     data_cfg = resolve(DEFAULT_CONFIG, config)["data"]
@@ -69,13 +68,17 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
     for key in ("n_lights", "n_views", "n_rays", "spp"):
         if int(data_cfg[key]) <= 0:
             raise ValueError(f"data.{key} must be positive, got {data_cfg[key]}")
+    if int(data_cfg["check_lights"]) < 0:
+        raise ValueError(f"data.check_lights must be >= 0, got {data_cfg['check_lights']}")
     if int(data_cfg["min_face_rays"]) > 0 and (int(data_cfg["oversample"]) > 1 or int(data_cfg["min_object_rays"]) > 0):
         raise ValueError("data.min_face_rays keeps the other rays uniform: it cannot be combined with "
                          "data.oversample > 1 or data.min_object_rays")
     # the regions as numbers (the cache key of the built-in boxes' data is what it was before None
     # meant "from the scene"); where they came from travels beside the spec, not in it
     regions_from = data_cfg.pop("regions_from")
-    spec = {"format": 2, "scene": desc, "data": {k: v for k, v in data_cfg.items() if k != "val_fraction"}}
+    # the self-check's held-out lights are an entry of their own (``_check``): not in this key
+    spec = {"format": 2, "scene": desc, "data": {k: v for k, v in data_cfg.items()
+                                                 if k not in ("val_fraction", "check_lights")}}
     for key in ("min_object_rays", "min_face_rays"):  # newer keys: unset, the cache key is the old one
         if not int(data_cfg[key]):
             spec["data"].pop(key)
@@ -84,25 +87,7 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
 
     def build() -> dict:
         t0 = time.perf_counter()
-        rng = np.random.default_rng(int(data_cfg["seed"]))
-        lights = latin_hypercube(rng, data_cfg["n_lights"], data_cfg["light_lo"], data_cfg["light_hi"])
-        if regions_from == "scene bounds":  # no light inside geometry or touching it
-            lights = free_lights(desc, lights, data_cfg["light_lo"], data_cfg["light_hi"], rng)
-        if mode == "view":
-            check_box(data_cfg["view_lo"], data_cfg["view_hi"], "data.view_lo/view_hi")
-            origins = latin_hypercube(rng, data_cfg["n_views"], data_cfg["view_lo"], data_cfg["view_hi"])
-            targets = np.asarray(data_cfg["view_target"]) + data_cfg["target_jitter"] * (
-                2.0 * rng.random((len(origins), 3)) - 1.0)
-            setups = [(desc, cams.look_at(o, t, fov=data_cfg["fov"]), None) for o, t in zip(origins, targets)]
-        else:
-            mat = data_cfg["material"]
-            if mat["object"] not in desc.get("materials", {}):
-                raise ValueError(f"data.material.object {mat['object']!r} is not an object of this scene "
-                                 f"({sorted(desc.get('materials', {}))})")
-            edits = latin_hypercube(rng, mat["n_materials"], [mat["roughness"][0], mat["albedo"][0]],
-                                    [mat["roughness"][1], mat["albedo"][1]])
-            camera = cams.look_at(mat["view_origin"], data_cfg["view_target"], fov=data_cfg["fov"])
-            setups = [(edit_description(desc, mat["object"], r, a), camera, (r, a)) for r, a in edits]
+        lights, setups, rng = _draw(desc, data_cfg, regions_from)
         arrays = _render_samples(desc, setups, lights, data_cfg, rng, progress)
         if progress:
             print(f"rrf: rendered {len(arrays['position'])} samples in {time.perf_counter() - t0:.1f} s",
@@ -110,7 +95,137 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
         return arrays
 
     arrays, _ = cache.cached("rrf", spec, build, cache_dir=cache_dir)
-    return RRFData(**arrays, meta=_meta(spec, arrays, regions_from))
+    meta = _meta(spec, arrays, regions_from)
+    if int(data_cfg["check_lights"]):
+        meta["check"] = _check(desc, spec, data_cfg, regions_from, cache_dir=cache_dir, progress=progress)
+    return RRFData(**arrays, meta=meta)
+
+
+def _draw(desc: dict, data_cfg: dict, regions_from: str):
+    """The training lights (Latin hypercube in the light box; moved off geometry for scene
+    bounds), the (scene, camera, edit) setups (views, or materials in material mode) and the
+    generator the rays are drawn from next, in the order the training data draws them."""
+    from jprt.render import cameras as cams
+    from jprt.render.sampling import check_box, latin_hypercube
+
+    rng = np.random.default_rng(int(data_cfg["seed"]))
+    lights = latin_hypercube(rng, data_cfg["n_lights"], data_cfg["light_lo"], data_cfg["light_hi"])
+    if regions_from == "scene bounds":  # no light inside geometry or touching it
+        lights = free_lights(desc, lights, data_cfg["light_lo"], data_cfg["light_hi"], rng)
+    if data_cfg["mode"] == "view":
+        check_box(data_cfg["view_lo"], data_cfg["view_hi"], "data.view_lo/view_hi")
+        origins = latin_hypercube(rng, data_cfg["n_views"], data_cfg["view_lo"], data_cfg["view_hi"])
+        targets = np.asarray(data_cfg["view_target"]) + data_cfg["target_jitter"] * (
+            2.0 * rng.random((len(origins), 3)) - 1.0)
+        setups = [(desc, cams.look_at(o, t, fov=data_cfg["fov"]), None) for o, t in zip(origins, targets)]
+    else:
+        mat = data_cfg["material"]
+        if mat["object"] not in desc.get("materials", {}):
+            raise ValueError(f"data.material.object {mat['object']!r} is not an object of this scene "
+                             f"({sorted(desc.get('materials', {}))})")
+        edits = latin_hypercube(rng, mat["n_materials"], [mat["roughness"][0], mat["albedo"][0]],
+                                [mat["roughness"][1], mat["albedo"][1]])
+        camera = cams.look_at(mat["view_origin"], data_cfg["view_target"], fov=data_cfg["fov"])
+        setups = [(edit_description(desc, mat["object"], r, a), camera, (r, a)) for r, a in edits]
+    return lights, setups, rng
+
+
+def _check(desc: dict, spec: dict, data_cfg: dict, regions_from: str, *, cache_dir: str | None,
+           progress: bool) -> dict:
+    """The self-check's held-out samples, cached apart from the training data
+    (``$JPRT_CACHE/rrf_check``): ``data.check_lights`` point lights drawn in the light box from a
+    seed stream of their own (never fitted), each rendered from every training view (or material)
+    as the training pairs are (``_render_samples``: fresh random rays, ``n_rays / 2`` per pair,
+    ``data.spp``, other path seeds); the sample arrays, ``lights`` (L, 3) and the scene's object
+    names."""
+    from jprt.render.sampling import latin_hypercube
+    from jprt.render.scenes import SceneHandle
+
+    n = int(data_cfg["check_lights"])
+    seed = int(data_cfg["seed"])
+
+    def build() -> dict:
+        t0 = time.perf_counter()
+        _, setups, _ = _draw(desc, data_cfg, regions_from)
+        rng = np.random.default_rng([seed, 45])
+        lights = latin_hypercube(rng, n, data_cfg["light_lo"], data_cfg["light_hi"])
+        if regions_from == "scene bounds":
+            lights = free_lights(desc, lights, data_cfg["light_lo"], data_cfg["light_hi"], rng)
+        cfg = {**data_cfg, "n_rays": max(1, int(data_cfg["n_rays"]) // 2), "seed": seed + 104_729}
+        arrays = _render_samples(desc, setups, lights, cfg, rng, False)
+        if progress:
+            print(f"rrf: self-check set ({n} held-out lights, {len(arrays['position'])} samples) rendered in "
+                  f"{time.perf_counter() - t0:.1f} s", file=sys.stderr)
+        return {**arrays, "lights": np.asarray(lights, np.float32),
+                "object_names": np.array(SceneHandle(desc).object_names())}
+
+    arrays, _ = cache.cached("rrf_check", {"format": 1, "data": spec, "regions_from": regions_from, "check_lights": n},
+                             build, cache_dir=cache_dir)
+    return arrays
+
+
+def self_check(dataset: RRFData, result, config: dict | None = None) -> dict:
+    """The fit scored on held-out lights (``_check``: ``data.check_lights`` point lights never
+    fitted, from every training view or material): the evaluator (Eq. 9, one unit white light) at
+    each held-out light's ray samples against their rendered indirect radiance, per object; one
+    item per light (per (material, light) pair in material mode). The training error the same way
+    on the fitted samples (the training split, ``data.val_fraction``) of up to as many training
+    lights (at least 2). No Mitsuba."""
+    from jprt.inputs import GBuffer, PointLights
+    from jprt.methods import selfcheck
+    from jprt.methods.rrf.model import EditInputs, evaluator, split_samples
+
+    cfg = resolve(DEFAULT_CONFIG, config)
+    check = dataset.meta.get("check")
+    if check is None or not len(check["lights"]):
+        return selfcheck.result("rrf", {}, float("nan"), None,
+                                "nothing held out (data.check_lights = 0): no self-check")
+    material = cfg["data"]["mode"] == "material"
+    names = [str(x) for x in check["object_names"]]
+    n_check = len(check["lights"])
+    held_key = check["pair"] if material else check["pair"] % n_check
+    held = [np.flatnonzero(held_key == g) for g in np.unique(held_key)]
+    train = dataset._asdict()
+    is_train = result.info.get("is_train")
+    if is_train is None or len(is_train) != len(dataset):  # train.subset < 1 fits a subset: the split it drew from
+        is_train = split_samples(len(dataset), float(cfg["data"]["val_fraction"]), int(cfg["train"]["seed"]))
+    is_train = np.asarray(is_train, bool)
+    train_key = dataset.pair if material else dataset.pair % int(cfg["data"]["n_lights"])
+    keys = np.unique(train_key[is_train])
+    keys = keys[np.unique(np.linspace(0, len(keys) - 1, min(len(keys), max(2, len(held)))).round().astype(int))]
+    fitted = [np.flatnonzero((train_key == g) & is_train) for g in keys]
+    size = max(len(g) for g in held + fitted)  # one shape: the evaluator compiles once
+    evaluate = evaluator(result.params, cfg)
+
+    def items(arrays, groups):
+        preds, refs, ids = [], [], []
+        for g in groups:
+            def pad(name, fill=0):
+                a = np.asarray(arrays[name])[g]
+                return np.concatenate([a, np.full((size - len(g),) + a.shape[1:], fill, a.dtype)])
+
+            brdf = pad("brdf")[:, None]
+            valid = np.arange(size) < len(g)
+            gb = GBuffer(position=pad("position")[:, None], normal=pad("normal")[:, None], view=pad("view")[:, None],
+                         reflected=np.zeros((size, 1, 3), np.float32), uv=np.zeros((size, 1, 2), np.float32),
+                         diffuse_albedo=brdf[..., 0:3], specular_albedo=brdf[..., 3:6], roughness=brdf[..., 6],
+                         object_id=pad("object_id", -1)[:, None], valid=valid[:, None])
+            light = PointLights(position=np.asarray(arrays["light"][g[0]], np.float32)[None],
+                                intensity=np.ones((1, 3), np.float32))
+            inputs = EditInputs(gb, np.asarray(arrays["edit"][g[0]], np.float32)) if material else gb
+            preds.append(np.asarray(evaluate(inputs, light))[:, 0])
+            refs.append(pad("indirect"))
+            ids.append(pad("object_id", -1))
+        return preds, refs, ids
+
+    rel, per = selfcheck.scores(*items(check, held), names)
+    train_rel, _ = selfcheck.scores(*items(train, fitted), names)
+    setups = len(np.unique(check["pair"] // n_check))
+    return selfcheck.result(
+        "rrf", per, rel, train_rel,
+        f"{n_check} held-out point lights x {setups} {'materials' if material else 'views'}: "
+        f"{sum(len(g) for g in held)} ray samples, {int(cfg['data']['spp'])} spp (data.check_lights); training "
+        f"error on the fitted samples of {len(fitted)} training {'pairs' if material else 'lights'}")
 
 
 def resolve_regions(data_cfg: dict, scene) -> dict:

@@ -12,7 +12,7 @@ import numpy as np
 
 from jprt.methods.sg_lightfield.model import GLOSSY_RECEIVERS, SGData, _cfg, texel_irradiance
 
-__all__ = ["make_dataset", "TASK_LIGHTINGS", "ENV_RECEIVERS", "ENV_DEFAULTS", "EnvData", "load_environment",
+__all__ = ["make_dataset", "self_check", "TASK_LIGHTINGS", "ENV_RECEIVERS", "ENV_DEFAULTS", "EnvData", "load_environment",
            "make_environment_dataset"]
 
 #: The shared tasks of experiments/atlas.py relight with lights the bake never saw: a light-field
@@ -37,8 +37,132 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
                             jitter=bool(c["jitter"]))
     images = lf.indirect if c["field"] == "indirect" else lf.full
     irradiance = np.asarray(texel_irradiance(images, lf.normal, lf.size), np.float32)
-    return SGData(lf.atlas, images, lf.below, lf.normal, lf.flags, irradiance,
-                  {**lf.meta, "size": lf.size, "field": c["field"]})
+    meta = {**lf.meta, "size": lf.size, "field": c["field"]}
+    if int(c["check_texels"]) < 0:
+        raise ValueError(f"capture.check_texels must be >= 0, got {c['check_texels']}")
+    if int(c["check_texels"]):
+        meta["check"] = _check(scene if scene is not None else cfg["scene"], lf, c, cache_dir=cache_dir,
+                               progress=progress)
+    return SGData(lf.atlas, images, lf.below, lf.normal, lf.flags, irradiance, meta)
+
+
+#: Held-out view directions per self-check texel.
+CHECK_VIEWS = 4
+
+
+def _check(scene, lf, c: dict, *, cache_dir: str | None, progress: bool) -> dict:
+    """The self-check's held-out set, cached apart from the light field
+    (``$JPRT_CACHE/sg_lightfield_check``): ``capture.check_texels`` texels (at most a tenth of those
+    not inside geometry; drawn with a seed of their own) captured again as the light field is
+    (``capture_block``: same points, size, spp and jitter, other seeds), their materials (the
+    G-buffer of a ray from the capture point down the normal: ``ok`` where it hits the texel's own
+    object), ``CHECK_VIEWS`` held-out view directions each (uniform over the hemisphere at up to 78
+    degrees from the normal) and the scene's object names."""
+    import time
+
+    from jprt import cache
+    from jprt.render.lightfield import INSIDE, _digest, capture_block
+    from jprt.render.scenes import SceneHandle, describe
+
+    desc = describe(scene)
+    a = lf.atlas
+    seed, size, spp, jitter = int(c["seed"]), int(lf.size), int(c["spp"]), bool(c["jitter"])
+    free = np.flatnonzero(np.asarray(lf.flags) != INSIDE)
+    n = min(int(c["check_texels"]), max(1, len(free) // 10), len(free))
+    spec = {"format": 1, "scene": desc, "atlas": _digest(a["position"], a["normal"]), "size": size, "spp": spp,
+            "seed": seed, "jitter": jitter, "texels": n, "views": CHECK_VIEWS}
+
+    def build() -> dict:
+        from jprt.render.gbuffer import gbuffer_rays
+
+        t0 = time.perf_counter()
+        rng = np.random.default_rng([seed, 45])
+        idx = np.sort(rng.choice(free, n, replace=False))
+        handle = SceneHandle(desc)
+        points, normal = np.asarray(lf.position, np.float64)[idx], np.asarray(lf.normal, np.float64)[idx]
+        maps = capture_block(handle, points, normal, np.asarray(lf.flags)[idx], size, spp=spp,
+                             seed=seed * 1000003 + 999_983, jitter=jitter)
+        g = gbuffer_rays(handle, points, -normal)
+        ok = np.asarray(g.valid, bool) & (np.asarray(g.object_id) == np.asarray(a["texel_object"])[idx])
+        # views: uniform in solid angle over cos(theta) in [0.2, 1] about each texel's normal
+        cos = rng.uniform(0.2, 1.0, (n, CHECK_VIEWS))
+        phi = rng.uniform(0.0, 2.0 * np.pi, (n, CHECK_VIEWS))
+        helper = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        t1 = np.cross(normal, helper)
+        t1 /= np.linalg.norm(t1, axis=-1, keepdims=True)
+        t2 = np.cross(normal, t1)
+        sin = np.sqrt(1.0 - cos * cos)
+        views = (cos[..., None] * normal[:, None] + (sin * np.cos(phi))[..., None] * t1[:, None]
+                 + (sin * np.sin(phi))[..., None] * t2[:, None])
+        if progress:
+            print(f"sg_lightfield: self-check set ({n} texels captured again) in {time.perf_counter() - t0:.1f} s")
+        return {"index": idx.astype(np.int64), "full": maps["full"], "indirect": maps["indirect"],
+                "below": maps["below"], "views": views.astype(np.float32), "ok": ok,
+                "diffuse_albedo": np.asarray(g.diffuse_albedo, np.float32),
+                "specular_albedo": np.asarray(g.specular_albedo, np.float32),
+                "roughness": np.asarray(g.roughness, np.float32), "object_names": np.array(handle.object_names())}
+
+    arrays, _ = cache.cached("sg_lightfield_check", spec, build, cache_dir=cache_dir)
+    return arrays
+
+
+def self_check(dataset: SGData, result, config: dict | None = None) -> dict:
+    """The fit scored on the texels captured again (``_check``), at held-out views: the evaluator
+    (the lobes of each texel, looked up at its centre, shaded with its own material along each
+    held-out view, plus albedo / pi x its irradiance) against the same shading of the second
+    capture, without lobes (``model.shade_quadrature``, the GGX BRDF integrated over the captured
+    map, plus albedo / pi x the second capture's irradiance), per object; one item per view. The
+    training error the same way against the training capture of the same texels and views. No
+    Mitsuba."""
+    import jax.numpy as jnp
+
+    from jprt.inputs import GBuffer
+    from jprt.methods import selfcheck
+    from jprt.methods.atlas import atlas_inputs
+    from jprt.methods.sg_lightfield.model import evaluator, shade_quadrature
+
+    cfg = _cfg(config)
+    check = dataset.meta.get("check")
+    if check is None or not len(check["index"]):
+        return selfcheck.result("sg_lightfield", {}, float("nan"), None,
+                                "nothing held out (capture.check_texels = 0): no self-check")
+    idx, ok, views = np.asarray(check["index"]), np.asarray(check["ok"], bool), np.asarray(check["views"])
+    k, v = views.shape[:2]
+    a = dataset.atlas
+    r = int(a["resolution"])
+    uv = np.asarray(atlas_inputs(r, a["texel_index"]).uv).reshape(-1, 2)[np.asarray(a["texel_index"])[idx]]
+    normal = np.asarray(dataset.normal, np.float32)[idx]
+
+    def per_view(x):  # (k, ...) -> (k, v, ...)
+        x = np.asarray(x, np.float32)
+        return np.broadcast_to(x[:, None], (k, v) + x.shape[1:])
+
+    diffuse, specular, rough = check["diffuse_albedo"], check["specular_albedo"], check["roughness"]
+    gb = GBuffer(position=np.zeros((k, v, 3), np.float32), normal=per_view(normal), view=views,
+                 reflected=per_view(normal), uv=per_view(uv), diffuse_albedo=per_view(diffuse),
+                 specular_albedo=per_view(specular), roughness=per_view(rough),
+                 object_id=np.broadcast_to(np.asarray(a["texel_object"], np.int32)[idx][:, None], (k, v)),
+                 valid=np.broadcast_to(ok[:, None], (k, v)))
+    pred = np.asarray(evaluator(result.params, cfg)(gb, np.ones(3, np.float32)))
+
+    def reference(maps, irradiance):
+        maps = np.asarray(maps, np.float32)
+        glossy = shade_quadrature(jnp.asarray(np.broadcast_to(maps[:, None], (k, v) + maps.shape[1:])),
+                                  per_view(normal), views, per_view(rough), per_view(specular))
+        return np.asarray(glossy) + per_view(np.asarray(diffuse) / np.pi * np.asarray(irradiance))
+
+    field = dataset.meta["field"]
+    held = reference(check[field], texel_irradiance(check[field], normal, int(dataset.meta["size"])))
+    fitted = reference(dataset.images[idx], dataset.irradiance[idx])
+    ids = np.where(ok, np.asarray(a["texel_object"])[idx], -1)
+    names = [str(x) for x in check["object_names"]]
+    rel, per = selfcheck.scores([pred[:, j] for j in range(v)], [held[:, j] for j in range(v)], ids, names)
+    train, _ = selfcheck.scores([pred[:, j] for j in range(v)], [fitted[:, j] for j in range(v)], ids, names)
+    return selfcheck.result(
+        "sg_lightfield", per, rel, train,
+        f"{int(ok.sum())} texels captured again ({field} field, {int(cfg['capture']['spp'])} spp, other seeds; "
+        f"capture.check_texels) x {v} held-out views, shaded with their materials; training error against the "
+        "training capture of the same texels and views")
 
 
 #: The Table 3 setting: the receivers of ``model.GLOSSY_RECEIVERS`` in the Cornell box without its

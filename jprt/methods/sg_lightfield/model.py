@@ -73,7 +73,11 @@ DEFAULT_CONFIG: dict[str, Any] = {
     # path along its own direction within the map pixel (box-filtered, ``jprt.render.lightfield.
     # capture_block``) instead of the pixel centre, same cost; on veach-bidir's lamp-lit room it
     # took the room from 0.34 to 0.28 relative RMSE and left the table at 0.90 (README)
-    "capture": {"size": 32, "spp": 64, "seed": 0, "block": 256, "field": "indirect", "jitter": False},
+    # check_texels: texels captured a second time (other seeds) for the self-check (data.self_check),
+    # at most a tenth of the capturable ones (at the defaults ~5 % of the capture; 0: none); not
+    # part of the light field's cache key
+    "capture": {"size": 32, "spp": 64, "seed": 0, "block": 256, "field": "indirect", "jitter": False,
+                "check_texels": 128},
     "model": {"n_lobes": 16, "channels": [32, 64, 128, 256], "min_sharpness": 0.5, "max_sharpness": 1.0e4,
               "init_sharpness": 1.0},
     "train": {"steps": 2000, "batch": 64, "learning_rate": 1e-3, "final_lr_fraction": 0.1, "seed": 0,

@@ -14,7 +14,7 @@ from jprt.methods.sh_prt.model import DEFAULT_CONFIG, SHData, order_to_degree
 from jprt.sphere import sh
 from jprt.sphere.cubemap import equirect_directions
 
-__all__ = ["bake", "make_dataset", "TASK_LIGHTINGS", "task_inputs", "task_lighting"]
+__all__ = ["bake", "make_dataset", "check_maps", "self_check", "TASK_LIGHTINGS", "task_inputs", "task_lighting"]
 
 
 def bake(handle, atlas, degree: int, *, spp: int, env_height: int = 32, seed: int = 0,
@@ -69,8 +69,12 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
     cfg = resolve(DEFAULT_CONFIG, config)
     desc = describe(scene if scene is not None else cfg["scene"])
     degree = order_to_degree(cfg["sh"]["order"])
-    spec = {"format": 1, "scene": desc, "objects": list(cfg["objects"]), "lightmap": cfg["lightmap"], "sh": cfg["sh"],
-            "atlas_format": lightmap.ATLAS_FORMAT}
+    n_check = int(cfg["sh"]["check_maps"])
+    if n_check < 0:
+        raise ValueError(f"sh.check_maps must be >= 0, got {n_check}")
+    # the self-check's maps are an entry of their own (``_check``): the bake's key is what it was
+    spec = {"format": 1, "scene": desc, "objects": list(cfg["objects"]), "lightmap": cfg["lightmap"],
+            "sh": {k: v for k, v in cfg["sh"].items() if k != "check_maps"}, "atlas_format": lightmap.ATLAS_FORMAT}
 
     def build() -> dict:
         t0 = time.perf_counter()
@@ -85,7 +89,81 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
         return arrays
 
     arrays, _ = cache.cached("sh_prt", spec, build, cache_dir=cache_dir)
-    return SHData(cache.unprefixed(arrays, "atlas_"), arrays["transfer"], {"bake_s": float(arrays["bake_s"]), "degree": degree})
+    atlas = cache.unprefixed(arrays, "atlas_")
+    meta = {"bake_s": float(arrays["bake_s"]), "degree": degree}
+    if n_check:
+        meta["check"] = _check(desc, spec, atlas, n_check, cache_dir=cache_dir, progress=progress)
+    return SHData(atlas, arrays["transfer"], meta)
+
+
+#: Cube-map face size of the self-check's procedural maps.
+CHECK_FACE = 16
+
+
+def check_maps(n: int, seed: int) -> np.ndarray:
+    """The self-check's held-out lightings: ``n`` procedural skies with one or two broad lobes
+    (``jprt.methods.wavelet_prt.model.synthetic_environments``, (n, 6, 16, 16, 3) cube maps), a
+    seed stream of their own."""
+    from jprt.methods.wavelet_prt.model import synthetic_environments
+
+    return np.asarray(synthetic_environments(int(n), CHECK_FACE, 45_000 + int(seed)), np.float32)
+
+
+def _check(desc: dict, spec: dict, atlas: dict, n: int, *, cache_dir: str | None, progress: bool) -> dict:
+    """The self-check's held-out set, cached apart from the bake (``$JPRT_CACHE/sh_prt_check``):
+    the indirect light at every atlas texel under each of ``check_maps(n)``, rendered as the bake
+    renders (``indirect_at_points`` at ``sh.spp``, other seeds), their cube maps and the scene's
+    object names."""
+    s = spec["sh"]
+
+    def build() -> dict:
+        from jprt.methods.wavelet_prt.model import render_equirect
+        from jprt.render import lightmap
+        from jprt.render.lights import EnvMap
+        from jprt.render.scenes import SceneHandle
+
+        t0 = time.perf_counter()
+        handle = SceneHandle(desc)
+        cubes = check_maps(n, int(s["seed"]))
+        indirect = []
+        for k, cube in enumerate(cubes):
+            handle.set_lighting(EnvMap.create(render_equirect(cube)))
+            indirect.append(lightmap.indirect_at_points(handle, atlas["position"], atlas["normal"], spp=int(s["spp"]),
+                                                        seed=int(s["seed"]) * 7919 + 100_003 + k))
+        if progress:
+            print(f"sh_prt: self-check set ({n} held-out map(s)) rendered in {time.perf_counter() - t0:.1f} s")
+        return {"cubes": cubes, "indirect": np.stack(indirect).astype(np.float32),
+                "object_names": np.array(handle.object_names())}
+
+    arrays, _ = cache.cached("sh_prt_check", {"format": 1, "bake": spec, "maps": int(n), "face": CHECK_FACE}, build,
+                             cache_dir=cache_dir)
+    return arrays
+
+
+def self_check(dataset: SHData, result, config: dict | None = None) -> dict:
+    """The bake scored on ``sh.check_maps`` held-out procedural environment maps (``_check``): the
+    lightmap sum_i l_i t_i (``model.lightmap``) of each map's SH projection at the bake's degree
+    against the indirect light rendered at every texel, per object. The bake is the fit (a texel's
+    training renders are its transfer vector itself), so there is no training error to compare
+    with (``train_rel_rmse`` None): the check measures what the band limit and the bake's noise
+    cost under a lighting the bake never saw. No Mitsuba."""
+    from jprt.methods import selfcheck
+    from jprt.methods.sh_prt.model import lightmap
+
+    cfg = resolve(DEFAULT_CONFIG, config)
+    check = dataset.meta.get("check")
+    if check is None or not len(check["indirect"]):
+        return selfcheck.result("sh_prt", {}, float("nan"), None,
+                                "nothing held out (sh.check_maps = 0): no self-check")
+    degree = int(dataset.meta["degree"])
+    preds = [lightmap(result.params["transfer"], sh.project_cubemap(np.asarray(c, np.float32), degree))
+             for c in check["cubes"]]
+    ids = np.asarray(dataset.atlas["texel_object"])
+    rel, per = selfcheck.scores(preds, list(check["indirect"]), ids, [str(x) for x in check["object_names"]])
+    n = len(check["indirect"])
+    return selfcheck.result("sh_prt", per, rel, None,
+                            f"{n} held-out procedural environment map(s) at {len(ids)} lightmap texels, "
+                            f"{int(cfg['sh']['spp'])} spp (sh.check_maps); no training error (the bake is the fit)")
 
 
 # --------------------------------------------------------------------------------------------

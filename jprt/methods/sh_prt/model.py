@@ -41,8 +41,11 @@ DEFAULT_CONFIG = {
     "scene": {"name": "cornell_box", "area_light": False},
     "objects": [],  # object names of the asset; [] = every object of the scene
     "lightmap": {"resolution": 64},
-    # Sloan's order (bands); the bake renders every SH function's positive and negative parts
-    "sh": {"order": 3, "spp": 64, "env_height": 32, "seed": 0},
+    # Sloan's order (bands); the bake renders every SH function's positive and negative parts.
+    # check_maps: held-out procedural environment maps whose indirect light at every texel is
+    # rendered at `spp` for the self-check (data.self_check; one render each, against the bake's
+    # 2 (degree + 1)^2 - 1; 0: none). Not part of the bake's cache key
+    "sh": {"order": 3, "spp": 64, "env_height": 32, "seed": 0, "check_maps": 1},
 }
 
 

@@ -17,8 +17,8 @@ from jprt.methods.wavelet_prt.model import (DEFAULT_CONFIG, GBUFFER_FIELDS, Wave
                                             importance_maps, prepare_environment, random_rotation, render_equirect,
                                             rotate_equirect, sun_skies, synthetic_environments, turn_equirect)
 
-__all__ = ["make_dataset", "add_vertex_interpolation", "gbuffer_fields", "load_environments", "SHARED_ENVMAPS", "TASK_LIGHTINGS",
-           "task_inputs", "task_lighting"]
+__all__ = ["make_dataset", "add_vertex_interpolation", "gbuffer_fields", "load_environments", "self_check",
+           "SHARED_ENVMAPS", "TASK_LIGHTINGS", "task_inputs", "task_lighting"]
 
 #: The CC0 maps in ../shared/assets/envmaps (see its README), next to this checkout.
 SHARED_ENVMAPS = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "shared", "assets",
@@ -187,7 +187,85 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
             "files": files_key, "cameras": ccfg,
             "data": {k: v for k, v in dcfg.items() if not (k == "rays" and v == "image")}}
     arrays, _ = cache.cached("wavelet_prt", spec, lambda: _render(desc, cfg, progress), cache_dir=cache_dir)
-    return _unpack(arrays)
+    data = _unpack(arrays)
+    return data._replace(stats=dict(data.stats, check=_test_objects(desc, cfg, spec, data, cache_dir=cache_dir)))
+
+
+def _test_objects(desc: dict, cfg: dict, spec: dict, data: WaveletData, *, cache_dir: str | None) -> dict:
+    """The object id of every pixel of the held-out near / far test images (their cameras' exact
+    G-buffers, one per view, repeated per held-out map as the images are; -1 where invalid) and
+    the scene's object names, for the self-check's per-object scores: a G-buffer pass per test
+    view, cached apart from the images (``$JPRT_CACHE/wavelet_prt_check``)."""
+    def build() -> dict:
+        from jprt.render.cameras import look_at
+        from jprt.render.gbuffer import gbuffer
+        from jprt.render.scenes import SceneHandle
+
+        ccfg, dcfg = cfg["cameras"], cfg["data"]
+        _, near_o, far_o, target, fov = _cameras(desc, ccfg, int(dcfg["seed"]))
+        handle = SceneHandle(desc)
+        repeat = len(data.test_envs) if dcfg["test_pairs"] == "all" else 1
+        out = {"object_names": np.array(handle.object_names())}
+        for name, origins in (("near", near_o), ("far", far_o)):
+            ids = [gbuffer(handle, look_at(o, target, fov=fov, width=int(ccfg["width"]),
+                                           height=int(ccfg["height"]))).object_id for o in origins]
+            out[f"{name}_object_id"] = (np.repeat(np.stack(ids), repeat, axis=0).astype(np.int32) if ids
+                                        else np.zeros((0, int(ccfg["height"]), int(ccfg["width"])), np.int32))
+        return out
+
+    arrays, _ = cache.cached("wavelet_prt_check", {"format": 1, "data": spec}, build, cache_dir=cache_dir)
+    return arrays
+
+
+#: Training images scored for the self-check's training error (one view of evenly spaced lightings).
+CHECK_TRAIN = 8
+
+
+def self_check(dataset: WaveletData, result, config: dict | None = None) -> dict:
+    """The fit scored on the held-out near and far test views (``cameras.near`` / ``far``) under
+    the held-out maps (``envmaps.held_out``, never in training; rendered at ``data.test_spp``): the
+    evaluator's image of each against its rendered indirect light, per object (``_test_objects``).
+    The training error the same way, pooled, on up to ``CHECK_TRAIN`` training images (the first
+    view of evenly spaced training lightings) under their own maps. No Mitsuba."""
+    from jprt.inputs import CubeMap
+    from jprt.methods import selfcheck
+    from jprt.methods.wavelet_prt.model import evaluator, model
+
+    cfg = resolve(DEFAULT_CONFIG, config)
+    check = dataset.stats.get("check")
+    if check is None:
+        return selfcheck.result("wavelet_prt", {}, float("nan"), None,
+                                "no held-out object ids (a dataset not from make_dataset): no self-check")
+    fields = model(cfg, n_vertices=dataset.stats.get("n_vertices")).fields
+    evaluate = evaluator(result.params, cfg)
+    preds, refs, ids, maps = [], [], [], set()
+    for name in ("near", "far"):
+        views = dataset.tests.get(name) or {}
+        for i in range(len(views.get("valid", ()))):
+            inputs = {f: views[f][i] for f in fields}
+            preds.append(np.asarray(evaluate(inputs, CubeMap(np.asarray(dataset.test_envs[int(views["env"][i])])))))
+            refs.append(np.asarray(views["indirect"][i]))
+            ids.append(np.where(np.asarray(views["valid"][i], bool), check[f"{name}_object_id"][i], -1))
+            maps.add(int(views["env"][i]))
+    n_env = len(dataset.envs)
+    lightings = np.unique(np.linspace(0, n_env - 1, min(CHECK_TRAIN, n_env)).round().astype(int))
+    train_p, train_r, train_ids = [], [], []
+    for e in lightings:
+        inputs = {f: dataset.train[f][e, 0] for f in fields}
+        train_p.append(np.asarray(evaluate(inputs, CubeMap(np.asarray(dataset.envs[e])))))
+        train_r.append(np.asarray(dataset.train["indirect"][e, 0]))
+        train_ids.append(np.where(np.asarray(dataset.train["valid"][e, 0], bool), 0, -1))
+    train, _ = selfcheck.scores(train_p, train_r, train_ids, ["all"])
+    if not preds:
+        return selfcheck.result("wavelet_prt", {}, float("nan"), train,
+                                "nothing held out (cameras.near = cameras.far = 0): no self-check")
+    rel, per = selfcheck.scores(preds, refs, ids, [str(x) for x in check["object_names"]])
+    h, w = preds[0].shape[:2]
+    return selfcheck.result(
+        "wavelet_prt", per, rel, train,
+        f"{len(preds)} held-out (near / far view, held-out map) images ({len(maps)} map(s)), {h} x {w} pixels, "
+        f"{int(dataset.stats['test_spp'])} spp (cameras.near / far, envmaps.held_out); training error on "
+        f"{len(train_p)} training images")
 
 
 def _render(desc: dict, cfg: dict, progress: bool) -> dict:
