@@ -400,14 +400,8 @@ def _predict(name: str, s: dict, cameras: list, config: dict, regions: dict, e: 
 
 def _self_check(m, dataset, result, cfg) -> dict | None:
     """The method's own check of its fit on held-out data of its training renders (None when the
-    method has none); its warning, if any, is printed in one line."""
-    check = getattr(m, "self_check", None)
-    if check is None:
-        return None
-    out = check(dataset, result, cfg)
-    if out.get("warning"):
-        _say(f"  warning: {out['warning']}")
-    return out
+    method has none); the check itself warns, in one line, when the fit should not be trusted."""
+    return None if m.self_check is None else m.self_check(dataset, result, cfg)
 
 
 def run_scene(path: str, config: dict, out: str) -> dict:

@@ -2,6 +2,8 @@
 
 The split (DESIGN.md, "Ground truth"): indirect = path tracing with ``max_depth=-1`` minus path
 tracing with ``max_depth=2`` (emission + direct lighting), both with the *same sampler seed*.
+The integrator is Mitsuba's ``path``, or ``volpath`` in a scene whose surfaces bound media
+(``integrator_type``).
 The two integrators consume the same random numbers for the shared prefix of every path, so
 that prefix cancels exactly and the difference is >= 0 up to float rounding.
 
@@ -20,8 +22,8 @@ import numpy as np
 from jprt.render.cameras import Camera, camera_rays, check_rays, to_sensor_dict
 from jprt.render.scenes import SceneHandle
 
-__all__ = ["Radiance", "RENDER_STATS", "check_spp", "render", "direct_indirect", "centre_rays", "indirect_rays",
-           "radiance_rays"]
+__all__ = ["Radiance", "RENDER_STATS", "check_spp", "integrator_type", "render", "direct_indirect", "centre_rays",
+           "indirect_rays", "radiance_rays"]
 
 #: Counters of Mitsuba work done by this process: "images", "ray_batches", "seconds".
 RENDER_STATS: collections.Counter = collections.Counter()
@@ -55,8 +57,17 @@ def check_spp(spp) -> int:
     return int(spp)
 
 
-def _integrator(mi, max_depth: int):
-    return mi.load_dict({"type": "path", "max_depth": int(max_depth), "hide_emitters": False})
+def integrator_type(handle: SceneHandle) -> str:
+    """The Mitsuba integrator jprt renders ``handle``'s scene with: ``volpath`` where a surface
+    bounds a participating medium (a glass's interior medium; ``SceneHandle.has_media``),
+    ``path`` otherwise (the two agree without media; ``path`` keeps earlier renders bit-stable).
+    Both count ``max_depth`` alike (-1 unbounded, 2 emission + direct light), so the direct /
+    indirect split with equal seeds holds for either."""
+    return "volpath" if handle.has_media else "path"
+
+
+def _integrator(handle: SceneHandle, max_depth: int):
+    return handle.mi.load_dict({"type": integrator_type(handle), "max_depth": int(max_depth), "hide_emitters": False})
 
 
 def render(handle: SceneHandle, camera: Camera, *, spp: int, max_depth: int = -1, seed: int = 0) -> np.ndarray:
@@ -65,7 +76,7 @@ def render(handle: SceneHandle, camera: Camera, *, spp: int, max_depth: int = -1
     mi = handle.mi
     sensor = mi.load_dict(to_sensor_dict(camera, spp, mi))
     t0 = time.perf_counter()
-    image = mi.render(handle.scene, sensor=sensor, integrator=_integrator(mi, max_depth), seed=int(seed), spp=spp)
+    image = mi.render(handle.scene, sensor=sensor, integrator=_integrator(handle, max_depth), seed=int(seed), spp=spp)
     out = np.array(image, dtype=np.float32)
     RENDER_STATS["images"] += 1
     RENDER_STATS["seconds"] += time.perf_counter() - t0
@@ -84,8 +95,9 @@ def radiance_rays(handle: SceneHandle, origins, directions, *, spp: int, seed: i
                   max_depth: int = -1, chunk_rays: int = 1 << 21) -> np.ndarray:
     """Mean radiance (N, 3) arriving along each of N rays, ``spp`` path samples per ray.
 
-    Rays are traced through the ``path`` integrator directly (``integrator.sample``), so any
-    ray bundle works: pixels of any camera, hemispheres at surface points, probe directions.
+    Rays are traced through the ``path`` integrator (``volpath`` with media: ``integrator_type``)
+    directly (``integrator.sample``), so any ray bundle works: pixels of any camera, hemispheres at
+    surface points, probe directions. Every ray starts in vacuum (outside all media).
     Work is split into chunks of at most ``chunk_rays`` path samples to bound memory.
     """
     spp = check_spp(spp)
@@ -93,7 +105,7 @@ def radiance_rays(handle: SceneHandle, origins, directions, *, spp: int, seed: i
     import drjit as dr
 
     origins, directions = check_rays(origins, directions)
-    integrator = _integrator(mi, max_depth)
+    integrator = _integrator(handle, max_depth)
     n = origins.shape[0]
     per_chunk = max(1, chunk_rays // spp)
     out = np.empty((n, 3), np.float32)

@@ -135,7 +135,14 @@ def _object_index(handle: SceneHandle, objects: Sequence[str | int] | None) -> l
 def mesh_triangles(handle: SceneHandle, object_id: int) -> tuple[np.ndarray, np.ndarray | None]:
     """Triangles of one object: world corners (F, 3, 3) and corner UVs (F, 3, 2) or None. Triangle
     f of a mesh is its primitive f; a rectangle is one primitive split into two triangles that
-    share one planar UV map."""
+    share one planar UV map.
+
+    A scene file's disks, spheres and cylinders are meshes already (``scenes.xml`` tessellates
+    them, ``SceneHandle.tessellated``); their UVs are Mitsuba's polar / latitude-longitude ones,
+    whose texel density varies across the shape, so they come without UVs here and atlases unwrap
+    them (planar charts for a disk, xatlas for the curved ones). Anything else that is not a
+    triangle mesh (the analytic sphere of ``glossy_cornell``, curves, SDF grids) is refused in one
+    line: its hits carry no triangle index a lightmap could map."""
     mi = handle.mi
     shape = handle.shapes()[object_id]
     params = mi.traverse(shape)
@@ -144,7 +151,7 @@ def mesh_triangles(handle: SceneHandle, object_id: int) -> tuple[np.ndarray, np.
         v = np.array(params["vertex_positions"], np.float64).reshape(-1, 3)
         f = np.array(params["faces"], np.int64).reshape(-1, 3)
         uv = np.array(params["vertex_texcoords"], np.float64).reshape(-1, 2) if "vertex_texcoords" in keys else None
-        if uv is not None and uv.shape[0] != v.shape[0]:
+        if uv is not None and (uv.shape[0] != v.shape[0] or shape.id() in getattr(handle, "tessellated", ())):
             uv = None
         return v[f], (uv[f] if uv is not None else None)
     if "to_world" in keys and shape.class_name() == "Rectangle":
@@ -154,8 +161,9 @@ def mesh_triangles(handle: SceneHandle, object_id: int) -> tuple[np.ndarray, np.
         uv = (local[:, :2] + 1.0) / 2.0
         tri = np.array([[0, 1, 2], [0, 2, 3]])
         return world[tri], uv[tri]
-    raise ValueError(f"object {handle.object_names()[object_id]!r} ({type(shape).__name__}) is not a triangle "
-                     "mesh or a rectangle; lightmaps need one of those")
+    raise ValueError(f"object {handle.object_names()[object_id]!r} (Mitsuba {shape.class_name()}) is not a triangle "
+                     "mesh or a rectangle, which lightmaps, surface samples and per-vertex data need (scene files' "
+                     "disks, spheres, cylinders and instances become meshes; built-in analytic shapes do not)")
 
 
 def _areas(tris: np.ndarray) -> np.ndarray:
@@ -208,6 +216,39 @@ def _raster_triangle(corners: np.ndarray, res: int, eps: float = 1e-9):
     return flat[inside], bary[inside]
 
 
+def _raster_triangles(corners: np.ndarray, res: int, eps: float = 1e-9):
+    """``_raster_triangle`` of many triangles (K, 3, 2) in texel units at once, with the same
+    arithmetic (so the same bits): (flat texel indices, position k of the covering triangle,
+    barycentric coordinates (n, 3)) of every covered texel centre. Triangles are batched by the
+    size of their texel box, so each batch is one stacked solve."""
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)))
+    if corners.shape[0] == 0:
+        return empty
+    lo = np.maximum(np.floor(corners.min(axis=1) - 0.5).astype(int), 0)
+    hi = np.minimum(np.ceil(corners.max(axis=1) + 0.5).astype(int), res - 1)
+    a = corners[:, 0]
+    m = np.stack([corners[:, 1] - a, corners[:, 2] - a], axis=2)  # columns b - a, c - a
+    ok = np.all(hi >= lo, axis=1)
+    ok[ok] = np.abs(np.linalg.det(m[ok])) >= 1e-14
+    size = hi - lo + 1
+    flats, whichs, barys = [], [], []
+    keys, group = np.unique(size[ok], axis=0, return_inverse=True)
+    for g, (w, h) in enumerate(keys):
+        sel = np.flatnonzero(ok)[group.ravel() == g]
+        gx, gy = np.meshgrid(np.arange(w), np.arange(h))
+        xs, ys = lo[sel, 0:1] + gx.ravel()[None], lo[sel, 1:2] + gy.ravel()[None]  # (K, n)
+        p = np.stack([xs + 0.5, ys + 0.5], axis=2)
+        l12 = np.linalg.solve(m[sel], (p - a[sel, None, :]).transpose(0, 2, 1)).transpose(0, 2, 1)
+        bary = np.concatenate([1.0 - l12.sum(axis=2, keepdims=True), l12], axis=2)
+        inside = np.all(bary >= -eps, axis=2)
+        flats.append((ys * res + xs)[inside])
+        whichs.append(np.broadcast_to(sel[:, None], inside.shape)[inside])
+        barys.append(bary[inside])
+    if not flats:
+        return empty
+    return np.concatenate(flats).astype(np.int64), np.concatenate(whichs).astype(np.int64), np.concatenate(barys)
+
+
 #: Version of ``build_atlas``'s layout: caches of data baked on an atlas (their spec names it)
 #: are rebuilt when it changes. 2: conservative rasterisation (charts thinner than a texel).
 ATLAS_FORMAT = 2
@@ -216,33 +257,55 @@ ATLAS_FORMAT = 2
 MAX_PLANAR_CHARTS = 16
 
 
-def _closest_on_triangle(corners: np.ndarray, res: int, reach: float):
-    """The texels (flat indices) whose centres lie within ``reach`` (texel units) of a triangle
-    given in texel units, the distance, and the barycentric coordinates (n, 3) of the triangle's
-    point nearest each centre, moved a little inwards (below): the conservative rasterisation's
-    candidates."""
-    grid = _texel_barycentrics(corners, res, reach)
-    if grid is None:
-        return np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
-    flat, p, bary = grid
-    best_d = np.where(np.all(bary >= 0.0, axis=1), 0.0, np.inf)
-    best = bary.copy()
-    for i, j in ((0, 1), (1, 2), (2, 0)):  # the nearest point of each edge
-        e = corners[j] - corners[i]
-        t = np.clip((p - corners[i]) @ e / max(float(e @ e), 1e-300), 0.0, 1.0)
-        d = np.linalg.norm(corners[i] + t[:, None] * e - p, axis=1)
-        closer = d < best_d
-        w = np.zeros((p.shape[0], 3))
-        w[:, i], w[:, j] = 1.0 - t, t
-        best_d, best = np.where(closer, d, best_d), np.where(closer[:, None], w, best)
-    near = best_d <= reach
-    best, best_d = best[near], best_d[near]
-    # a point on an edge is where the triangle meets its neighbours (a crease, a wall's foot):
-    # move it towards the centroid by half the way or a quarter texel, whichever is less, so it
-    # lies inside its own surface, not on a seam that an offset ray could slip through
-    to_centre = np.linalg.norm((best - 1.0 / 3.0) @ corners, axis=1)
-    step = np.where(best_d > 0, np.minimum(0.5, 0.25 / np.maximum(to_centre, 1e-12)), 0.0)[:, None]
-    return flat[near], best_d, (1.0 - step) * best + step / 3.0
+def _closest_on_triangles(corners: np.ndarray, res: int, reach: float):
+    """For triangles (K, 3, 2) given in texel units: the texels (flat indices) whose centres lie
+    within ``reach`` (texel units) of a triangle, the position k of that triangle, the distance,
+    and the barycentric coordinates (n, 3) of the triangle's point nearest each centre, moved a
+    little inwards (below): the conservative rasterisation's candidates. Batched like
+    ``_raster_triangles`` (one triangle at a time gives the same bits)."""
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)))
+    if corners.shape[0] == 0:
+        return empty
+    lo = np.maximum(np.floor(corners.min(axis=1) - reach).astype(int), 0)
+    hi = np.minimum(np.ceil(corners.max(axis=1) + reach).astype(int), res - 1)
+    a = corners[:, 0]
+    m = np.stack([corners[:, 1] - a, corners[:, 2] - a], axis=2)  # columns b - a, c - a
+    ok = np.all(hi >= lo, axis=1)
+    ok[ok] = np.abs(np.linalg.det(m[ok])) >= 1e-14
+    size = hi - lo + 1
+    out = []
+    keys, group = np.unique(size[ok], axis=0, return_inverse=True)
+    for g, (w, h) in enumerate(keys):
+        sel = np.flatnonzero(ok)[group.ravel() == g]
+        c = corners[sel]
+        gx, gy = np.meshgrid(np.arange(w), np.arange(h))
+        xs, ys = lo[sel, 0:1] + gx.ravel()[None], lo[sel, 1:2] + gy.ravel()[None]  # (K, n)
+        p = np.stack([xs + 0.5, ys + 0.5], axis=2)
+        l12 = np.linalg.solve(m[sel], (p - a[sel, None, :]).transpose(0, 2, 1)).transpose(0, 2, 1)
+        bary = np.concatenate([1.0 - l12.sum(axis=2, keepdims=True), l12], axis=2)
+        best_d = np.where(np.all(bary >= 0.0, axis=2), 0.0, np.inf)
+        best = bary.copy()
+        for i, j in ((0, 1), (1, 2), (2, 0)):  # the nearest point of each edge
+            e = c[:, j] - c[:, i]
+            ee = np.maximum((e[:, None, :] @ e[:, :, None])[:, 0, 0], 1e-300)
+            t = np.clip((p - c[:, None, i]) @ e[:, :, None] / ee[:, None, None], 0.0, 1.0)  # (K, n, 1)
+            d = np.linalg.norm(c[:, None, i] + t * e[:, None, :] - p, axis=2)
+            closer = d < best_d
+            wgt = np.zeros(bary.shape)
+            wgt[..., i], wgt[..., j] = 1.0 - t[..., 0], t[..., 0]
+            best_d, best = np.where(closer, d, best_d), np.where(closer[..., None], wgt, best)
+        near = best_d <= reach
+        best, best_d = best[near], best_d[near]
+        # a point on an edge is where the triangle meets its neighbours (a crease, a wall's foot):
+        # move it towards the centroid by half the way or a quarter texel, whichever is less, so it
+        # lies inside its own surface, not on a seam that an offset ray could slip through
+        owner = np.broadcast_to(np.arange(len(sel))[:, None], near.shape)[near]
+        to_centre = np.linalg.norm(((best - 1.0 / 3.0)[:, None, :] @ c[owner])[:, 0, :], axis=1)
+        step = np.where(best_d > 0, np.minimum(0.5, 0.25 / np.maximum(to_centre, 1e-12)), 0.0)[:, None]
+        out.append(((ys * res + xs)[near], sel[owner], best_d, (1.0 - step) * best + step / 3.0))
+    if not out:
+        return empty
+    return tuple(np.concatenate(x) for x in zip(*out))
 
 
 def _uv_area(uv: np.ndarray) -> np.ndarray:
@@ -430,22 +493,23 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     owner = np.full(res * res, -1, np.int64)
     bary_of = np.zeros((res * res, 3))
     live = np.flatnonzero(_areas(all_tris) > 0)
-    for t in live:
-        idx, bary = _raster_triangle(atlas_uv[t] * res, res)
-        free = owner[idx] < 0
-        owner[idx[free]], bary_of[idx[free]] = t, bary[free]
+    # a texel centre covered by several triangles belongs to the first of them
+    flat, which, bary = _raster_triangles(atlas_uv[live] * res, res)
+    order = np.lexsort((which, flat))
+    first = order[np.unique(flat[order], return_index=True)[1]]
+    owner[flat[first]], bary_of[flat[first]] = live[which[first]], bary[first]
     # conservative rasterisation: a texel that no triangle covers at its centre but that some
     # triangle's chart overlaps (its centre within half a texel diagonal) belongs to the nearest
     # such triangle, at about the triangle's point nearest the centre. A chart thinner than a
     # texel (a table's edge) otherwise has no texel at all, and its pixels read the nearest
     # covered texel of the atlas, which can be another chart many texels away.
     centred = owner >= 0
-    best_d = np.full(res * res, np.inf)
-    for t in live:
-        idx, d, bary = _closest_on_triangle(atlas_uv[t] * res, res, 0.5 * np.sqrt(2.0))
-        closer = ~centred[idx] & (d < best_d[idx])
-        idx = idx[closer]
-        owner[idx], bary_of[idx], best_d[idx] = t, bary[closer], d[closer]
+    flat, which, dist, bary = _closest_on_triangles(atlas_uv[live] * res, res, 0.5 * np.sqrt(2.0))
+    free = ~centred[flat]
+    flat, which, dist, bary = flat[free], which[free], dist[free], bary[free]
+    order = np.lexsort((which, dist, flat))  # per texel the nearest triangle, the first of equals
+    first = order[np.unique(flat[order], return_index=True)[1]]
+    owner[flat[first]], bary_of[flat[first]] = live[which[first]], bary[first]
     texel_index = np.nonzero(owner >= 0)[0].astype(np.int32)
     if texel_index.size == 0:
         raise ValueError("the atlas covers no texel centre; raise the resolution")
@@ -717,12 +781,15 @@ def vertex_interpolation(handle: SceneHandle, positions, *, edge: float = 0.1,
     Every triangle of every object (``mesh_triangles``) is split regularly into N^2 triangles
     (N = 2^l, the smallest with edges <= ``edge``); vertices are shared along the edges inside
     an object. A point gets the three corners of the sub-triangle it lies in with their
-    barycentric weights. Spheres (analytic in Mitsuba) become a latitude-longitude vertex grid
-    of about ``edge`` spacing with bilinear weights over four vertices.
+    barycentric weights. Analytic spheres (the built-in scenes'; a scene file's spheres are
+    meshes already) become a latitude-longitude vertex grid of about ``edge`` spacing with
+    bilinear weights over four vertices.
 
     Args:
       positions: (..., 3) points on the scene's surfaces (e.g. G-buffer positions); points off
         every surface get the nearest surface's vertices.
+      chunk: points per batch, fewer where the scene has many triangles (each batch holds
+        (points x triangles) arrays: at most about 4M entries).
     Returns (index (..., 4) int32, weight (..., 4) float32 summing to 1, vertex positions (V, 3)).
     """
     pos = np.asarray(positions, np.float64)
@@ -780,6 +847,7 @@ def vertex_interpolation(handle: SceneHandle, positions, *, edge: float = 0.1,
     index = np.zeros((len(p), 4), np.int64)
     weight = np.zeros((len(p), 4), np.float64)
     best = np.full(len(p), np.inf)
+    chunk = max(1, min(int(chunk), (1 << 22) // max(len(tris), 1)))  # (points, triangles) arrays of ~100 MB at most
     for start in range(0, len(p), chunk):
         q = p[start:start + chunk]
         sl = slice(start, start + len(q))

@@ -54,8 +54,15 @@ def environment_transport(handle: SceneHandle, origins, directions, *, face_size
     Returns:
       T with B = sum_t T[:, t] L_t for a texel-wise constant map L (6, n, n, 3); T already
       contains the texels' solid angles (it integrates over each texel).
+
+    A scene with participating media (``SceneHandle.has_media``) is refused in one line: these
+    paths would cross media without their attenuation.
     """
     spp = check_spp(spp)
+    if handle.has_media:
+        raise ValueError("environment_transport traces surfaces only (BSDF sampling, no medium attenuation or "
+                         "scattering); this scene's surfaces bound participating media (render it with "
+                         "jprt.render.images, which uses volpath)")
     if not 0 <= min_depth < max_depth:
         raise ValueError(f"need 0 <= min_depth < max_depth, got {min_depth}, {max_depth}")
     mi = handle.mi
