@@ -420,6 +420,22 @@ def _fit_texel(sizes: np.ndarray, res: int, start: float, n_charts: int) -> floa
     return high
 
 
+#: An atlas whose charts do not fit its resolution doubles up to this factor (then it raises).
+ATLAS_GROWTH = 8
+
+
+def _fit_texel_growing(sizes: np.ndarray, res: int, start: float, n_charts: int, asked: int) -> tuple[float, int]:
+    """(texel size, resolution): ``_fit_texel`` at ``res``, doubling the resolution while the
+    charts' gutters alone overfill it, up to ``ATLAS_GROWTH`` x the ``asked`` one."""
+    while True:
+        try:
+            return _fit_texel(sizes, res, start, n_charts), res
+        except ValueError:
+            if 2 * res > ATLAS_GROWTH * int(asked):
+                raise
+            res *= 2
+
+
 def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None, *, resolution: int = 64,
                 overlap_tol: float = 0.01, eps: float | None = None, min_texels: int = 4) -> Atlas:
     """Lay out a lightmap atlas of ``objects`` (names or ids; None = all) at ``resolution``^2.
@@ -433,7 +449,10 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     centre, so a chart thinner than a texel still has texels of its own), and uncovered atlas
     pixels point at their nearest covered texel (``fill_index``) so a bilinear lookup never reads
     an empty texel.
-    Zero-area triangles are left out of the charts, with a warning that counts them.
+    Zero-area triangles are left out of the charts, with a warning that counts them, and so are
+    objects without area. Where the charts' gutters alone overfill ``resolution`` (a file of many
+    small meshes), the atlas doubles its resolution (up to ``ATLAS_GROWTH`` x, with a warning
+    naming the size; ``Atlas.resolution`` is the one used).
     """
     import warnings
 
@@ -445,6 +464,14 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     ids = _object_index(handle, objects)
     names = handle.object_names()
     meshes = [mesh_triangles(handle, obj) for obj in ids]
+    flat = [names[o] for o, (tris, _) in zip(ids, meshes) if not (_areas(tris) > 0).any()]
+    if flat:  # no ray hits them, so no pixel reads them: they get no texels
+        warnings.warn(f"lightmap atlas: {len(flat)} objects without area left out ({', '.join(flat)})", stacklevel=2)
+        ids, meshes = zip(*[(o, m) for o, m in zip(ids, meshes) if names[o] not in flat]) if len(flat) < len(ids) \
+            else ((), ())
+        ids, meshes = list(ids), list(meshes)
+    if not ids:
+        raise ValueError("the atlas's objects have no area")
     per_object = [tris for tris, _ in meshes]
     total = sum(_areas(t).sum() for t in per_object)
     if not total > 0:
@@ -469,13 +496,16 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
         coords = [c[2] * scale[c[0]] for c in charts]
         lo = np.array([c.reshape(-1, 2).min(0) for c in coords])
         sizes = np.array([c.reshape(-1, 2).max(0) for c in coords]) - lo
-        texel = _fit_texel(sizes, res, guess * 0.4, len(charts))
+        texel, res = _fit_texel_growing(sizes, res, guess * 0.4, len(charts), int(resolution))
         texels = object_area * scale ** 2 / texel ** 2
         short = texels < 2.0 * int(min_texels)  # rasterised texel centres fall short of the area's count
         if not short.any():
             break
         scale[short] *= np.sqrt(2.0 * int(min_texels) / np.maximum(texels[short], 1e-12))
     origin = _pack(sizes, res, texel)
+    if res != int(resolution):
+        warnings.warn(f"lightmap atlas: {len(charts)} charts (with {_GUTTER}-texel gutters) do not fit a "
+                      f"{resolution} x {resolution} atlas; the atlas is {res} x {res}", stacklevel=2)
 
     n_tri = [t.shape[0] for t in per_object]
     tri_offset = np.concatenate([[0], np.cumsum(n_tri)[:-1]]).astype(np.int32)

@@ -235,3 +235,38 @@ def test_a_chart_thinner_than_a_texel_still_gets_texels(mi, tmp_path):
     fill = atlas.fill_index[ij[:, 1] * res + ij[:, 0]]
     dist = np.linalg.norm(atlas.position[fill] - g.position[side], axis=1) / atlas.texel_size
     assert dist.max() < 1.0, dist.max()
+
+
+def _many_quads_file(tmp_path, n: int, flat: bool = False) -> str:
+    """An XML scene of ``n`` separate unit quads in a row (and one mesh of zero area when ``flat``)."""
+    quads = "".join(f'<shape type="rectangle" id="q{k}"><transform name="to_world"><translate x="{3 * k}"/>'
+                    "</transform></shape>" for k in range(n))
+    extra = ""
+    if flat:
+        (tmp_path / "flat.obj").write_text("v 0 0 1\nv 1 0 1\nv 2 0 1\nf 1 2 3\n")
+        extra = '<shape type="obj" id="flat"><string name="filename" value="flat.obj"/></shape>'
+    path = tmp_path / "quads.xml"
+    path.write_text(f'<scene version="3.0.0">{quads}{extra}</scene>')
+    return str(path)
+
+
+def test_an_atlas_grows_when_its_charts_gutters_overfill_it(mi, tmp_path):
+    """Forty charts with their gutters cannot fit 8 x 8 texels: the atlas doubles (with a warning
+    naming the size) and every quad gets texels, instead of refusing a file of many small meshes."""
+    from jprt.render.scenes import SceneHandle, xml
+
+    handle = SceneHandle(xml(_many_quads_file(tmp_path, 40)))
+    with pytest.warns(UserWarning, match=r"do not fit a 8 x 8 atlas; the atlas is \d+ x \d+"):
+        atlas = lightmap.build_atlas(handle, resolution=8)
+    assert 8 < atlas.resolution <= 8 * lightmap.ATLAS_GROWTH
+    assert set(np.unique(atlas.texel_object)) == set(range(40))
+
+
+def test_an_object_without_area_is_left_out_of_the_atlas(mi, tmp_path):
+    from jprt.render.scenes import SceneHandle, xml
+
+    handle = SceneHandle(xml(_many_quads_file(tmp_path, 2, flat=True)))
+    names = handle.object_names()
+    with pytest.warns(UserWarning, match="1 objects without area left out \\(flat\\)"):
+        atlas = lightmap.build_atlas(handle, resolution=32)
+    assert names.index("flat") not in atlas.objects.tolist() and len(atlas.objects) == 2
