@@ -331,14 +331,11 @@ def _setup(desc: dict, cameras: list, lightings: list, method_lightings: list, e
         refs += r
         refs2 += r2
         spp.append(s)
+    ids = [g.object_id for g in gbs for _ in lightings]  # every (view, lighting) item, the references' order
     return {"desc": desc, "handle": h, "names": names, "gbuffers": gbs, "judged": judged, "apart": apart,
             "lightings": lightings, "method_lightings": method_lightings, "refs": refs, "refs2": refs2,
+            "ids": ids, "floor": jeval.object_scores(refs2, refs, ids, names),
             "spp": spp, "peer": _pathtrace_ms(h, cameras[0], lightings[0], spp[0][0])}
-
-
-def _object_ids(s: dict, n_lightings: int) -> list:
-    """The object-id map of every (view, lighting) item, in the references' order."""
-    return [g.object_id for g in s["gbuffers"] for _ in range(n_lightings)]
 
 
 def _predict(name: str, s: dict, cameras: list, config: dict, regions: dict, e: dict) -> dict:
@@ -372,9 +369,8 @@ def _predict(name: str, s: dict, cameras: list, config: dict, regions: dict, e: 
     timing = jeval.time_call(evaluate, *timed, repeats=int(e["timing_repeats"]))
     own = m.frame_flops(result.params, cfg, *timed) if m.frame_flops else None
     roof = jeval.roofline(evaluate, *timed, frame_ms=timing["median_ms"], flops=own, peak_gflops=config["_peak_gflops"])
-    ids = _object_ids(s, len(s["lightings"]))
-    scores = jeval.object_scores(preds, s["refs"], ids, s["names"])
-    floor = jeval.object_scores(s["refs2"], s["refs"], ids, s["names"])
+    scores = jeval.object_scores(preds, s["refs"], s["ids"], s["names"])
+    floor = s["floor"]
     for obj, v in scores.items():
         v["noise_floor"] = floor[obj]["rel_rmse"]
         v["rel_rmse_noise_removed"] = jeval.noise_removed(v["rel_rmse"], floor[obj]["rel_rmse"])
@@ -438,8 +434,7 @@ def run_scene(path: str, config: dict, out: str) -> dict:
     entry = {"file": path, "objects": names, "regions": regions, "cameras": [c._asdict() for c in cameras],
              "lights": [np.asarray(x.position).tolist()[0] for x in lights], "setups": {}, "methods": {}}
     for kind, s in setups.items():
-        ids = _object_ids(s, len(s["lightings"]))
-        floor = jeval.object_scores(s["refs2"], s["refs"], ids, s["names"])
+        floor = s["floor"]
         entry["setups"][kind] = {"judged": s["judged"], "apart": s["apart"], "reference_spp": s["spp"],
                                  "noise_floor": {k: floor[k]["rel_rmse"] for k in s["judged"] + list(s["apart"]) if k in floor},
                                  "pathtracer": s["peer"]}
