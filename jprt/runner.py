@@ -315,7 +315,7 @@ def save_fit(out: str, method: str, config: dict, params) -> str:
 
 def run_file(path: str, preset: str | None = None, overrides: Sequence[str] = ()) -> dict:
     """Run an experiment file as ``jprt run path --preset preset --set ...`` does; returns the summary."""
-    from jprt.cli import load_experiment, resolve_config
+    from jprt.experiment import load_experiment, resolve_config
 
     module = load_experiment(path)
     config = resolve_config(module, list(overrides), preset)

@@ -109,7 +109,7 @@ def _attempt(module: ModuleType, cfg: dict, folder: str, run: Callable) -> tuple
 
 def _point_task(experiment_path: str, cfg: dict, folder: str) -> tuple[str, dict | None, str | None]:
     """A sweep point in a Ray worker: load the experiment file there and run the point."""
-    from jprt.cli import load_experiment
+    from jprt.experiment import load_experiment
     from jprt.runner import run
 
     return _attempt(load_experiment(experiment_path), cfg, folder, run)
