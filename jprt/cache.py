@@ -25,7 +25,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from jprt.config import stable_hash
+from jprt.hashing import stable_hash
 from jprt.io import atomic_path, atomic_write_bytes
 
 __all__ = ["cache_root", "sha256", "save_npz", "load_npz", "entry_state", "entry_path", "cached", "unprefixed"]

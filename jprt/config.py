@@ -13,12 +13,11 @@ from __future__ import annotations
 import ast
 import copy
 import difflib
-import hashlib
 import json
 import os
 from typing import Any, Iterable, Mapping
 
-import numpy as np
+from jprt.hashing import array_digest, config_hash, stable_hash
 
 __all__ = [
     "ConfigError",
@@ -30,6 +29,8 @@ __all__ = [
     "config_hash",
     "stable_hash",
     "array_digest",
+    "section_defaults",
+    "section_from_string",
     "save_resolved",
 ]
 
@@ -131,19 +132,46 @@ def merge(base: Mapping, overrides: Mapping, *, _prefix: str = "") -> dict:
     return out
 
 
+def section_defaults(name: str) -> dict:
+    """The config section of a scene of kind ``name`` with its defaults, what ``--set
+    scene.name=NAME`` switches a config's scene section to (so the kind's own keys can follow:
+    ``--set scene.name=xml --set scene.path=/abs/scene.xml``). Keys without a default (a file's
+    path, a mesh, a layout) are empty and must be set."""
+    sections = {
+        "empty": {"name": "empty"},
+        "cornell_box": {"name": "cornell_box", "area_light": True},
+        "glossy_cornell": {"name": "glossy_cornell", "floor_roughness": 0.15, "sphere_roughness": 0.02},
+        "xml": {"name": "xml", "path": "", "keep_emitters": True, "opening": ""},
+        "asset_room": {"name": "asset_room", "mesh": "", "albedo": [0.75, 0.6, 0.45], "margin": 1.0, "size": 3.0,
+                       "walls": True},
+        "blocks": {"name": "blocks", "layout": {}, "size": 1.0},
+    }
+    if name not in sections:
+        raise ValueError(f"unknown scene name {name!r}: use one of {sorted(sections)}")
+    return copy.deepcopy(sections[name])
+
+
+def section_from_string(value: str) -> dict:
+    """A scene config section from a string: a scene name (``section_defaults``) or the path of a
+    Mitsuba .xml file (``--set scene=/abs/scene.xml``)."""
+    if value.lower().endswith(".xml"):
+        if not os.path.isfile(value):
+            raise FileNotFoundError(f"scene file not found: {value}")
+        return {"name": "xml", "path": os.path.abspath(value), "keep_emitters": True}
+    return section_defaults(value)
+
+
 def _named_section(section: str, value: Any, current: Any) -> Any:
     """A named section's new value from ``--set``: for a scene section (a key called ``scene``), a
-    string is a scene name or an .xml path (``jprt.render.scenes.section_from_string``), and a new
-    ``name`` brings that kind's keys with their defaults (``section_defaults``)."""
+    string is a scene name or an .xml path (``section_from_string``), and a new ``name`` brings
+    that kind's keys with their defaults (``section_defaults``)."""
     if section.split(".")[-1] != "scene" or not isinstance(current, Mapping):
         return value
-    from jprt.render import scenes
-
     try:
         if isinstance(value, str):
-            return scenes.section_from_string(value)
+            return section_from_string(value)
         if isinstance(value, Mapping) and "name" in value and value["name"] != current.get("name"):
-            return {**scenes.section_defaults(str(value["name"])), **value}
+            return {**section_defaults(str(value["name"])), **value}
     except (ValueError, FileNotFoundError) as e:
         raise ConfigError(f"{section}: {e}") from None
     return value
@@ -176,39 +204,6 @@ def apply_overrides(config: Mapping, items: Iterable[str]) -> dict:
             nested = {part: nested}
         out = merge(out, nested)
     return out
-
-
-def _canonical(obj: Any) -> Any:
-    if isinstance(obj, Mapping):
-        return {str(k): _canonical(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
-    if isinstance(obj, (list, tuple)):
-        return [_canonical(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return {"__array__": array_digest(obj)}
-    if isinstance(obj, np.generic):
-        return obj.item()
-    return obj
-
-
-def stable_hash(obj: Any, length: int = 16) -> str:
-    """SHA-256 of the canonical JSON of ``obj`` (sorted keys; arrays by content), hex prefix."""
-    text = json.dumps(_canonical(obj), sort_keys=True, separators=(",", ":"), allow_nan=True)
-    return hashlib.sha256(text.encode()).hexdigest()[:length]
-
-
-def config_hash(config: Mapping) -> str:
-    """Stable 16-hex-digit hash of a resolved config."""
-    return stable_hash(config)
-
-
-def array_digest(array) -> str:
-    """Content digest of an array: dtype, shape and bytes."""
-    a = np.ascontiguousarray(array)
-    h = hashlib.sha256()
-    h.update(str(a.dtype).encode())
-    h.update(str(a.shape).encode())
-    h.update(a.tobytes())
-    return h.hexdigest()[:16]
 
 
 def save_resolved(config: Mapping, folder: str) -> str:

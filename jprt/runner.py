@@ -39,7 +39,8 @@ import numpy as np
 
 from jprt import eval as jeval
 from jprt import io, metrics
-from jprt.config import config_hash, merge, save_resolved
+from jprt.config import merge, save_resolved
+from jprt.hashing import config_hash
 from jprt.methods import REGISTRY
 from jprt.methods.base import FitResult, Method, model_bytes
 

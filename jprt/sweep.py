@@ -43,7 +43,8 @@ from types import ModuleType
 from typing import Any, Callable, Mapping, Sequence
 
 from jprt import io
-from jprt.config import ConfigError, apply_overrides, config_hash, merge, parse_value, stable_hash
+from jprt.config import ConfigError, apply_overrides, merge, parse_value
+from jprt.hashing import config_hash, stable_hash
 from jprt.runner import SUMMARY_SCHEMA
 
 __all__ = ["parse_grid", "grid_points", "point_config", "run_sweep", "pareto_front", "parse_constraint", "select",

@@ -24,7 +24,7 @@ from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from jprt.config import stable_hash
+from jprt.hashing import stable_hash
 from jprt.cache import cache_root, entry_state, load_npz, save_npz
 from jprt.io import write_json
 from jprt.render import cameras as cams

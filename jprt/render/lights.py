@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from jprt.hashing import array_digest
 from jprt.inputs import (DirectionalLights, EnvMap, Lighting, PointLights, SpotLights, validate_envmap,
                          validate_lighting)
 
@@ -83,8 +84,6 @@ def mitsuba_envmap_data(radiance) -> np.ndarray:
 
 def lighting_description(lighting: Lighting) -> dict:
     """A JSON-able description of ``lighting`` for content hashing (arrays by their bytes)."""
-    from jprt.config import array_digest
-
     if lighting is None:
         return {"kind": "scene"}
     if isinstance(lighting, PointLights):

@@ -29,7 +29,7 @@ def write_ground_truth(config: dict) -> dict:
     t0 = time.perf_counter()
     ds = from_config(config["dataset"])
     render_s = time.perf_counter() - t0
-    from jprt.config import config_hash
+    from jprt.hashing import config_hash
 
     out = os.path.join(config["output"]["dir"], config_hash(config))
     os.makedirs(out, exist_ok=True)

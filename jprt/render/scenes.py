@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from jprt.config import section_defaults, section_from_string
 from jprt.render.lights import (DirectionalLights, EnvMap, Lighting, PointLights, SpotLights, mitsuba_envmap_data,
                                to_mitsuba_envmap, validate_lighting)
 from jprt.render.setup import mitsuba
@@ -258,35 +259,6 @@ def blocks(layout, *, size: float = 1.0, albedo: dict | None = None) -> dict:
     if not float(size) > 0:
         raise ValueError(f"blocks size must be positive, got {size}")
     return {"name": "blocks", "layout": lay.as_dict(), "size": float(size), "albedo": alb}
-
-
-def section_defaults(name: str) -> dict:
-    """The config section of a scene of kind ``name`` with its defaults, what ``--set
-    scene.name=NAME`` switches a config's scene section to (so the kind's own keys can follow:
-    ``--set scene.name=xml --set scene.path=/abs/scene.xml``). Keys without a default (a file's
-    path, a mesh, a layout) are empty and must be set."""
-    sections = {
-        "empty": {"name": "empty"},
-        "cornell_box": {"name": "cornell_box", "area_light": True},
-        "glossy_cornell": {"name": "glossy_cornell", "floor_roughness": 0.15, "sphere_roughness": 0.02},
-        "xml": {"name": "xml", "path": "", "keep_emitters": True, "opening": ""},
-        "asset_room": {"name": "asset_room", "mesh": "", "albedo": [0.75, 0.6, 0.45], "margin": 1.0, "size": 3.0,
-                       "walls": True},
-        "blocks": {"name": "blocks", "layout": {}, "size": 1.0},
-    }
-    if name not in sections:
-        raise ValueError(f"unknown scene name {name!r}: use one of {sorted(sections)}")
-    return copy.deepcopy(sections[name])
-
-
-def section_from_string(value: str) -> dict:
-    """A scene config section from a string: a scene name (``section_defaults``) or the path of a
-    Mitsuba .xml file (``--set scene=/abs/scene.xml``)."""
-    if value.lower().endswith(".xml"):
-        if not os.path.isfile(value):
-            raise FileNotFoundError(f"scene file not found: {value}")
-        return {"name": "xml", "path": os.path.abspath(value), "keep_emitters": True}
-    return section_defaults(value)
 
 
 def describe(scene: dict | str) -> dict:

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from jax.test_util import check_grads
 
-from jprt.config import stable_hash
+from jprt.hashing import stable_hash
 from jprt.inputs import CubeMap
 from jprt.methods import REGISTRY
 from jprt.methods.wavelet_prt import model as wp

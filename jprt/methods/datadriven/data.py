@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from jprt import cache
-from jprt.config import stable_hash
+from jprt.hashing import stable_hash
 from jprt.methods.base import resolve
 from jprt.methods.datadriven.model import DEFAULT_CONFIG, DDData
 

@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from jprt import cache, layouts
-from jprt.config import stable_hash
+from jprt.hashing import stable_hash
 from jprt.methods.base import resolve
 from jprt.methods.mrt.model import DEFAULT_CONFIG, MRTData
 

@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 from jprt import cache
-from jprt.config import stable_hash
+from jprt.hashing import stable_hash
 from jprt.methods.base import resolve
 from jprt.methods.rrf.model import DEFAULT_CONFIG, RRFData, brdf_vector
 from jprt.render.sampling import CORNELL_REGIONS, REGION_KEYS, free_lights, scene_regions  # noqa: F401 (re-exported)
