@@ -82,10 +82,11 @@ class Session:
 
     ``kind`` is "point" (a point light), "environment" (an environment map and its rotation about
     +Y) or "scale" (the bake's lighting times an RGB factor: SG light-field textures, shown as
-    their texture atlas, which has no camera): the method's ``data.VIEW_LIGHTINGS``, else its
-    ``TASK_LIGHTINGS``. ``predicts`` is what the evaluator returns, "indirect" (every method but
-    one) or "direct" (SG environment visibility: the environment reflected once; ``data.PREDICTS``);
-    ``modes`` the display modes that make sense for it."""
+    their texture atlas, which has no camera): the method's ``Method.view_lightings``. ``predicts``
+    is what the evaluator returns, "indirect" (every method but one) or "direct" (SG environment
+    visibility: the environment reflected once; ``Method.predicts``); ``modes`` the display modes
+    that make sense for it. Camera views and lightings become the evaluator's arguments through
+    the method's task adapter (``Method.task_inputs``, ``Method.task_lighting``)."""
 
     def __init__(self, folder: str, *, progress: bool = False):
         from jprt.methods import REGISTRY
@@ -101,10 +102,9 @@ class Session:
 
         kw = {"progress": progress} if "progress" in inspect.signature(self.method.make_dataset).parameters else {}
         self.dataset = self.method.make_dataset(self.method_config["scene"], self.method_config, **kw)
-        self.adapter = self._adapter()
-        kinds = getattr(self.adapter, "VIEW_LIGHTINGS", None) or getattr(self.adapter, "TASK_LIGHTINGS", ())
+        kinds = self.method.view_lightings
         self.kind = "point" if "point" in kinds else "environment" if "environment" in kinds else "scale"
-        self.predicts = getattr(self.adapter, "PREDICTS", "indirect")
+        self.predicts = self.method.predicts
         self.modes = MODES if self.predicts == "indirect" else ("direct",)
         self.handle = SceneHandle(self.method_config["scene"])
         self.knob = KNOBS.get(self.method.name)
@@ -119,17 +119,12 @@ class Session:
         self._lighting_key, self._lighting = None, None
 
     # -- what the run folder holds -------------------------------------------------------------
-    def _adapter(self):
-        import importlib
-
-        return importlib.import_module(f"jprt.methods.{self.method.name}.data")
-
     def _environments(self) -> dict:
-        """{name: (6, n, n, 3) cube map}: the method's ``data.view_environments`` where it has
+        """{name: (6, n, n, 3) cube map}: the method's ``Method.view_environments`` where it has
         one; else the run's held-out maps, then its training maps that appear unrotated ("stem@0";
         per-image lightings are turned by random angles)."""
-        if hasattr(self.adapter, "view_environments"):
-            return dict(self.adapter.view_environments(self.dataset, self.method_config))
+        if self.method.view_environments is not None:
+            return dict(self.method.view_environments(self.dataset, self.method_config))
         names = list(getattr(self.dataset, "test_env_names", []))
         cubes = list(np.asarray(getattr(self.dataset, "test_envs", np.zeros((0,)))))
         for name, cube in zip(getattr(self.dataset, "env_names", []), np.asarray(getattr(self.dataset, "envs", []))):
@@ -225,7 +220,7 @@ class Session:
                 scene = EnvMap.create(render_equirect(cube))
                 task = CubeMap(cube)
             self.handle.set_lighting(scene)
-            task = self.adapter.task_lighting(self.handle, self.dataset, self.params, self.method_config, task)
+            task = self.method.task_lighting(self.handle, self.dataset, self.params, self.method_config, task)
         self._lighting_key, self._lighting = key, (scene, task)
         return self._lighting
 
@@ -245,7 +240,7 @@ class Session:
             if self.kind == "scale":
                 self._inputs = self.method.example(self.dataset, self.method_config)[0]
             else:
-                self._inputs = self.adapter.task_inputs(self.handle, self.dataset, self.camera(size))
+                self._inputs = self.method.task_inputs(self.handle, self.dataset, self.camera(size))
             self._inputs_key = key
         return self._inputs
 

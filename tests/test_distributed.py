@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from jprt import distributed, sweep
-from jprt.cli import load_experiment
+from jprt.experiment import load_experiment
 from jprt.methods import REGISTRY
 
 ray = pytest.importorskip("ray", reason="Ray is the optional [ray] extra (make test installs it)")
@@ -119,15 +119,10 @@ def test_dataset_rendered_in_ray_shards_equals_the_single_process_one(local_ray,
 @pytest.mark.parametrize("name", ["datadriven", "sh_prt"])
 def test_lightmap_method_rendered_in_ray_blocks_equals_the_single_process_one(local_ray, mi, tmp_path, name):
     """Data-driven PRT's configurations and SH PRT's SH functions as Ray tasks (``make_dataset(ray=True)``)."""
-    import sys
-
     m = REGISTRY[name]
     config = m.resolve(m.presets["test"])
-    data = sys.modules[m.make_dataset.__module__]
-    single = data.make_dataset(config["scene"], config, cache_dir=str(tmp_path / "single"), progress=False,
-                               ray=False)
-    sharded = data.make_dataset(config["scene"], config, cache_dir=str(tmp_path / "ray"), progress=False,
-                                ray=True)
+    single = m.make_dataset(config["scene"], config, cache_dir=str(tmp_path / "single"), progress=False, ray=False)
+    sharded = m.make_dataset(config["scene"], config, cache_dir=str(tmp_path / "ray"), progress=False, ray=True)
     fields = ("direct", "indirect", "direct_test", "indirect_test") if name == "datadriven" else ("transfer",)
     for field in fields:  # same seeds; Mitsuba in other processes: equal up to float32 rounding
         a, b = np.asarray(getattr(single, field)), np.asarray(getattr(sharded, field))

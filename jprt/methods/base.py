@@ -26,6 +26,18 @@ A method is a ``Method`` NamedTuple of plain functions::
   as the references are (``jprt.eval.object_scores``), with a one-line warning when the fit is
   worse than predicting zero on an object or far worse than on its training items
   (``jprt.methods.selfcheck``).
+* The task adapter (optional): ``task_lightings``, the kinds of lighting ("point",
+  "environment") under which the method can be compared with the others on a shared scene and
+  camera (the atlas of methods), and ``task_inputs`` / ``task_lighting``, which turn such a
+  camera view and lighting into the evaluator's arguments::
+
+      inputs = m.task_inputs(handle, dataset, camera)                  # handle: a SceneHandle
+      lighting = m.task_lighting(handle, dataset, params, config, task_lighting)
+      image = m.evaluator(params, config)(inputs, lighting)
+
+* The viewer adapter (optional): ``view_lightings`` (what ``jprt view`` relights with; the
+  task lightings unless the package says otherwise), ``predicts`` ("indirect", or "direct" for
+  a method whose evaluator returns the environment reflected once) and ``view_environments``.
 """
 
 from __future__ import annotations
@@ -38,7 +50,14 @@ import numpy as np
 
 from jprt.config import ConfigError, merge
 
-__all__ = ["Method", "FitResult", "resolve", "check_params", "model_bytes"]
+__all__ = ["Method", "FitResult", "LIGHTING_KINDS", "PREDICTS", "resolve", "check_params", "model_bytes"]
+
+#: The kinds of task and view lighting: point lights (``PointLights``) and environments
+#: (``CubeMap``, an environment map as a cube map).
+LIGHTING_KINDS = ("point", "environment")
+
+#: What an evaluator can return: indirect light, or direct light (the environment reflected once).
+PREDICTS = ("indirect", "direct")
 
 
 class FitResult(NamedTuple):
@@ -75,6 +94,22 @@ class Method(NamedTuple):
         package has one): the fit scored on held-out lights or maps of its own training renders,
         {"rel_rmse", "per_object", "train_rel_rmse", "held_out", "warning"}
         (``jprt.methods.selfcheck``); None: the method has no self-check.
+      task_lightings: the kinds of task lighting the method takes, a subset of ("point",
+        "environment") (``data.TASK_LIGHTINGS``); () for a method baked for its scene's own
+        lights, which takes part in no shared task.
+      task_inputs: ``(handle, dataset, camera) -> inputs``, the evaluator's inputs for a camera
+        view of the scene of ``handle`` (a ``jprt.render.scenes.SceneHandle``)
+        (``data.task_inputs``); None when the method has no camera view.
+      task_lighting: ``(handle, dataset, params, config, lighting) -> lighting`` of
+        ``Method.lighting``, from a task lighting (``PointLights`` for "point", ``CubeMap`` for
+        "environment") (``data.task_lighting``).
+      view_lightings: the lighting kinds ``jprt view`` relights the method with
+        (``data.VIEW_LIGHTINGS``, else ``task_lightings``); () shows its texture atlas under its
+        bake's lighting times an RGB factor.
+      predicts: what the evaluator returns, "indirect" (every method but one) or "direct" (the
+        environment reflected once) (``data.PREDICTS``).
+      view_environments: optional ``(dataset, config) -> {name: (6, n, n, 3) cube map}``, the
+        environments the viewer offers (``data.view_environments``); None: the run's own maps.
     """
 
     name: str
@@ -88,6 +123,12 @@ class Method(NamedTuple):
     example: Callable
     frame_flops: Callable | None = None
     self_check: Callable | None = None
+    task_lightings: tuple = ()
+    task_inputs: Callable | None = None
+    task_lighting: Callable | None = None
+    view_lightings: tuple = ()
+    predicts: str = "indirect"
+    view_environments: Callable | None = None
 
     def resolve(self, config: Mapping | None = None) -> dict:
         """``default_config`` deep-merged with ``config``; an unknown key raises ConfigError."""
@@ -98,10 +139,28 @@ class Method(NamedTuple):
                    fit: Callable | None = None) -> "Method":
         """The method of a package laid out as DESIGN.md says: ``model.DEFAULT_CONFIG``,
         ``data.make_dataset``, ``model.fit`` (or ``fit``), ``model.evaluator``, ``model.example``;
-        ``model.frame_flops`` and ``data.self_check`` where the package has them."""
+        ``model.frame_flops``, ``data.self_check`` and the task and viewer adapters
+        (``data.TASK_LIGHTINGS``, ``task_inputs``, ``task_lighting``, ``VIEW_LIGHTINGS``,
+        ``PREDICTS``, ``view_environments``) where the package has them.
+
+        Raises TypeError when the package declares lightings (task or view) without both
+        adapter functions, or a lighting kind or ``PREDICTS`` value the contract does not know."""
+        task_lightings = tuple(getattr(data, "TASK_LIGHTINGS", ()))
+        view_lightings = tuple(getattr(data, "VIEW_LIGHTINGS", None) or task_lightings)
+        predicts = getattr(data, "PREDICTS", "indirect")
+        task_inputs, task_lighting = getattr(data, "task_inputs", None), getattr(data, "task_lighting", None)
+        unknown = set(task_lightings + view_lightings) - set(LIGHTING_KINDS)
+        if unknown:
+            raise TypeError(f"{name}: unknown lighting kinds {sorted(unknown)}; kinds are {list(LIGHTING_KINDS)}")
+        if predicts not in PREDICTS:
+            raise TypeError(f"{name}: PREDICTS is {predicts!r}, one of {list(PREDICTS)}")
+        if (task_lightings or view_lightings) and not (callable(task_inputs) and callable(task_lighting)):
+            raise TypeError(f"{name}: lightings {sorted(set(task_lightings + view_lightings))} need data.task_inputs "
+                            f"and data.task_lighting")
         return cls(name, paper, lighting, model.DEFAULT_CONFIG, presets, data.make_dataset, fit or model.fit,
                    checked_evaluator(model.evaluator, lighting), model.example, getattr(model, "frame_flops", None),
-                   getattr(data, "self_check", None))
+                   getattr(data, "self_check", None), task_lightings, task_inputs, task_lighting, view_lightings,
+                   predicts, getattr(data, "view_environments", None))
 
 
 def checked_evaluator(evaluator: Callable, lighting_type: type) -> Callable:

@@ -13,7 +13,7 @@ import pytest
 
 from jprt.config import ConfigError
 from jprt.methods import REGISTRY, FitResult
-from jprt.methods.base import check_params
+from jprt.methods.base import LIGHTING_KINDS, PREDICTS, check_params
 
 NAMES = sorted(REGISTRY)
 
@@ -115,10 +115,46 @@ def test_registry_names_match_packages():
         m.resolve(m.presets["test"])  # every preset is valid for its method
 
 
+@pytest.mark.parametrize("name", NAMES)
+def test_method_declares_its_adapters(name):
+    """What a package's ``data.py`` exposes to the atlas and the viewer is a field of its
+    ``Method`` (filled by ``Method.of_package``), so no caller needs the module itself."""
+    m = REGISTRY[name]
+    data = importlib.import_module(f"jprt.methods.{name}.data")
+    assert m.task_lightings == tuple(getattr(data, "TASK_LIGHTINGS", ()))
+    assert m.view_lightings == tuple(getattr(data, "VIEW_LIGHTINGS", None) or m.task_lightings)
+    assert m.predicts == getattr(data, "PREDICTS", "indirect") and m.predicts in PREDICTS
+    assert set(m.task_lightings + m.view_lightings) <= set(LIGHTING_KINDS)
+    assert m.task_inputs is getattr(data, "task_inputs", None)
+    assert m.task_lighting is getattr(data, "task_lighting", None)
+    assert m.view_environments is getattr(data, "view_environments", None)
+    if m.task_lightings or m.view_lightings:
+        assert callable(m.task_inputs) and callable(m.task_lighting)
+
+
+def test_of_package_refuses_lightings_without_an_adapter():
+    import types
+
+    from jprt.inputs import PointLights
+    from jprt.methods.base import Method
+
+    model = types.SimpleNamespace(DEFAULT_CONFIG={}, fit=None, evaluator=lambda p, c=None: None, example=None)
+    data = types.SimpleNamespace(make_dataset=None, TASK_LIGHTINGS=("point",))
+    with pytest.raises(TypeError, match="task_inputs"):
+        Method.of_package("x", "", PointLights, model, data, {})
+    with pytest.raises(TypeError, match="unknown lighting kinds"):
+        Method.of_package("x", "", PointLights, model, types.SimpleNamespace(make_dataset=None, TASK_LIGHTINGS=("area",),
+                          task_inputs=len, task_lighting=len), {})
+    with pytest.raises(TypeError, match="PREDICTS"):
+        Method.of_package("x", "", PointLights, model, types.SimpleNamespace(make_dataset=None, PREDICTS="both"), {})
+    bare = Method.of_package("x", "", PointLights, model, types.SimpleNamespace(make_dataset=None), {})
+    assert (bare.task_lightings, bare.view_lightings, bare.predicts) == ((), (), "indirect")
+
+
 @pytest.mark.mitsuba
 @pytest.mark.parametrize("name", NAMES)
 def test_task_adapter(mi, fitted, name):
-    """The atlas adapter (``data.TASK_LIGHTINGS``, ``task_inputs``, ``task_lighting``) turns an 8 x 8
+    """The task adapter (``Method.task_lightings``, ``task_inputs``, ``task_lighting``) turns an 8 x 8
     view and every task lighting the method takes into evaluator arguments: finite (8, 8, 3) light."""
     from jprt.inputs import CubeMap, PointLights
     from jprt.methods.wavelet_prt.model import render_equirect, synthetic_environments
@@ -127,21 +163,20 @@ def test_task_adapter(mi, fitted, name):
     from jprt.render.scenes import SceneHandle
 
     m, config, dataset, result = fitted[name]
-    data = sys.modules[m.make_dataset.__module__]
-    assert set(data.TASK_LIGHTINGS) <= {"point", "environment"}
-    if not data.TASK_LIGHTINGS:  # baked for its own lights (SG light-field textures): no task adapter to check
+    assert set(m.task_lightings) <= {"point", "environment"}
+    if not m.task_lightings:  # baked for its own lights (SG light-field textures): no task adapter to check
         return
     camera = look_at((0.0, 0.0, 3.9), (0.0, 0.0, 0.0), width=8, height=8)
     face = int(config.get("envmaps", {}).get("face_size", 4))
     lightings = {"point": PointLights.create([[0.0, 0.6, 0.0]], [1.0, 1.0, 1.0]),
                  "environment": CubeMap(synthetic_environments(1, face, seed=3)[0])}
     evaluate = m.evaluator(result.params, config)
-    for kind in data.TASK_LIGHTINGS:
+    for kind in m.task_lightings:
         task_lighting = lightings[kind]
         rendered = EnvMap.create(render_equirect(task_lighting.radiance)) if kind == "environment" else task_lighting
         handle = SceneHandle(config["scene"], rendered)
-        inputs = data.task_inputs(handle, dataset, camera)
-        lighting = data.task_lighting(handle, dataset, result.params, config, task_lighting)
+        inputs = m.task_inputs(handle, dataset, camera)
+        lighting = m.task_lighting(handle, dataset, result.params, config, task_lighting)
         assert isinstance(lighting, m.lighting), kind
         image = np.asarray(evaluate(inputs, lighting))
         assert image.shape == (8, 8, 3) and np.isfinite(image).all(), kind
