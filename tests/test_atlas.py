@@ -1,6 +1,6 @@
-"""The speed-accuracy atlas (experiments/atlas.py): its presets are valid for every method they
-name, equal error is read off Mitsuba's curve correctly, the table and figure are written; end to
-end at the ``test`` preset (slow)."""
+"""The speed-accuracy atlas (jprt.atlas, experiments/atlas.py, ``jprt atlas``): its presets are
+valid for every method they name, equal error is read off Mitsuba's curve correctly, the table and
+figure are written; end to end at the ``test`` preset (slow), and on a scene file."""
 
 import json
 import os
@@ -11,43 +11,54 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jprt.cli import load_experiment, main as cli_main
+from jprt import atlas
+from jprt.cli import main as cli_main
 from jprt.config import apply_overrides, merge
 from jprt.methods import REGISTRY
+from jprt.experiment import load_experiment
 from jprt.sweep import ROW_KEYS, parse_grid, point_config
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-ATLAS = load_experiment(os.path.join(ROOT, "experiments", "atlas.py"))
+EXPERIMENT = load_experiment(os.path.join(ROOT, "experiments", "atlas.py"))
 
 
-@pytest.mark.parametrize("preset", sorted(ATLAS.PRESETS))
+def _resolves(task_name: str, task: dict, e: dict) -> set:
+    """The methods that run on ``task``; each one's config with the task's ``set`` items and its
+    grid's first and last points resolves strictly."""
+    ran = set()
+    for name in REGISTRY:
+        if atlas.applicability(task, name):
+            continue
+        ran.add(name)
+        target = atlas.TaskExperiment(task_name, task, name, e, "/tmp/unused")
+        grid = parse_grid(task["methods"][name]["grid"])
+        for point in [dict()] + [{k: v[i] for k, v in grid.items()} for i in (0, -1)]:
+            cfg = point_config(target.CONFIG, point)
+            REGISTRY[name].resolve({k: cfg[k] for k in REGISTRY[name].default_config})
+    return ran
+
+
+@pytest.mark.parametrize("preset", sorted(atlas.PRESETS))
 def test_presets_resolve_for_every_method(preset):
     """Every (task, method) of every preset: the method's config with the task's ``set`` items
     and each grid point resolves strictly (a typo fails here, not an hour into the run)."""
-    config = merge(ATLAS.CONFIG, ATLAS.PRESETS[preset])
+    config = merge(EXPERIMENT.CONFIG, EXPERIMENT.PRESETS[preset])
     ran = set()
     for task_name, task in config["tasks"].items():
-        for name in REGISTRY:
-            if ATLAS.applicability(task, name):
-                continue
-            ran.add(name)
-            module = ATLAS.experiment(task_name, task, name, config["eval"], "/tmp/unused")
-            for point in [dict()] + [{k: v[-1] for k, v in parse_grid(task["methods"][name]["grid"]).items()}]:
-                cfg = point_config(module.CONFIG, point)
-                REGISTRY[name].resolve({k: cfg[k] for k in REGISTRY[name].default_config})
+        ran |= _resolves(task_name, task, config["eval"])
     relighting = {n for n in REGISTRY if sys.modules[REGISTRY[n].make_dataset.__module__].TASK_LIGHTINGS}
     assert ran == relighting  # every registered method that relights is on some task
 
 
 def test_methods_without_adapter_or_knob_are_skipped_with_reason():
-    task = {**ATLAS.TASKS["local_lights"], "methods": {}}
-    assert "no size knob" in ATLAS.applicability(task, "rrf")
-    assert "takes environment" in ATLAS.applicability(ATLAS.TASKS["local_lights"], "wavelet_prt")
+    task = {**atlas.TASKS["local_lights"], "methods": {}}
+    assert "no size knob" in atlas.applicability(task, "rrf")
+    assert "takes environment" in atlas.applicability(atlas.TASKS["local_lights"], "wavelet_prt")
 
 
 def test_dotted_items_round_trip():
     base = {"a": {"b": 1, "c": [1, 2]}, "d": "x"}
-    items = ATLAS._dotted({"a": {"b": 3, "c": [4]}, "d": "y"})
+    items = atlas.dotted({"a": {"b": 3, "c": [4]}, "d": "y"})
     assert apply_overrides(base, items) == {"a": {"b": 3, "c": [4]}, "d": "y"}
 
 
@@ -59,7 +70,7 @@ _curves = st.lists(st.tuples(st.integers(1, 4096), st.floats(1e-4, 1.0), st.floa
 @settings(max_examples=100, deadline=None)
 def test_equal_error_matches_brute_force(curve, rmse, frame_ms):
     pts = [{"spp": s, "rmse": r, "ms": ms} for s, r, ms in curve]
-    out = ATLAS.equal_error(pts, rmse, frame_ms)
+    out = atlas.equal_error(pts, rmse, frame_ms)
     reached = [p for p in pts if p["rmse"] <= rmse]
     if reached:
         best = min(reached, key=lambda p: p["spp"])
@@ -69,7 +80,7 @@ def test_equal_error_matches_brute_force(curve, rmse, frame_ms):
         assert out["equal_error_spp"] is None and out["equal_error_reached"] is False
         assert out["pathtrace_ms_equal_error"] == max(pts, key=lambda p: p["spp"])["ms"]
     assert out["speedup_equal_error"] == pytest.approx(out["pathtrace_ms_equal_error"] / frame_ms)
-    assert ATLAS.equal_error(pts, None, frame_ms)["equal_error_spp"] is None
+    assert atlas.equal_error(pts, None, frame_ms)["equal_error_spp"] is None
 
 
 def _synthetic_record():
@@ -86,12 +97,12 @@ def _synthetic_record():
 
 def test_table_and_figure(tmp_path):
     record = _synthetic_record()
-    text = ATLAS.table(record)
+    text = atlas.table(record)
     rows = [line for line in text.splitlines() if line.startswith("| rrf |")]
     assert len(rows) == 1 and "hidden=[8,4]" in rows[0]  # the front (also the best); the dominated point not
     assert "Not run: sh_prt (not this task)" in text and "4 spp 0.1000 in 5 ms" in text
     path = str(tmp_path / "atlas_t.png")
-    ATLAS.plot_task(path, record["tasks"]["t"])
+    atlas.plot_task(path, record["tasks"]["t"])
     assert os.path.getsize(path) > 1000
 
 
@@ -147,21 +158,21 @@ def test_one_method_failing_keeps_the_others(tmp_path, monkeypatch):
     methods, its front and table are still written."""
     from types import SimpleNamespace
 
-    def sweep(config, task_name, task, name, curve, out, say):
+    def sweep(config, task_name, name, curve, out, say, experiment=None):
         if name == "datadriven":
             raise RuntimeError("a method broke")
         row = {"status": "done", "indirect_rmse": 0.1, "frame_ms": 2.0}
         return {"status": "done", "knobs": [], "points": [row], "pareto": {"frame_ms": [0]}, "sweep_folder": "",
                 "counts": {"done": 1, "cached": 0, "failed": 0}}
 
-    monkeypatch.setattr(ATLAS, "_method_sweep", sweep)
-    monkeypatch.setattr(ATLAS, "task_data", lambda task: SimpleNamespace(dataset=[0], cameras=[0], lightings=[0]))
-    monkeypatch.setattr(ATLAS, "mitsuba_curve", lambda task, e, say: [])
-    monkeypatch.setattr(ATLAS, "plot_task", lambda path, entry: None)
-    monkeypatch.setattr(ATLAS, "table", lambda record: "")
-    config = merge(ATLAS.CONFIG, {"eval": {"tasks": ["local_lights"], "methods": ["rrf", "datadriven", "sh_prt"]},
-                                  "output": {"dir": str(tmp_path)}})
-    record = ATLAS.main(config)
+    monkeypatch.setattr(atlas, "method_sweep", sweep)
+    monkeypatch.setattr(atlas, "task_data", lambda task: SimpleNamespace(dataset=[0], cameras=[0], lightings=[0]))
+    monkeypatch.setattr(atlas, "mitsuba_curve", lambda task, e, say: [])
+    monkeypatch.setattr(atlas, "plot_task", lambda path, entry: None)
+    monkeypatch.setattr(atlas, "table", lambda record: "")
+    config = merge(EXPERIMENT.CONFIG, {"eval": {"tasks": ["local_lights"], "methods": ["rrf", "datadriven", "sh_prt"]},
+                                       "output": {"dir": str(tmp_path)}})
+    record = EXPERIMENT.main(config)
     methods = record["tasks"]["local_lights"]["methods"]
     assert methods["datadriven"]["status"] == "failed" and methods["datadriven"]["error"] == "RuntimeError: a method broke"
     assert "Traceback" in methods["datadriven"]["traceback"]
