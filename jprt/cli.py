@@ -1,5 +1,6 @@
 """The ``jprt`` command: ``info``, ``render`` (a dataset from an experiment config), ``run`` (an
-experiment), ``sweep`` (a grid of overrides over an experiment, ``jprt.sweep``).
+experiment), ``sweep`` (a grid of overrides over an experiment, ``jprt.sweep``), ``atlas`` (every
+method against Mitsuba on a built-in task or a scene file, ``jprt.atlas``).
 
     jprt info
     jprt render experiments/cornell_gt.py --set dataset.spp=16
@@ -7,6 +8,7 @@ experiment), ``sweep`` (a grid of overrides over an experiment, ``jprt.sweep``).
     jprt run experiments/rrf_cornell.py --config results/rrf_cornell/sweep_<hash>/selected.json
     jprt sweep experiments/datadriven.py --grid basis.n=[4,16,64] --select "indirect_rmse<=0.02" \
         --minimize frame_ms
+    jprt atlas path/to/scene.xml --lighting point --select "indirect_rel_rmse<=0.3" --minimize frame_ms
 
 An experiment file defines ``CONFIG`` (a nested dict) and ``METHOD`` (run by ``jprt.runner``) or
 ``main(config)``. ``--set a.b=value``
@@ -59,6 +61,28 @@ def _sweep(args) -> int:
         print(f"selected {({k: row[k] for k in grid})}: {args.minimize} = {row[args.minimize]}; "
               f"run it with: jprt run {experiment} --config {path}")
     return 0 if not record["counts"]["failed"] else 1
+
+
+def _atlas(args) -> int:
+    import json
+
+    from jprt import atlas
+    from jprt.config import apply_overrides
+
+    if args.config_file:  # a selection (or any atlas config) run as it is
+        if args.target:
+            raise ValueError("give a task or scene file, or --config FILE, not both")
+        with open(args.config_file) as f:
+            loaded = json.load(f)
+        config = apply_overrides(loaded.get("config", loaded), args.overrides)
+    elif not args.target:
+        raise ValueError(f"jprt atlas needs a task ({', '.join(atlas.TASKS)}) or a scene file, or --config FILE")
+    else:
+        config = atlas.atlas_config(args.target, args.lighting, args.preset, out=args.out, select=args.select or "",
+                                    minimize=args.minimize, overrides=args.overrides)
+    record = atlas.run_atlas(config)
+    done = [m for t in record["tasks"].values() for m in t["methods"].values() if m["status"] == "done"]
+    return 0 if done else 1
 
 
 def _info() -> int:
@@ -122,6 +146,21 @@ def main(argv: list[str] | None = None) -> int:
                    help="CPUs one point needs on Ray (default: the config's resources.cpus, else 1)")
     p.add_argument("--gpus", type=float, default=None,
                    help="GPUs one point needs on Ray (default: the config's resources.gpus, else 0)")
+    p = sub.add_parser("atlas", help="every method that takes the lighting against Mitsuba, on a task or scene file")
+    p.add_argument("target", nargs="?", metavar="SCENE_OR_TASK",
+                   help="a scene file (path/to/scene.xml) or a built-in task (local_lights, environment)")
+    p.add_argument("--lighting", choices=("point", "env", "environment", "file"), default=None,
+                   help="a scene file's lighting: point lights in its light region, held-out environment maps "
+                        "through a ceiling opening, or its own emitters (default point)")
+    p.add_argument("--select", default=None, metavar="KEY<=VALUE[,...]",
+                   help="each method's cheapest point meeting these constraints (writes selected_<task>_<method>.json)")
+    p.add_argument("--minimize", default="frame_ms", metavar="KEY", help="what --select minimises (default frame_ms)")
+    p.add_argument("--preset", default=None, help="sizes: small (default) or test (seconds)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a value of the atlas config (tasks.<task>..., eval...)")
+    p.add_argument("--out", default=None, help="output folder (default results/atlas/<task>)")
+    p.add_argument("--config", dest="config_file", default=None, metavar="FILE.json",
+                   help="run an atlas config as it is (a selected_<task>_<method>.json)")
     p = sub.add_parser("view", help="relight a trained model of a run folder interactively in the browser")
     p.add_argument("folder", help="a run folder written by `jprt run` (config.json, summary.json, model.npz)")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default: localhost only)")
@@ -138,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
             return _info()
         if args.command == "sweep":
             return _sweep(args)
+        if args.command == "atlas":
+            return _atlas(args)
         if args.command == "view":
             from jprt.view import check_run_folder, serve
 
