@@ -387,7 +387,7 @@ def single_mlp(run) -> dict:
 
     schedule = optax.cosine_decay_schedule(3e-3, steps, alpha=0.03)
     result = adam.train(loss_fn, params, sampler, key=jax.random.PRNGKey(1), steps=steps, learning_rate=schedule,
-                        eps=1e-8, progress=True)
+                        eps=1e-8)
     trained = result.state.params
     preds = []
     testset = run.state["testset"]

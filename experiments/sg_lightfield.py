@@ -388,7 +388,7 @@ def environment_visibility(run) -> dict:
     if not e.get("enabled", True):
         return {}
     spec = {k: v for k, v in e.items() if k in sgdata.ENV_DEFAULTS}
-    ed = sgdata.make_environment_dataset(run.method_config, spec, progress=True)
+    ed = sgdata.make_environment_dataset(run.method_config, spec)
     run.say(f"environment: {len(ed.images)} texels, visibility {ed.meta['capture_s']:.1f} s, "
             f"quadrature {ed.meta['quadrature_s']:.1f} s")
     steps = e.get("steps") or run.method_config["train"]["steps"]

@@ -72,14 +72,14 @@ def map_tasks(fn: Callable, args: Sequence[tuple], *, num_cpus: float = 1, num_g
 
 
 def map_blocks(fn: Callable, args: Sequence[tuple], *, ray: bool | None = None, desc: str = "blocks",
-               progress: bool = True) -> list:
+               progress: bool | None = None) -> list:
     """``[fn(*a) for a in args]``, in order, with a progress bar over the blocks: as Ray tasks of
     one CPU each when Ray is ``requested(ray)``, else in this process. ``fn`` is a module-level
     function (Ray pickles it by reference) whose result depends only on its arguments (seeds
     included), so both ways give the same arrays (up to Mitsuba's float rounding across processes)."""
-    from tqdm.auto import tqdm
+    from jprt.progress import bar as progress_bar
 
-    bar = tqdm(total=len(args), desc=desc, unit="block", disable=not progress)
+    bar = progress_bar(total=len(args), progress=progress, desc=desc, unit="block")
     if requested(ray) and args:
         out = map_tasks(fn, args, on_done=lambda i, r: bar.update(1))
     else:

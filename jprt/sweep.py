@@ -117,7 +117,7 @@ def _point_task(experiment_path: str, cfg: dict, folder: str) -> tuple[str, dict
 
 
 def run_sweep(module: ModuleType, config: Mapping, grid: Mapping[str, Sequence], *, run: Callable | None = None,
-              progress: bool = True, label: str = "", ray: bool | None = None, num_cpus: float | None = None,
+              progress: bool | None = None, label: str = "", ray: bool | None = None, num_cpus: float | None = None,
               num_gpus: float | None = None) -> dict:
     """Run every point of ``grid`` over experiment ``module`` at ``config`` (its resolved CONFIG);
     returns the sweep record (also written as sweep.json / sweep.csv / pareto_*.png).
@@ -128,9 +128,8 @@ def run_sweep(module: ModuleType, config: Mapping, grid: Mapping[str, Sequence],
     ``{"cpus": 2, "gpus": 0}``, else 1 CPU; ``jprt.distributed``; the experiment is re-loaded from its
     file in the worker); a worker that dies is retried and its point is still one row.
     """
-    from tqdm.auto import tqdm
-
     from jprt import distributed
+    from jprt.progress import bar as progress_bar
     from jprt.runner import run as run_point
 
     run = run or run_point
@@ -152,8 +151,8 @@ def run_sweep(module: ModuleType, config: Mapping, grid: Mapping[str, Sequence],
             counts["cached"] += 1
         else:
             todo.append((i, cfg, point_folder))
-    bar = tqdm(total=len(points), initial=counts["cached"], desc=f"sweep {label}".strip(), unit="point",
-               disable=not progress)
+    bar = progress_bar(total=len(points), progress=progress, initial=counts["cached"], desc=f"sweep {label}".strip(),
+                       unit="point")
 
     def finish(j: int, result: tuple) -> None:
         i, _, point_folder = todo[j]

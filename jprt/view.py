@@ -88,7 +88,7 @@ class Session:
     that make sense for it. Camera views and lightings become the evaluator's arguments through
     the method's task adapter (``Method.task_inputs``, ``Method.task_lighting``)."""
 
-    def __init__(self, folder: str, *, progress: bool = False):
+    def __init__(self, folder: str, *, progress: bool | None = None):
         from jprt.methods import REGISTRY
         from jprt.render.scenes import SceneHandle
         from jprt.runner import method_config

@@ -38,6 +38,9 @@ A method is a ``Method`` NamedTuple of plain functions::
 * The viewer adapter (optional): ``view_lightings`` (what ``jprt view`` relights with; the
   task lightings unless the package says otherwise), ``predicts`` ("indirect", or "direct" for
   a method whose evaluator returns the environment reflected once) and ``view_environments``.
+* Progress output (bars, messages on stderr) of ``fit`` and ``make_dataset`` follows one policy,
+  ``jprt.progress``: a call's ``progress=`` True / False where it takes one, else
+  ``$JPRT_PROGRESS``, else shown when stderr is a terminal.
 """
 
 from __future__ import annotations

@@ -108,7 +108,7 @@ def _lighting_arrays(lighting: Lighting) -> dict:
 
 def render_dataset(scene, cameras: Sequence[cams.Camera], lightings: Sequence[Lighting], *, spp: int,
                    seed: int = 0, pairs: str = "product", gbuffers: bool = True, cache_dir: str | None = None,
-                   progress: bool = True, on_entry: Callable[[str], None] | None = None,
+                   progress: bool | None = None, on_entry: Callable[[str], None] | None = None,
                    ray: bool | None = None, shards: int | None = None) -> Dataset:
     """Render (or reuse from the cache) direct + indirect images for camera x lighting pairs.
 
@@ -219,17 +219,16 @@ def render_dataset(scene, cameras: Sequence[cams.Camera], lightings: Sequence[Li
     return Dataset(folder, spec, stats)
 
 
-def _render_entries(desc: dict, lightings: list, folder: str, work: list, progress: bool,
+def _render_entries(desc: dict, lightings: list, folder: str, work: list, progress: bool | None,
                     on_entry: Callable[[str], None] | None = None) -> list[str]:
     """Render and write ``work`` entries (name, produce(handle) -> arrays, lighting it needs) with
     one scene handle; returns the names written. Runs in-process or as a Ray task."""
-    from tqdm import tqdm
-
+    from jprt.progress import bar as progress_bar
     from jprt.render.scenes import SceneHandle
 
     handle, written = None, []
-    bar = tqdm(work, desc=f"rendering dataset {os.path.basename(folder)}", unit="entry", disable=not progress,
-               file=sys.stderr, dynamic_ncols=True)
+    bar = progress_bar(work, progress=progress, desc=f"rendering dataset {os.path.basename(folder)}", unit="entry",
+                       dynamic_ncols=True)
     try:
         for name, produce, needs in bar:
             if needs != "none":
@@ -335,7 +334,7 @@ def lightings_from_config(cfg: dict) -> list[Lighting]:
     raise ValueError(f"unknown lights kind {kind!r} (use point, envmap or scene)")
 
 
-def from_config(cfg: dict, *, cache_dir: str | None = None, progress: bool = True) -> Dataset:
+def from_config(cfg: dict, *, cache_dir: str | None = None, progress: bool | None = None) -> Dataset:
     """Render (or reuse) the dataset a config's ``dataset`` section describes."""
     return render_dataset(cfg["scene"], cameras_from_config(cfg["cameras"], cfg["scene"]),
                           lightings_from_config(cfg["lights"]),

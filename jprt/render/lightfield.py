@@ -194,16 +194,16 @@ def _setup(scene, lighting, objects, resolution: int, atlas):
     return desc, handle, a, points, flags
 
 
-def _cached_blocks(namespace: str, base: dict, count: int, block: int, build, label: str, progress: bool,
+def _cached_blocks(namespace: str, base: dict, count: int, block: int, build, label: str, progress: bool | None,
                    cache_dir: str | None):
     """Texels in blocks of ``block``, each block ``build(start, stop, index)``'s arrays cached as
     its own entry (``base`` + the block's range: a killed capture resumes), with a progress bar;
     returns ``key -> the blocks' arrays concatenated`` (an empty array for no texels)."""
-    from tqdm.auto import tqdm
+    from jprt.progress import bar as progress_bar
 
     parts = []
     starts = list(range(0, int(count), int(block)))
-    for b, start in enumerate(tqdm(starts, desc=label, unit="block", disable=not progress)):
+    for b, start in enumerate(progress_bar(starts, progress=progress, desc=label, unit="block")):
         stop = min(int(count), start + int(block))
         arrays, _ = cache.cached(namespace, {**base, "block": [start, stop]},
                                  lambda start=start, stop=stop, b=b: build(start, stop, b), cache_dir=cache_dir)
@@ -214,7 +214,7 @@ def _cached_blocks(namespace: str, base: dict, count: int, block: int, build, la
 def capture_lightfield(scene, lighting=None, *, objects: Sequence[str] | None = None, resolution: int = 64,
                        size: int = 32, spp: int = 64, seed: int = 0, block: int = 256,
                        atlas: Atlas | dict | None = None, cache_dir: str | None = None,
-                       progress: bool = True, jitter: bool = False) -> LightField:
+                       progress: bool | None = None, jitter: bool = False) -> LightField:
     """Capture the light field of every texel of ``atlas`` (default: ``build_atlas`` of ``objects``
     at ``resolution``) in ``scene`` under ``lighting`` (``None``: the scene's own emitters):
     ``size`` x ``size`` octahedral maps, ``spp`` paths per direction (at the pixel centre, or
@@ -287,7 +287,7 @@ def visibility_block(handle: SceneHandle, points, normal, flags, size: int, *, s
 
 def capture_visibility(scene, *, objects: Sequence[str] | None = None, resolution: int = 64, size: int = 64,
                        samples: int = 4, seed: int = 0, block: int = 256, atlas: Atlas | dict | None = None,
-                       cache_dir: str | None = None, progress: bool = True) -> Visibility:
+                       cache_dir: str | None = None, progress: bool | None = None) -> Visibility:
     """The environment visibility of every texel of ``atlas`` (default: ``build_atlas`` of
     ``objects`` at ``resolution``) in ``scene``, from the capture points ``capture_lightfield``
     uses: ``size`` x ``size`` octahedral maps, ``samples`` jittered rays per pixel. Cached per

@@ -14,7 +14,7 @@
   averaging, ema <- d ema + (1 - d) params after every step, saved and resumed with the rest):
   the average over the last ~1 / (1 - d) steps is less noisy than the last iterate, so it moves
   less with minibatch noise and with the last-bit differences another machine's code makes.
-* A tqdm bar shows the loss and samples/s; every ``log_every`` steps a JSON line
+* A progress bar (``jprt.progress``) shows the loss and samples/s; every ``log_every`` steps a JSON line
   {"step", "loss", "samples_per_s", "lr", "elapsed_s"} is appended to ``log_path``.
 """
 
@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 import time
 import warnings
 from typing import Any, Callable, NamedTuple
@@ -30,6 +29,8 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from jprt.progress import bar as progress_bar
 
 __all__ = ["TrainState", "TrainResult", "train"]
 
@@ -66,7 +67,7 @@ def _batch_size(batch) -> int:
 
 def train(loss_fn: Callable, params, sampler: Callable, *, key, steps: int, learning_rate=1e-3,
           b1: float = 0.9, b2: float = 0.99, eps: float = 1e-15, checkpoint_path: str | None = None,
-          checkpoint_every: int = 1000, log_path: str | None = None, log_every: int = 50, progress: bool = True,
+          checkpoint_every: int = 1000, log_path: str | None = None, log_every: int = 50, progress: bool | None = None,
           stop_after: int | None = None, data=None, ema_decay: float = 0.0) -> TrainResult:
     """Run Adam for ``steps`` steps from ``params`` (or from ``checkpoint_path`` if it exists).
 
@@ -78,9 +79,10 @@ def train(loss_fn: Callable, params, sampler: Callable, *, key, steps: int, lear
       data: optional pytree handed to ``sampler`` as its third argument (see the module docstring).
       ema_decay: d in [0, 1): 0 keeps no average (``state.ema`` is None); otherwise
         ``state.ema`` is the parameters' moving average, started at ``params``.
+      progress: show the bar (``jprt.progress``; None: its policy, ``$JPRT_PROGRESS`` or
+        whether stderr is a terminal).
     """
     import optax
-    from tqdm import tqdm
 
     from jprt.io import CorruptCheckpoint, load_checkpoint, save_checkpoint
 
@@ -127,8 +129,8 @@ def train(loss_fn: Callable, params, sampler: Callable, *, key, steps: int, lear
     if log_path:
         os.makedirs(os.path.dirname(os.path.abspath(log_path)), exist_ok=True)
     log = open(log_path, "a") if log_path else None
-    bar = tqdm(total=steps, initial=resumed_from, desc="adam", unit="step", disable=not progress, file=sys.stderr,
-               dynamic_ncols=True)
+    bar = progress_bar(total=steps, progress=progress, initial=resumed_from, desc="adam", unit="step",
+                       dynamic_ncols=True)
     t0 = last_t = time.perf_counter()
     last_step = resumed_from
     try:

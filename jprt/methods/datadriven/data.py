@@ -5,7 +5,6 @@ light) and indirect lightmap texels (full minus direct, equal seeds)."""
 
 from __future__ import annotations
 
-import sys
 import time
 
 import numpy as np
@@ -14,6 +13,7 @@ from jprt import cache
 from jprt.hashing import stable_hash
 from jprt.methods.base import resolve
 from jprt.methods.datadriven.model import DEFAULT_CONFIG, DDData
+from jprt.progress import say
 
 __all__ = ["make_dataset", "random_lights", "render_examples", "self_check", "TASK_LIGHTINGS", "task_inputs",
            "task_lighting"]
@@ -57,17 +57,16 @@ def random_lights(rng: np.random.Generator, n: int, lights_cfg: dict, accept=Non
 
 
 def render_examples(handle, atlas, candidates, lightings, *, spp: int, seed: int = 0, first: int = 0,
-                    progress: bool = True, desc: str = "examples") -> tuple[np.ndarray, np.ndarray]:
+                    progress: bool | None = None, desc: str = "examples") -> tuple[np.ndarray, np.ndarray]:
     """Direct at every candidate point (exact, one shadow ray per light) and indirect lightmap
     texels (``spp`` paths, full minus direct with equal seeds) for each lighting: (N, S, 3) and
     (N, T, 3). Lighting ``k`` is path traced with seed ``seed * 100003 + first + k`` (``first``:
     the index of ``lightings[0]`` in the whole set, so blocks of it render what the set does)."""
-    from tqdm.auto import tqdm
-
+    from jprt.progress import bar as progress_bar
     from jprt.render import lightmap
 
     direct, indirect = [], []
-    for k, lighting in enumerate(tqdm(lightings, desc=desc, disable=not progress)):
+    for k, lighting in enumerate(progress_bar(lightings, progress=progress, desc=desc)):
         handle.set_lighting(lighting)
         direct.append(lightmap.radiance_at_points(handle, candidates["position"], candidates["normal"], spp=1,
                                                   max_depth=2))
@@ -89,7 +88,7 @@ def _examples_block(desc: dict, atlas: dict, candidates: dict, lightings: list, 
                            progress=False)
 
 
-def _examples(handle, atlas, candidates, lightings, *, spp: int, seed: int, progress: bool, desc: str,
+def _examples(handle, atlas, candidates, lightings, *, spp: int, seed: int, progress: bool | None, desc: str,
               ray: bool | None):
     """``render_examples`` of every lighting: in this process, or in blocks of ``BLOCK`` as Ray
     tasks (``jprt.distributed``; the same seeds, so the same arrays)."""
@@ -104,7 +103,7 @@ def _examples(handle, atlas, candidates, lightings, *, spp: int, seed: int, prog
 
 
 def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
-                 progress: bool = True, ray: bool | None = None) -> DDData:
+                 progress: bool | None = None, ray: bool | None = None) -> DDData:
     """Render the training and held-out examples of ``scene`` (default: ``config['scene']``),
     cached by content hash under ``$JPRT_CACHE/datadriven/<hash>.npz`` (checksummed, atomic).
     ``ray`` (default: whether ``JPRT_RAY_ADDRESS`` is set) renders the configurations in blocks
@@ -135,7 +134,7 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
     return _unpack(arrays, spec, path)
 
 
-def _render(desc: dict, cfg: dict, progress: bool, ray: bool | None = None) -> dict:
+def _render(desc: dict, cfg: dict, progress: bool | None, ray: bool | None = None) -> dict:
     from jprt.render import lightmap
     from jprt.render.scenes import SceneHandle
 
@@ -172,9 +171,8 @@ def _render(desc: dict, cfg: dict, progress: bool, ray: bool | None = None) -> d
         for field in ("position", "target", "intensity", "cutoff_deg", "beam_deg"):
             if not ls or hasattr(ls[0], field):  # point lights have no target or cone
                 arrays[f"{name}_{field}"] = np.stack([getattr(l, field)[0] for l in ls]) if ls else np.zeros((0,))
-    if progress:
-        print(f"datadriven: rendered {len(train)} + {len(test)} configurations in "
-              f"{time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    say("datadriven", progress)(f"rendered {len(train)} + {len(test)} configurations in "
+                                f"{time.perf_counter() - t0:.1f} s")
     return arrays
 
 

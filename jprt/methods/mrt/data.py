@@ -7,7 +7,6 @@ held out."""
 
 from __future__ import annotations
 
-import sys
 import time
 
 import numpy as np
@@ -16,6 +15,7 @@ from jprt import cache, layouts
 from jprt.hashing import stable_hash
 from jprt.methods.base import resolve
 from jprt.methods.mrt.model import DEFAULT_CONFIG, MRTData
+from jprt.progress import say
 
 __all__ = ["make_dataset", "block_frame", "texel_geometry", "random_lights", "render_texels", "TASK_LIGHTINGS",
            "task_inputs", "task_lighting"]
@@ -96,17 +96,16 @@ def random_lights(rng: np.random.Generator, desc: dict, n: int, lights_cfg: dict
     return out
 
 
-def render_texels(handle, positions, normals, lightings, *, spp: int, seed: int, progress: bool = True,
+def render_texels(handle, positions, normals, lightings, *, spp: int, seed: int, progress: bool | None = None,
                   desc: str = "lightings") -> tuple[np.ndarray, np.ndarray]:
     """Direct (exact) and indirect (``spp``) outgoing radiance at the texels for each lighting:
     (N, B, n, 3) each. Lighting k uses seed ``seed * 100003 + k``."""
-    from tqdm.auto import tqdm
-
+    from jprt.progress import bar as progress_bar
     from jprt.render import lightmap
 
     p, nrm = positions.reshape(-1, 3), normals.reshape(-1, 3)
     direct, indirect = [], []
-    for k, lighting in enumerate(tqdm(lightings, desc=desc, disable=not progress)):
+    for k, lighting in enumerate(progress_bar(lightings, progress=progress, desc=desc)):
         handle.set_lighting(lighting)
         direct.append(lightmap.radiance_at_points(handle, p, nrm, spp=1, max_depth=2).reshape(positions.shape))
         indirect.append(lightmap.indirect_at_points(handle, p, nrm, spp=spp, seed=seed * 100003 + k)
@@ -117,7 +116,7 @@ def render_texels(handle, positions, normals, lightings, *, spp: int, seed: int,
 
 
 def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
-                 progress: bool = True) -> MRTData:
+                 progress: bool | None = None) -> MRTData:
     """Render ``data.n_test`` held-out lightings of a ``blocks`` scene (default:
     ``config['scene']``) at its texels, cached under ``$JPRT_CACHE/mrt/<hash>.npz``."""
     from jprt.render.scenes import describe
@@ -149,9 +148,8 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
                                cfg, accept)
         d, i = render_texels(handle, pos, nrm, lights, spp=int(dcfg["test_spp"]), seed=int(dcfg["seed"]),
                              progress=progress, desc="held-out lightings")
-        if progress:
-            print(f"mrt: rendered {len(lights)} lightings at {pos.shape[0] * pos.shape[1]} texels in "
-                  f"{time.perf_counter() - t0:.1f} s", file=sys.stderr)
+        say("mrt", progress)(f"rendered {len(lights)} lightings at {pos.shape[0] * pos.shape[1]} texels in "
+                             f"{time.perf_counter() - t0:.1f} s")
         return {"positions": pos, "normals": nrm, "albedo": alb, "direct_test": d.astype(np.float32),
                 "indirect_test": i.astype(np.float32),
                 "lights_test_position": np.stack([l.position for l in lights]),

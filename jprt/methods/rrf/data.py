@@ -17,7 +17,6 @@ Latin hypercube sampling instead of views.
 from __future__ import annotations
 
 import copy
-import sys
 import time
 
 import numpy as np
@@ -26,6 +25,7 @@ from jprt import cache
 from jprt.hashing import stable_hash
 from jprt.methods.base import resolve
 from jprt.methods.rrf.model import DEFAULT_CONFIG, RRFData, brdf_vector
+from jprt.progress import say
 from jprt.render.sampling import CORNELL_REGIONS, REGION_KEYS, free_lights, scene_regions  # noqa: F401 (re-exported)
 
 __all__ = ["make_dataset", "edit_description", "scene_regions", "resolve_regions", "REGION_KEYS", "CORNELL_REGIONS",
@@ -45,7 +45,7 @@ def edit_description(desc: dict, obj: str, roughness: float, albedo: float) -> d
 
 
 def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = None,
-                 progress: bool = True) -> RRFData:
+                 progress: bool | None = None) -> RRFData:
     """Render the RRF training samples of ``scene`` (Appendix A), cached by content hash.
 
     ``config`` is an RRF config (``DEFAULT_CONFIG`` layout, strict); only ``data`` matters here.
@@ -89,9 +89,7 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
         t0 = time.perf_counter()
         lights, setups, rng = _draw(desc, data_cfg, regions_from)
         arrays = _render_samples(desc, setups, lights, data_cfg, rng, progress)
-        if progress:
-            print(f"rrf: rendered {len(arrays['position'])} samples in {time.perf_counter() - t0:.1f} s",
-                  file=sys.stderr)
+        say("rrf", progress)(f"rendered {len(arrays['position'])} samples in {time.perf_counter() - t0:.1f} s")
         return arrays
 
     arrays, _ = cache.cached("rrf", spec, build, cache_dir=cache_dir)
@@ -131,7 +129,7 @@ def _draw(desc: dict, data_cfg: dict, regions_from: str):
 
 
 def _check(desc: dict, spec: dict, data_cfg: dict, regions_from: str, *, cache_dir: str | None,
-           progress: bool) -> dict:
+           progress: bool | None) -> dict:
     """The self-check's held-out samples, cached apart from the training data
     (``$JPRT_CACHE/rrf_check``): ``data.check_lights`` point lights drawn in the light box from a
     seed stream of their own (never fitted), each rendered from every training view (or material)
@@ -153,9 +151,8 @@ def _check(desc: dict, spec: dict, data_cfg: dict, regions_from: str, *, cache_d
             lights = free_lights(desc, lights, data_cfg["light_lo"], data_cfg["light_hi"], rng)
         cfg = {**data_cfg, "n_rays": max(1, int(data_cfg["n_rays"]) // 2), "seed": seed + 104_729}
         arrays = _render_samples(desc, setups, lights, cfg, rng, False)
-        if progress:
-            print(f"rrf: self-check set ({n} held-out lights, {len(arrays['position'])} samples) rendered in "
-                  f"{time.perf_counter() - t0:.1f} s", file=sys.stderr)
+        say("rrf", progress)(f"self-check set ({n} held-out lights, {len(arrays['position'])} samples) rendered in "
+                             f"{time.perf_counter() - t0:.1f} s")
         return {**arrays, "lights": np.asarray(lights, np.float32),
                 "object_names": np.array(SceneHandle(desc).object_names())}
 
@@ -308,8 +305,7 @@ def _balanced(gb, origins, directions, n: int, rng, floor: int = 0):
 
 
 def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
-    from tqdm import tqdm
-
+    from jprt.progress import bar as progress_bar
     from jprt.render import cameras as cams
     from jprt.render.gbuffer import gbuffer_rays
     from jprt.render.images import indirect_rays
@@ -334,7 +330,7 @@ def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
                 for per_setup in rays]
     out: dict[str, list] = {k: [] for k in ("position", "view", "light", "normal", "brdf", "edit", "object_id",
                                             "direct", "indirect", "pair")}
-    bar = tqdm(total=len(setups) * len(lights), desc="rrf samples", unit="pair", disable=not progress, leave=False)
+    bar = progress_bar(total=len(setups) * len(lights), progress=progress, desc="rrf samples", unit="pair", leave=False)
     for s, (desc, _, edit) in enumerate(setups):
         handle = base if edit is None else SceneHandle(desc, PointLights.create([lights[0]], [1.0, 1.0, 1.0]))
         o = np.concatenate([r[0] for r in rays[s]])

@@ -42,7 +42,6 @@ import functools
 import hashlib
 import math
 import os
-import sys
 import time
 import warnings
 from typing import Any, NamedTuple
@@ -56,6 +55,7 @@ from jprt.inputs import GBuffer, PointLights
 from jprt.methods.base import FitResult, resolve
 from jprt.methods.rrf import kdtree
 from jprt.nn.mlp import MLP, constant_up_to_rounding, mlp, ranges
+from jprt.progress import say as progress_say
 from jprt.solve.lm import LMSettings, solve_batched
 
 __all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features",
@@ -120,8 +120,10 @@ DEFAULT_CONFIG: dict = {
     # None: 28 leaves (20 of 21 splits on the light), 0.0067, 7.6x, 12.2 ms, 3.68x
     "tree": {"threshold": 0.05, "axis": "all", "expand": 0.1, "max_depth": 6, "min_samples": 1500, "max_leaves": 64,
              "group_below": 32, "split_on": None},
+    # progress: the fit's messages on stderr; None follows jprt.progress (JPRT_PROGRESS, else
+    # whether stderr is a terminal), as every fit does; fit's progress= argument wins over it
     "train": {"max_iters": 40, "trial_iters": 10, "trial_samples": 1024, "max_fail": 6, "rtol": 1e-6, "damping": 1e-3, "chunk_size": 1024, "seed": 0,
-              "subset": 1.0, "progress": True},
+              "subset": 1.0, "progress": None},
     # evaluator: lights outside the trained box ("error" | "clamp" | "allow", box grown by
     # `tolerance` of its size); the tiled networks (None: by JAX's default backend, ``RENDER_LAYOUTS``)
     # and their input / output clamps (evaluator docstring)
@@ -450,7 +452,8 @@ def split_samples(n: int, val_fraction: float, seed: int) -> np.ndarray:
     return is_train
 
 
-def fit(data: RRFData, config: dict | None = None, *, is_train=None, checkpoint_dir: str | None = None) -> FitResult:
+def fit(data: RRFData, config: dict | None = None, *, is_train=None, checkpoint_dir: str | None = None,
+        progress: bool | None = None) -> FitResult:
     """Fit the kd-tree of RRFs to ``data`` (§4, Appendix A). Returns ``FitResult(params, info)``.
 
     ``params`` is a pytree of arrays (kd-tree, per-object input boxes, stacked leaf networks with
@@ -458,8 +461,8 @@ def fit(data: RRFData, config: dict | None = None, *, is_train=None, checkpoint_
     ``report`` (the kd-tree build report), ``leaf_train_error`` / ``leaf_val_error`` (per leaf),
     ``is_train`` (the split mask) and ``n_samples``.
     ``is_train`` overrides the seeded 70/30 split; ``train.subset`` < 1 keeps that random
-    fraction of the training samples (the Table 3 / Fig. 6 experiments); ``checkpoint_dir``:
-    see ``fit_arrays``.
+    fraction of the training samples (the Table 3 / Fig. 6 experiments); ``checkpoint_dir`` and
+    ``progress``: see ``fit_arrays``.
 
     Numerics: not differentiable (a fitting or training procedure).
     """
@@ -481,13 +484,15 @@ def fit(data: RRFData, config: dict | None = None, *, is_train=None, checkpoint_
         keep = np.ones(len(data), bool)
         keep[drop] = False
         x, data, is_train = x[keep], data.subset(keep), is_train[keep]
-    params, info = fit_arrays(x, data.indirect, data.object_id, cfg, is_train=is_train, checkpoint_dir=checkpoint_dir)
+    params, info = fit_arrays(x, data.indirect, data.object_id, cfg, is_train=is_train, checkpoint_dir=checkpoint_dir,
+                              progress=progress)
     params["light_lo"] = jnp.asarray(data.meta["light_lo"], jnp.float32)
     params["light_hi"] = jnp.asarray(data.meta["light_hi"], jnp.float32)
     return FitResult(params, info)
 
 
-def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None, checkpoint_dir: str | None = None):
+def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None, checkpoint_dir: str | None = None,
+               progress: bool | None = None):
     """Fit the partitioned RRF to arbitrary inputs ``x`` (N, D) and outputs ``y`` (N, R).
 
     The generic core of ``fit`` (synthetic targets in tests use it directly). Returns
@@ -497,6 +502,9 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None, ch
     named by the data and config), and read back by a rerun: a fit killed and restarted repeats
     at most the batch it was in and ends bit-identical to an uninterrupted one (``info
     ["checkpoint"]`` counts the batches loaded and fitted).
+
+    ``progress``: one-line messages of the kd-tree build on stderr (``jprt.progress``); None:
+    ``train.progress``, and when that is None too, the ``jprt.progress`` policy.
 
     Numerics: not differentiable (a fitting or training procedure).
     """
@@ -513,7 +521,7 @@ def fit_arrays(x, y, object_id, config: dict | None = None, *, is_train=None, ch
     t = cfg["train"]
     tree_cfg = cfg["tree"]
     sizes = (x.shape[1], *cfg["model"]["hidden"], y.shape[1])
-    say = (lambda msg: print(f"rrf: {msg}", file=sys.stderr)) if t["progress"] else (lambda msg: None)
+    say = progress_say("rrf", t["progress"] if progress is None else progress)
     t0 = time.perf_counter()
 
     # Per-object normalisation of the input box to the unit hypercube (§4, Fig. 4 c-d).

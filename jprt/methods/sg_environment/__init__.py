@@ -5,7 +5,6 @@ environment visibility W_E, the pre-convolved environment U and Eq. 8's shading;
 ``jprt.methods.sg_lightfield.data.make_environment_dataset``). The light-field half of the paper
 (§3-4, baked for the scene's own emitters) is ``jprt.methods.sg_lightfield``."""
 
-import functools
 
 from jprt.inputs import PreconvolvedEnvironment
 from jprt.methods.base import Method
@@ -30,5 +29,4 @@ METHOD = Method.of_package(
     "sg_environment",
     "Currius, Dolonius, Assarsson, Sintorn 2020, Spherical Gaussian Light-field Textures for Fast Precomputed "
     "Global Illumination (§5, illumination-weighted environment visibility)",
-    PreconvolvedEnvironment, model, data, PRESETS,
-    fit=functools.partial(model.fit, progress=False))  # the contract's fit: no progress bar
+    PreconvolvedEnvironment, model, data, PRESETS)

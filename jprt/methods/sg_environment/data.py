@@ -23,7 +23,8 @@ VIEW_LIGHTINGS = ("environment",)
 PREDICTS = "direct"
 
 
-def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None, progress: bool = True):
+def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
+                 progress: bool | None = None):
     """The receivers' (``objects``) atlas, visibility, W_E and U in ``scene`` (default
     ``config['scene']``) under ``config['environment']``: an ``EnvData``."""
     from jprt.methods.sg_lightfield.data import make_environment_dataset

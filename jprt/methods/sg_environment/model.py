@@ -59,10 +59,11 @@ def _cfg(config: dict | None) -> dict:
     return resolve(DEFAULT_CONFIG, config)
 
 
-def fit(data, config: dict | None = None, *, progress: bool = True) -> FitResult:
+def fit(data, config: dict | None = None, *, progress: bool | None = None) -> FitResult:
     """Train the §4 encoder on every texel's W_E map (``data``: a
     ``jprt.methods.sg_lightfield.data.EnvData``) and keep what the run time needs: the lobes in
-    float16 and the atlas's fill index. Returns ``FitResult(params, info)``.
+    float16 and the atlas's fill index. Returns ``FitResult(params, info)``. ``progress``: the
+    training bar (``jprt.progress``; None: its policy).
 
     Numerics: not differentiable (a training loop).
     """

@@ -5,7 +5,6 @@ setting's inputs), ``environment`` (§5: the illumination-weighted environment v
 the pre-convolved environment U, Eq. 6-8) and ``baselines`` (the per-texel fits the paper compares
 with). ``experiments/sg_lightfield.py`` runs all of it; ``benchmarks/sg_lightfield.py`` reports it."""
 
-import functools
 
 from jprt.inputs import LightScale
 from jprt.methods.base import Method
@@ -29,5 +28,4 @@ METHOD = Method.of_package(
     "sg_lightfield",
     "Currius, Dolonius, Assarsson, Sintorn 2020, Spherical Gaussian Light-field Textures for Fast Precomputed "
     "Global Illumination",
-    LightScale, model, data, PRESETS,
-    fit=functools.partial(model.fit, progress=False))  # the contract's fit: no progress bar
+    LightScale, model, data, PRESETS)

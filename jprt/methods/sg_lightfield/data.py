@@ -11,6 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jprt.methods.sg_lightfield.model import GLOSSY_RECEIVERS, SGData, _cfg, texel_irradiance
+from jprt.progress import say
 
 __all__ = ["make_dataset", "self_check", "TASK_LIGHTINGS", "ENV_RECEIVERS", "ENV_DEFAULTS", "EnvData", "load_environment",
            "make_environment_dataset"]
@@ -21,7 +22,7 @@ TASK_LIGHTINGS: tuple = ()
 
 
 def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
-                 progress: bool = True) -> SGData:
+                 progress: bool | None = None) -> SGData:
     """Capture the light field of the receivers (``objects``) of ``scene`` (default
     ``config['scene']``) under the scene's own emitters; texels inside other geometry keep their
     ``INSIDE`` flag and zero maps (the fit sees them as black, the run time never looks them up)."""
@@ -50,7 +51,7 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
 CHECK_VIEWS = 4
 
 
-def _check(scene, lf, c: dict, *, cache_dir: str | None, progress: bool) -> dict:
+def _check(scene, lf, c: dict, *, cache_dir: str | None, progress: bool | None) -> dict:
     """The self-check's held-out set, cached apart from the light field
     (``$JPRT_CACHE/sg_lightfield_check``): ``capture.check_texels`` texels (at most a tenth of those
     not inside geometry; drawn with a seed of their own) captured again as the light field is
@@ -94,8 +95,7 @@ def _check(scene, lf, c: dict, *, cache_dir: str | None, progress: bool) -> dict
         sin = np.sqrt(1.0 - cos * cos)
         views = (cos[..., None] * normal[:, None] + (sin * np.cos(phi))[..., None] * t1[:, None]
                  + (sin * np.sin(phi))[..., None] * t2[:, None])
-        if progress:
-            print(f"sg_lightfield: self-check set ({n} texels captured again) in {time.perf_counter() - t0:.1f} s")
+        say("sg_lightfield", progress)(f"self-check set ({n} texels captured again) in {time.perf_counter() - t0:.1f} s")
         return {"index": idx.astype(np.int64), "full": maps["full"], "indirect": maps["indirect"],
                 "below": maps["below"], "views": views.astype(np.float32), "ok": ok,
                 "diffuse_albedo": np.asarray(g.diffuse_albedo, np.float32),
@@ -235,7 +235,7 @@ def load_environment(spec: dict) -> np.ndarray:
 
 
 def make_environment_dataset(config: dict | None = None, environment: dict | None = None, *,
-                             scene=None, cache_dir: str | None = None, progress: bool = True) -> EnvData:
+                             scene=None, cache_dir: str | None = None, progress: bool | None = None) -> EnvData:
     """§5's inputs for the receivers (``config['objects']``, atlas at ``lightmap.resolution``) of
     ``scene`` (default ``ENV_RECEIVERS``) under the environment ``environment`` (``ENV_DEFAULTS``
     keys): the captured visibility (cached), W_E by Eq. 7 with each texel's own roughness, and U by

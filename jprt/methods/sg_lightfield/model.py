@@ -232,10 +232,11 @@ def encode(net_params, images, config: dict, init_amplitude: float = math.log(2.
                      init_amplitude)
 
 
-def fit_cnn(images, below, config: dict, *, progress: bool = True):
+def fit_cnn(images, below, config: dict, *, progress: bool | None = None):
     """Train the encoder on every texel's light-field image (T, n, n, 3), ``below`` (T, n, n)
     masking directions under the surface; Adam, minibatches of ``train.batch`` texels, cosine
-    decay. Returns (net_params, lobes of every texel, losses).
+    decay. Returns (net_params, lobes of every texel, losses). ``progress``: Adam's bar
+    (``jprt.progress``; None: its policy).
 
     Numerics: not differentiable (a training loop).
     """
@@ -463,10 +464,11 @@ def _cfg(config: dict | None) -> dict:
     return resolve(DEFAULT_CONFIG, config)
 
 
-def fit(data: SGData, config: dict | None = None, *, progress: bool = True):
+def fit(data: SGData, config: dict | None = None, *, progress: bool | None = None):
     """Train the encoder on every captured texel (``fit_cnn``) and keep what the run time needs:
     the lobes in float16 (7 numbers per lobe: 224 bytes per texel at 16 lobes), the texels'
-    irradiance and the atlas layout. Returns ``FitResult(params, info)``.
+    irradiance and the atlas layout. Returns ``FitResult(params, info)``. ``progress``: the
+    training bar (``jprt.progress``; None: its policy).
 
     Numerics: not differentiable (a training loop).
     """

@@ -11,6 +11,7 @@ import numpy as np
 from jprt import cache
 from jprt.methods.base import resolve
 from jprt.methods.sh_prt.model import DEFAULT_CONFIG, SHData, order_to_degree
+from jprt.progress import say
 from jprt.sphere import sh
 from jprt.sphere.cubemap import equirect_directions
 
@@ -18,7 +19,7 @@ __all__ = ["bake", "make_dataset", "check_maps", "self_check", "TASK_LIGHTINGS",
 
 
 def bake(handle, atlas, degree: int, *, spp: int, env_height: int = 32, seed: int = 0,
-         progress: bool = True, ray: bool | None = None) -> np.ndarray:
+         progress: bool | None = None, ray: bool | None = None) -> np.ndarray:
     """Transfer vectors (T, (degree + 1)^2, 3) of the atlas texels: the indirect radiance at
     each texel under white distant lighting Y_i, for every SH function i (one block each: in this
     process, or as Ray tasks when ``jprt.distributed.requested(ray)``; the same seeds either way)."""
@@ -59,7 +60,7 @@ def _bake_function(scene, position, normal, degree: int, i: int, spp: int, env_h
 
 
 def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
-                 progress: bool = True, ray: bool | None = None) -> SHData:
+                 progress: bool | None = None, ray: bool | None = None) -> SHData:
     """Build the lightmap atlas of ``scene`` (default ``config['scene']``) and bake its transfer
     vectors up to ``sh.order``; cached under ``$JPRT_CACHE/sh_prt/<hash>.npz``. ``ray`` (default:
     whether ``JPRT_RAY_ADDRESS`` is set) bakes the SH functions as Ray tasks."""
@@ -109,7 +110,7 @@ def check_maps(n: int, seed: int) -> np.ndarray:
     return np.asarray(synthetic_environments(int(n), CHECK_FACE, 45_000 + int(seed)), np.float32)
 
 
-def _check(desc: dict, spec: dict, atlas: dict, n: int, *, cache_dir: str | None, progress: bool) -> dict:
+def _check(desc: dict, spec: dict, atlas: dict, n: int, *, cache_dir: str | None, progress: bool | None) -> dict:
     """The self-check's held-out set, cached apart from the bake (``$JPRT_CACHE/sh_prt_check``):
     the indirect light at every atlas texel under each of ``check_maps(n)``, rendered as the bake
     renders (``indirect_at_points`` at ``sh.spp``, other seeds), their cube maps and the scene's
@@ -130,8 +131,7 @@ def _check(desc: dict, spec: dict, atlas: dict, n: int, *, cache_dir: str | None
             handle.set_lighting(EnvMap.create(render_equirect(cube)))
             indirect.append(lightmap.indirect_at_points(handle, atlas["position"], atlas["normal"], spp=int(s["spp"]),
                                                         seed=int(s["seed"]) * 7919 + 100_003 + k))
-        if progress:
-            print(f"sh_prt: self-check set ({n} held-out map(s)) rendered in {time.perf_counter() - t0:.1f} s")
+        say("sh_prt", progress)(f"self-check set ({n} held-out map(s)) rendered in {time.perf_counter() - t0:.1f} s")
         return {"cubes": cubes, "indirect": np.stack(indirect).astype(np.float32),
                 "object_names": np.array(handle.object_names())}
 

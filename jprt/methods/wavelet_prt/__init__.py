@@ -2,7 +2,6 @@
 MLP, §5 training, Algorithm 1; pure JAX) and ``data`` (environment-lit images rendered with
 Mitsuba)."""
 
-import functools
 
 from jprt.inputs import CubeMap
 from jprt.methods.base import Method
@@ -27,5 +26,4 @@ METHOD = Method.of_package(
     "wavelet_prt",
     "Raghavan, Luan, Ramamoorthi, Hasan 2023, Neural Free-Viewpoint Relighting for Glossy Indirect "
     "Illumination",
-    CubeMap, model, data, PRESETS,
-    fit=functools.partial(model.fit, progress=False))  # the contract's fit: no progress bar
+    CubeMap, model, data, PRESETS)

@@ -156,7 +156,7 @@ def gbuffer_fields(handle, camera) -> dict:
 
 
 def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | None = None,
-                 progress: bool = True) -> WaveletData:
+                 progress: bool | None = None) -> WaveletData:
     """Render the training images (§5) and held-out near / far test views of ``scene``
     (default ``config['scene']``) lit by environment maps; cached by content hash under
     ``$JPRT_CACHE/wavelet_prt/<hash>.npz`` (checksummed, atomic).
@@ -268,9 +268,8 @@ def self_check(dataset: WaveletData, result, config: dict | None = None) -> dict
         f"{len(train_p)} training images")
 
 
-def _render(desc: dict, cfg: dict, progress: bool) -> dict:
-    from tqdm import tqdm
-
+def _render(desc: dict, cfg: dict, progress: bool | None) -> dict:
+    from jprt.progress import bar as progress_bar
     from jprt.render.cameras import look_at
     from jprt.render.scenes import SceneHandle
 
@@ -295,7 +294,7 @@ def _render(desc: dict, cfg: dict, progress: bool) -> dict:
     if dcfg["test_pairs"] not in ("cycle", "all"):
         raise ValueError(f"unknown data.test_pairs {dcfg['test_pairs']!r}: use 'cycle' or 'all'")
     n_test = (len(near_o) + len(far_o)) * (len(test_envs) if dcfg["test_pairs"] == "all" else 1)
-    bar = tqdm(total=n_img + n_test, desc="wavelet PRT images", disable=not progress)
+    bar = progress_bar(total=n_img + n_test, progress=progress, desc="wavelet PRT images")
     for c, origin in enumerate(train_o):
         cam = look_at(origin, target, **cam_kw)
         g = gbuffer_fields(handle, cam)

@@ -953,10 +953,11 @@ def run_key(config: dict | None = None) -> str:
 
 
 def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str | None = None,
-        log_path: str | None = None, progress: bool = True, stop_after: int | None = None) -> FitResult:
+        log_path: str | None = None, progress: bool | None = None, stop_after: int | None = None) -> FitResult:
     """Train the transport network on ``data`` (§5) with Adam; resumes bit-identically from
     ``checkpoint_path`` when it exists. Returns ``FitResult(params, info)``, info {"losses",
-    "train_s", "resumed_from", "step"}.
+    "train_s", "resumed_from", "step"}. ``progress``: the training bar (``jprt.progress``; None:
+    its policy).
 
     Numerics: not differentiable (a fitting or training procedure).
     """
