@@ -194,10 +194,18 @@ def cell(v) -> str:
     return fmt(v)
 
 
+def ordered(d: dict) -> dict:
+    """``d`` with numeric keys ("4", "16", "1024") in numeric order; other dicts as written."""
+    try:
+        return dict(sorted(d.items(), key=lambda kv: float(kv[0])))
+    except (TypeError, ValueError):
+        return d
+
+
 def flatten(v, prefix: str = "") -> dict:
     """The leaves of nested dicts under dotted keys (lists of records are not leaves: left out)."""
     out = {}
-    for k, x in v.items():
+    for k, x in ordered(v).items():
         key = f"{prefix}{k}"
         if isinstance(x, dict) and x:
             out.update(flatten(x, key + "."))
@@ -262,6 +270,7 @@ def block(v, level: int) -> list[str]:
         return [fmt(v), ""]
     if not v:
         return ["(empty)", ""]
+    v = ordered(v)
     lines = []
     leaves = {k: x for k, x in v.items() if is_leaf(x)}
     columns = [x for x in leaves.values() if isinstance(x, list)]
