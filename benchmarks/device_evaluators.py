@@ -59,7 +59,7 @@ def export(run_dir: str, out: str) -> None:
         config = json.load(f)["config"]
     params = io.load_tree(os.path.join(run_dir, "model.npz"))[0]
     mc = method_config(REGISTRY["rrf"], config)
-    cameras, lightings = rrf_common._test_pairs(config)
+    cameras, lightings = rrf_common.held_out_pairs(config)
     res = int(config["eval"]["timing_resolution"])
     c0 = cameras[0]
     cam = cams.look_at(c0.origin, c0.target, fov=c0.fov, width=res, height=res)

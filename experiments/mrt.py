@@ -99,7 +99,7 @@ def _rmse(pred, ref, mask) -> tuple[float, float]:
 
 def _atlas_images(texels, albedo_shape) -> list:
     """(N, B, n, 3) texel arrays -> padded-atlas images (R, R, 3) (gutters 0)."""
-    b, t = model._texels_of(np.zeros(albedo_shape))
+    b, t = model.texels_of(np.zeros(albedo_shape))
     res, texel_index, _ = model.atlas_layout(b, t)
     out = []
     for x in np.asarray(texels, np.float32):
@@ -110,7 +110,7 @@ def _atlas_images(texels, albedo_shape) -> list:
 
 
 def _predict(params, direct, albedo, cfg, **kw) -> np.ndarray:
-    arrays = {k: jnp.asarray(params[k]) for k in model._RUNTIME_KEYS if k in params}
+    arrays = {k: jnp.asarray(params[k]) for k in model.RUNTIME_KEYS if k in params}
     opts = {"feedback": int(cfg["runtime"]["feedback"]), "interfaces": bool(cfg["interfaces"]["enabled"])} | kw
     return np.asarray(model.lightmap(arrays, jnp.asarray(direct, jnp.float32), jnp.asarray(albedo, jnp.float32),
                                      **opts))
@@ -348,8 +348,8 @@ def vector_and_volume(run) -> dict:
     lay = layouts.layout_from_dict(ds.layout)
     probes = np.asarray(dic["probes"])
     k = 2 * int(cfg["volume"]["directions"])
-    d, w = operators._sphere_dirs(k, hemisphere=False)
-    y = operators._sh9(d) * w[:, None]
+    d, w = operators.sphere_directions(k, hemisphere=False)
+    y = operators.sh9(d) * w[:, None]
     ref_vol = []
     for bi, blk in enumerate(lay.blocks):
         origin = np.array([blk.cell[0], 0.0, blk.cell[1]]) + probes  # (P, 3)
@@ -358,7 +358,7 @@ def vector_and_volume(run) -> dict:
         rad = _march(lay, t, o, dd, total)  # (L, P * D, 3)
         ref_vol.append(np.einsum("dq,lpdc->lpqc", y, rad.reshape(len(total), len(origin), len(d), 3)))
     ref_vol = np.stack(ref_vol, 1)  # (L, B, P, 9, 3)
-    arrays = {k2: jnp.asarray(params[k2]) for k2 in model._RUNTIME_KEYS + ("U_vol", "U_rvol") if k2 in params}
+    arrays = {k2: jnp.asarray(params[k2]) for k2 in model.RUNTIME_KEYS + ("U_vol", "U_rvol") if k2 in params}
     fb = int(cfg["runtime"]["feedback"])
     vol, vol_b = [], []
     for direct in ds.direct_test:
@@ -411,7 +411,7 @@ def _tilted_quadrature(t: int, normals: np.ndarray, radiance: np.ndarray, k: int
     """Irradiance / pi at each texel for its tilted local normal: quadrature of the block's own
     surface radiance over the directions above both the surface and the tilted normal."""
     pos, normal, face = layouts.texel_centres(t)
-    d_loc, w = operators._sphere_dirs(k, hemisphere=True)
+    d_loc, w = operators.sphere_directions(k, hemisphere=True)
     out = np.zeros(normals.shape[:3] + (3,))
     for i in range(len(pos)):
         frame = np.stack([layouts.FACE_U[face[i]], layouts.FACE_V[face[i]], normal[i]])
@@ -439,7 +439,7 @@ def frame_times(run) -> dict:
         t = int(cfg["dictionary"]["texels"])
         alb = layouts.texel_albedo(lay, t, _scene(run)["albedo"])
         ops.update(model.level_feedback(ops, alb))
-        arrays = jax.device_put({k: jnp.asarray(ops[k]) for k in model._RUNTIME_KEYS})
+        arrays = jax.device_put({k: jnp.asarray(ops[k]) for k in model.RUNTIME_KEYS})
         albedo = jax.device_put(jnp.asarray(alb, jnp.float32))
         direct = jax.device_put(jnp.asarray(rng.random((nb, layouts.texel_count(t), 3)), jnp.float32))
         fb = int(cfg["runtime"]["feedback"])

@@ -66,7 +66,7 @@ def config(output: str, overrides: dict) -> dict:
     return merge({**REGISTRY["rrf"].default_config, "eval": EVAL_DEFAULTS, "output": {"dir": output}}, overrides)
 
 
-def _test_pairs(config: dict):
+def held_out_pairs(config: dict):
     """Held-out views and lights (Latin hypercube in the same boxes, a different seed)."""
     from jprt.render import cameras as cams
     from jprt.render.sampling import latin_hypercube
@@ -86,7 +86,7 @@ def _predict(evaluate, testset) -> list:
             for item in testset.items]
 
 
-def _rmse_p999(preds, refs, valid) -> tuple[float, float]:
+def rmse_p999(preds, refs, valid) -> tuple[float, float]:
     """Indirect RMSE and 99.9th percentile of |preds - refs| over every valid pixel and channel
     of the held-out set (an ablation's predictions against ``held.references``, ``held.valid``)."""
     err = np.concatenate([np.abs(np.asarray(q) - np.asarray(r))[np.asarray(v, bool)].ravel()
@@ -95,11 +95,11 @@ def _rmse_p999(preds, refs, valid) -> tuple[float, float]:
 
 
 def _fit_tail(run, params, method_config) -> tuple[float, float]:
-    """``_rmse_p999`` of an ablation's model (``params`` under ``method_config``) on the run's
+    """``rmse_p999`` of an ablation's model (``params`` under ``method_config``) on the run's
     held-out set."""
     held = run.state["held_out"]
     preds = _predict(rrf.evaluator(params, method_config), run.state["testset"])
-    return _rmse_p999(preds, held.references, held.valid)
+    return rmse_p999(preds, held.references, held.valid)
 
 
 def _rmse(run, params, method_config) -> float:
@@ -124,11 +124,11 @@ def held_out(run) -> HeldOut:
 
 
 def held_out_inputs(config: dict):
-    """(cameras, lightings, testset): the held-out pairs of ``_test_pairs`` and their G-buffers
+    """(cameras, lightings, testset): the held-out pairs of ``held_out_pairs`` and their G-buffers
     (``render_dataset`` at 1 spp)."""
     from jprt.render.dataset import render_dataset
 
-    cameras, lightings = _test_pairs(config)
+    cameras, lightings = held_out_pairs(config)
     testset = render_dataset(config["scene"], cameras, lightings, spp=1, seed=int(config["eval"]["seed"]),
                              gbuffers=True)
     return cameras, lightings, testset
@@ -232,7 +232,7 @@ def four_light_inputs(config: dict) -> PointLights:
     return PointLights.create(latin_hypercube(rng, 4, d["light_lo"], d["light_hi"]), rng.uniform(0.5, 1.5, (4, 3)))
 
 
-def _interleaved(fns: dict, gb, lights: dict, repeats: int) -> dict:
+def interleaved_times(fns: dict, gb, lights: dict, repeats: int) -> dict:
     """Median and fastest wall time (ms) of each jitted function in ``fns`` under each lighting in
     ``lights``, one call at a time in turn (f1 l1, f1 l4, f2 l1, ...) ``repeats`` times after one
     warm-up call each, so that every (function, lighting) sees the same spells of machine load.
@@ -249,13 +249,13 @@ def _interleaved(fns: dict, gb, lights: dict, repeats: int) -> dict:
 def four_lights(run) -> dict:
     """Eq. 9 with four lights at the timing resolution (the first layer's light-free part is
     shared between lights in one leaf), with its roofline, timed interleaved with the one-light
-    frame (``_interleaved``: both see the same machine state, so their ratio is the program's);
+    frame (``interleaved_times``: both see the same machine state, so their ratio is the program's);
     and the G-buffer's time (Mitsuba), with the speedup at equal error counted with it (the paper
     counts without)."""
     host = four_light_inputs(run.config)
     gb, one, four = jax.device_put((run.state["timing_gbuffer"], run.state["lightings"][0], host))
     fast = jax.jit(run.evaluate)
-    timed = _interleaved({"rrf": fast}, gb, {1: one, 4: four}, int(run.config["eval"]["timing_repeats"]))
+    timed = interleaved_times({"rrf": fast}, gb, {1: one, 4: four}, int(run.config["eval"]["timing_repeats"]))
     ms1, ms = timed[("rrf", 1)]["median_ms"], timed[("rrf", 4)]["median_ms"]
     flops = rrf.frame_flops(run.result.params, run.method_config, run.state["timing_gbuffer"], host)
     roof = jeval.roofline(fast, gb, four, frame_ms=ms, flops=flops, peak_gflops=run.summary["matmul_peak_gflops"])
@@ -282,7 +282,7 @@ def split_rule_ablation(run) -> dict:
     """The kd-tree's split rule: the paper's (every axis, ``tree.split_on`` None) against the
     light barred from the splits, whichever the config does not use, same samples. Held-out RMSE
     and 99.9th-percentile error, leaves, and the timing frame with one and four lights for both
-    models, timed interleaved in this stage (``_interleaved``)."""
+    models, timed interleaved in this stage (``interleaved_times``)."""
     if not run.config["eval"]["ablations"]:
         return {}
     mine = run.method_config["tree"].get("split_on")
@@ -294,7 +294,7 @@ def split_rule_ablation(run) -> dict:
     host = (run.state["timing_gbuffer"], run.state["lightings"][0], four_light_inputs(run.config))
     dev = jax.device_put(host)
     fns = {"config": jax.jit(run.evaluate), "other": jax.jit(rrf.evaluator(p, cfg))}
-    timed = _interleaved(fns, dev[0], {1: dev[1], 4: dev[2]}, int(run.config["eval"]["timing_repeats"]))
+    timed = interleaved_times(fns, dev[0], {1: dev[1], 4: dev[2]}, int(run.config["eval"]["timing_repeats"]))
     ms = {key: v["median_ms"] for key, v in timed.items()}
     flops = {n: rrf.frame_flops(p, cfg, host[0], lights) for n, lights in ((1, host[1]), (4, host[2]))}
     splits = np.asarray(p["tree"]["axis"])
@@ -530,10 +530,10 @@ def reference_noise(run) -> dict:
     refs, valid = held.references, held.valid
     second = held_out_references(run.config, run.state["cameras"], run.state["lightings"], run.state["testset"],
                                  NOISE_SEED_OFFSET)[1]
-    rmse, p999 = _rmse_p999([a / math.sqrt(2.0) for a in refs], [b / math.sqrt(2.0) for b in second], valid)
-    fit_rmse, fit_p999 = _rmse_p999(held.predictions, [(a + b) / 2 for a, b in zip(refs, second)], valid)
+    rmse, p999 = rmse_p999([a / math.sqrt(2.0) for a in refs], [b / math.sqrt(2.0) for b in second], valid)
+    fit_rmse, fit_p999 = rmse_p999(held.predictions, [(a + b) / 2 for a, b in zip(refs, second)], valid)
     rng = np.random.default_rng(0)
-    relative = _rmse_p999([a * rng.standard_normal(a.shape) for a in refs], [np.zeros_like(a) for a in refs], valid)
+    relative = rmse_p999([a * rng.standard_normal(a.shape) for a in refs], [np.zeros_like(a) for a in refs], valid)
     out = {"reference_spp": int(run.config["eval"]["reference_spp"]), "rmse": rmse, "p999_abs_error": p999,
            "p999_over_rmse": p999 / rmse, "uniform_relative_error_p999_over_rmse": relative[1] / relative[0],
            "fit_against_mean_of_two": {

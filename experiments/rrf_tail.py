@@ -58,10 +58,10 @@ def abs_errors(preds, refs, valid) -> list[np.ndarray]:
 
 def tail(preds, refs, valid) -> dict:
     """RMSE and 99.9th percentile of |preds - refs| over every valid pixel and channel
-    (``rrf_common._rmse_p999``), and their ratio."""
+    (``rrf_common.rmse_p999``), and their ratio."""
     import rrf_common
 
-    rmse, p999 = rrf_common._rmse_p999(preds, refs, valid)
+    rmse, p999 = rrf_common.rmse_p999(preds, refs, valid)
     return {"rmse": rmse, "p999_abs_error": p999, "p999_over_rmse": p999 / rmse}
 
 
@@ -95,14 +95,14 @@ def timing_inputs(config: dict):
     from jprt.render.gbuffer import gbuffer
     from jprt.render.scenes import SceneHandle
 
-    cameras, lightings = rrf_common._test_pairs(config)
+    cameras, lightings = rrf_common.held_out_pairs(config)
     gb = gbuffer(SceneHandle(config["scene"], lightings[0]), rrf_common.timing_camera(config, cameras))
     return gb, lightings[0], rrf_common.four_light_inputs(config)
 
 
 def timing(evaluate, params, cfg, inputs, repeats: int) -> dict:
     """Median 512^2 frame times with one and four lights, measured interleaved
-    (``rrf_common._interleaved``), and the FLOPs."""
+    (``rrf_common.interleaved_times``), and the FLOPs."""
     import jax
     import rrf_common
 
@@ -110,7 +110,7 @@ def timing(evaluate, params, cfg, inputs, repeats: int) -> dict:
 
     gb, one, four = inputs
     dev = jax.device_put((gb, one, four))
-    timed = rrf_common._interleaved({"rrf": jax.jit(evaluate)}, dev[0], {1: dev[1], 4: dev[2]}, repeats)
+    timed = rrf_common.interleaved_times({"rrf": jax.jit(evaluate)}, dev[0], {1: dev[1], 4: dev[2]}, repeats)
     ms1, ms4 = timed[("rrf", 1)]["median_ms"], timed[("rrf", 4)]["median_ms"]
     f1, f4 = rrf.frame_flops(params, cfg, gb, one), rrf.frame_flops(params, cfg, gb, four)
     return {"frame_ms": ms1, "frame_ms_4lights": ms4, "frame_ms_4lights_over_1light": ms4 / ms1,

@@ -299,7 +299,7 @@ def _midpoints(run):
     nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
     handle = _handle(run)
     points, flags = lf.capture_points(handle, pos, nrm, float(a["texel_size"]))
-    spec = {"format": 1, "scene": run.config["scene"], "points": lf._digest(points, nrm), "size": int(c["size"]),
+    spec = {"format": 1, "scene": run.config["scene"], "points": lf.atlas_digest(points, nrm), "size": int(c["size"]),
             "spp": int(c["spp"]), "seed": int(c["seed"]) + 104729}
     maps, _ = cache.cached("lightfield_midpoints", spec, lambda: lf.capture_block(
         handle, points, nrm, flags, int(c["size"]), spp=int(c["spp"]), seed=spec["seed"]))
@@ -400,7 +400,7 @@ def environment_visibility(run) -> dict:
     texture = {"axes": stored.axes, "sharpness": stored.sharpness, "amplitude": stored.amplitude,
                "fill_index": np.asarray(ed.atlas["fill_index"])}
     raw = atlas_image(np.asarray(ed.images).reshape(len(ed.images), -1), np.asarray(ed.atlas["fill_index"]))
-    eps = lightmap._eps(handle)
+    eps = lightmap.ray_offset(handle)
     m, size = ed.visible.shape[1], ed.images.shape[1]
     lit = np.asarray(ed.visible)[..., None] * env.octahedral_environment(ed.environment, m)[None]  # V L per texel
     lit_table = atlas_image(lit.reshape(len(lit), -1), np.asarray(ed.atlas["fill_index"]))
@@ -415,7 +415,7 @@ def environment_visibility(run) -> dict:
         w = env.evaluate_lobes(sgm.lookup_lobes(texture, g.uv), r)
         w_raw = np.asarray(jax.vmap(env.octahedral_lookup)(
             np.asarray(atlas_lookup(raw, g.uv)).reshape(-1, size, size, 3), r.reshape(-1, 3))).reshape(r.shape)
-        hit = lightmap._intersect(handle, (g.position + eps * g.normal).reshape(-1, 3), r.reshape(-1, 3))
+        hit = lightmap.intersect(handle, (g.position + eps * g.normal).reshape(-1, 3), r.reshape(-1, 3))
         v_r = (~np.array(hit.is_valid(), bool)).reshape(r.shape[:2] + (1,)).astype(np.float32)
         for name, vis in (("we", w), ("we_raw", w_raw), ("reflected_visibility", v_r), ("no_visibility", 1.0)):
             img = env.shade_environment(u, vis, g.normal, g.view, g.roughness, g.specular_albedo)

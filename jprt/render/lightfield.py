@@ -39,7 +39,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from jprt import cache
-from jprt.render.lightmap import Atlas, _eps, _intersect, build_atlas, free_positions
+from jprt.render.lightmap import Atlas, ray_offset, intersect, build_atlas, free_positions
 from jprt.render.scenes import SceneHandle, describe
 
 __all__ = ["LightField", "Visibility", "OK", "PUSHED", "INSIDE", "capture_points", "capture_block", "capture_lightfield",
@@ -76,7 +76,7 @@ class LightField(NamedTuple):
     meta: dict
 
 
-def _digest(*arrays) -> str:
+def atlas_digest(*arrays) -> str:
     """SHA-256 of arrays' float32 bytes (the atlas part of a capture's cache key)."""
     import hashlib
 
@@ -102,7 +102,7 @@ def capture_points(handle: SceneHandle, position, normal, texel_size: float, *,
     (T, 3) and flags (T,) (OK, PUSHED, INSIDE)."""
     position = np.asarray(position, np.float64).reshape(-1, 3)
     normal = np.asarray(normal, np.float64).reshape(-1, 3)
-    eps = _eps(handle)
+    eps = ray_offset(handle)
     if not np.isfinite(eps) or eps <= 0:  # a scene without geometry has no scale
         eps = 1e-4
     points = position + eps * normal
@@ -123,7 +123,7 @@ def capture_points(handle: SceneHandle, position, normal, texel_size: float, *,
 
 def _distance_along(handle: SceneHandle, origins, directions) -> np.ndarray:
     """Distance (K,) to the first surface along each ray (inf where none)."""
-    si = _intersect(handle, origins, directions)
+    si = intersect(handle, origins, directions)
     valid = np.array(si.is_valid(), bool).reshape(-1)
     return np.where(valid, np.array(si.t, np.float64).reshape(-1), np.inf)
 
@@ -225,7 +225,7 @@ def capture_lightfield(scene, lighting=None, *, objects: Sequence[str] | None = 
 
     desc, handle, a, points, flags = _setup(scene, lighting, objects, resolution, atlas)
     base = {"format": 1, "scene": desc, "lighting": lighting_description(lighting) if lighting is not None else None,
-            "atlas": _digest(a["position"], a["normal"]),
+            "atlas": atlas_digest(a["position"], a["normal"]),
             "size": int(size), "spp": int(spp), "seed": int(seed), **({"jitter": True} if jitter else {})}
     t0 = time.perf_counter()
 
@@ -278,7 +278,7 @@ def visibility_block(handle: SceneHandle, points, normal, flags, size: int, *, s
         above = ((normal @ dirs.T) > 0.0) & active[:, None]
         rows, cols = np.nonzero(above)
         if len(rows):
-            si = _intersect(handle, points[rows], dirs[cols])
+            si = intersect(handle, points[rows], dirs[cols])
             visible[rows, cols] += ~np.array(si.is_valid(), bool).reshape(-1)
     visible /= max(int(samples), 1)
     shape = (len(points), n, n)
@@ -293,7 +293,7 @@ def capture_visibility(scene, *, objects: Sequence[str] | None = None, resolutio
     uses: ``size`` x ``size`` octahedral maps, ``samples`` jittered rays per pixel. Cached per
     block of texels like the light field (resumable)."""
     desc, handle, a, points, flags = _setup(scene, None, objects, resolution, atlas)
-    base = {"format": 1, "kind": "visibility", "scene": desc, "atlas": _digest(a["position"], a["normal"]),
+    base = {"format": 1, "kind": "visibility", "scene": desc, "atlas": atlas_digest(a["position"], a["normal"]),
             "size": int(size), "samples": int(samples), "seed": int(seed)}
     t0 = time.perf_counter()
 

@@ -560,7 +560,7 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
 # Per-pixel atlas coordinates
 
 
-def _intersect(handle: SceneHandle, origins, directions):
+def intersect(handle: SceneHandle, origins, directions):
     """Mitsuba's first intersections (``SurfaceInteraction3f``) of rays (N, 3) x (N, 3), in float32."""
     mi = handle.mi
     o, d = np.asarray(origins, np.float32), np.asarray(directions, np.float32)
@@ -569,7 +569,7 @@ def _intersect(handle: SceneHandle, origins, directions):
 
 
 def _primitive_hits(handle: SceneHandle, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    si = _intersect(handle, origins, directions)
+    si = intersect(handle, origins, directions)
     prim = np.array(si.prim_index, np.int64).reshape(-1)
     return np.where(np.array(si.is_valid(), bool).reshape(-1), prim, -1)
 
@@ -616,7 +616,7 @@ def surface_samples(handle: SceneHandle, n: int, *, objects: Sequence[str | int]
     bary = np.column_stack([1 - s, s * (1 - r2), s * r2])
     position = np.einsum("ni,nij->nj", bary, all_tris[pick])
     normal = _orient(handle, owner[pick], position, _geometric_normals(all_tris)[pick])
-    eps = _eps(handle)
+    eps = ray_offset(handle)
     gb = gbuffer_rays(handle, position + eps * normal, -normal)
     return SurfacePoints(position.astype(np.float32), normal.astype(np.float32), gb.diffuse_albedo,
                          owner[pick], float(area.sum()))
@@ -691,8 +691,8 @@ def _orient(handle: SceneHandle, object_id, position, normal, n_dirs: int = 16) 
         x /= np.linalg.norm(x, axis=1, keepdims=True)
         y = np.cross(z, x)
         d = local[None, :, 0:1] * x[:, None] + local[None, :, 1:2] * y[:, None] + local[None, :, 2:3] * z[:, None]
-        o = np.repeat(p + _eps(handle) * z, n_dirs, axis=0)
-        si = _intersect(handle, o, d.reshape(-1, 3))
+        o = np.repeat(p + ray_offset(handle) * z, n_dirs, axis=0)
+        si = intersect(handle, o, d.reshape(-1, 3))
         t = np.where(np.array(si.is_valid(), bool).reshape(-1), np.array(si.t, np.float64).reshape(-1), np.inf)
         hit = _hit_objects(handle, si)
         other = (hit >= 0) & (hit != np.repeat(object_id[sel], n_dirs))
@@ -704,7 +704,9 @@ def _orient(handle: SceneHandle, object_id, position, normal, n_dirs: int = 16) 
     return out.astype(np.asarray(normal).dtype)
 
 
-def _eps(handle: SceneHandle) -> float:
+def ray_offset(handle: SceneHandle) -> float:
+    """How far along the normal a secondary ray starts off a surface point, so it does not hit
+    the surface it leaves: 1e-4 of the diagonal of the scene's bounding box."""
     box = handle.scene.bbox()
     return 1e-4 * float(np.linalg.norm(np.array(box.max) - np.array(box.min)))
 
@@ -719,7 +721,7 @@ def radiance_at_points(handle: SceneHandle, position, normal, *, spp: int, seed:
     """
     position = np.asarray(position, np.float64)
     normal = np.asarray(normal, np.float64)
-    eps = _eps(handle)
+    eps = ray_offset(handle)
     return images.radiance_rays(handle, position + eps * normal, -normal, spp=spp, seed=seed, max_depth=max_depth)
 
 
@@ -727,7 +729,7 @@ def indirect_at_points(handle: SceneHandle, position, normal, *, spp: int, seed:
     """Indirect outgoing radiance (S, 3) at surface points: full minus direct with equal seeds."""
     position = np.asarray(position, np.float64)
     normal = np.asarray(normal, np.float64)
-    eps = _eps(handle)
+    eps = ray_offset(handle)
     return images.indirect_rays(handle, position + eps * normal, -normal, spp=spp, seed=seed).indirect
 
 
@@ -771,7 +773,7 @@ def free_positions(handle: SceneHandle, points, *, clearance: float = 0.0, n_dir
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     o = np.repeat(pts, len(dirs), axis=0)
     d = np.tile(dirs, (len(pts), 1))
-    si = _intersect(handle, o, d)
+    si = intersect(handle, o, d)
     valid = np.array(si.is_valid(), bool).reshape(-1)
     n = np.array(si.n, np.float64)
     n = (n.T if n.shape[0] == 3 and n.ndim == 2 else n).reshape(-1, 3)

@@ -731,7 +731,8 @@ def _present_faces(lay: layouts.Layout) -> list:
     return [[True, True] + [k not in b.open_sides for k in range(4)] for b in lay.blocks]
 
 
-def _texels_of(albedo: np.ndarray) -> tuple[int, int]:
+def texels_of(albedo: np.ndarray) -> tuple[int, int]:
+    """(blocks B, texels per face side n) of a per-texel array (B, 6 n^2, ...)."""
     b, n = albedo.shape[:2]
     return b, int(round(np.sqrt(n // 6)))
 
@@ -750,7 +751,7 @@ def fit(data: MRTData, config: dict | None = None) -> FitResult:
     params = {k: v for k, v in lay.items() if k not in ("tbr_build_s", "kind", "turns")}
     params["albedo"] = np.asarray(data.albedo, np.float32)
     params.update(level_feedback(params, data.albedo))
-    b, t = _texels_of(data.albedo)
+    b, t = texels_of(data.albedo)
     res, texel_index, fill = atlas_layout(b, t)
     params["texel_index"] = texel_index.astype(np.int32)
     params["fill_index"] = fill.astype(np.int32)
@@ -762,7 +763,9 @@ def fit(data: MRTData, config: dict | None = None) -> FitResult:
     return FitResult(params, info)
 
 
-_RUNTIME_KEYS = ("T_db", "U_b", "mask", "rec_src", "rec_dst", "rec_side", "rec_T", "U_r_turned", "W", "V")
+#: The transport operators ``lightmap_parts`` applies at run time (the evaluator also reads
+#: ``albedo`` and ``fill_index``; the rest of ``params`` serves fitting and reports).
+RUNTIME_KEYS = ("T_db", "U_b", "mask", "rec_src", "rec_dst", "rec_side", "rec_T", "U_r_turned", "W", "V")
 
 
 def evaluator(params: dict, config: dict | None = None):
@@ -777,7 +780,7 @@ def evaluator(params: dict, config: dict | None = None):
     Numerics: not differentiable (builds the float32 run-time program; its arithmetic is ``lightmap``'s, covered).
     """
     cfg = _cfg(config)
-    arrays = {k: jnp.asarray(params[k]) for k in _RUNTIME_KEYS}
+    arrays = {k: jnp.asarray(params[k]) for k in RUNTIME_KEYS}
     albedo = jnp.asarray(params["albedo"])
     fill = jnp.asarray(params["fill_index"])
     b, n = albedo.shape[:2]
@@ -824,7 +827,7 @@ def atlas_gbuffer_inputs(albedo) -> GBuffer:
     from jprt.methods.atlas import atlas_inputs
 
     alb = np.asarray(albedo, np.float32)
-    b, t = _texels_of(alb)
+    b, t = texels_of(alb)
     res, texel_index, _ = atlas_layout(b, t)
     g = atlas_inputs(res, texel_index)
     img = np.zeros((res * res, 3), np.float32)

@@ -250,7 +250,7 @@ def propagation(rays, spatial: int, directional: int) -> dict[int, sparse.csr_ma
 # Higher-order irradiance (§6.4) and irradiance volumes (§6.5)
 
 
-def _sh9(d) -> np.ndarray:
+def sh9(d) -> np.ndarray:
     """Real SH up to l = 2 (the order of ``jprt.sphere.sh``: l = 0; l = 1 m = -1, 0, 1; l = 2
     m = -2 .. 2) at unit directions (..., 3) -> (..., 9)."""
     from jprt.sphere import sh
@@ -258,7 +258,7 @@ def _sh9(d) -> np.ndarray:
     return np.asarray(sh.evaluate(np.asarray(d, np.float64), 2), np.float64)
 
 
-def _sphere_dirs(k: int, hemisphere: bool):
+def sphere_directions(k: int, hemisphere: bool):
     """k x k (hemisphere: about +z) or k x 2k (sphere) equal-solid-angle stratified directions
     and their weights."""
     nu, nv = k, (k if hemisphere else 2 * k)
@@ -278,8 +278,8 @@ def hemisphere_sh(t: int, directions: int = 16) -> np.ndarray:
     (tangent u, tangent v, normal = +z), of the radiance the texel sees over its hemisphere
     (zero below it) from surface radiance l on the block's texels."""
     pos, normal, face = layouts.texel_centres(t)
-    d_loc, w = _sphere_dirs(int(directions), hemisphere=True)
-    y = _sh9(d_loc) * w[:, None]  # (D, 9)
+    d_loc, w = sphere_directions(int(directions), hemisphere=True)
+    y = sh9(d_loc) * w[:, None]  # (D, 9)
     out = np.zeros((len(pos), 9, len(pos)))
     for i in range(len(pos)):
         frame = np.stack([layouts.FACE_U[face[i]], layouts.FACE_V[face[i]], normal[i]])  # rows
@@ -293,8 +293,8 @@ def hemisphere_sh(t: int, directions: int = 16) -> np.ndarray:
 def volume_sh(t: int, points, directions: int = 12) -> np.ndarray:
     """(P, 9, n) linear operator: quadratic SH (block frame) of the radiance arriving at points
     inside the block from surface radiance l on its texels (§6.5's probes)."""
-    d, w = _sphere_dirs(int(directions), hemisphere=False)
-    y = _sh9(d) * w[:, None]
+    d, w = sphere_directions(int(directions), hemisphere=False)
+    y = sh9(d) * w[:, None]
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     out = np.zeros((len(pts), 9, layouts.texel_count(t)))
     for i, p in enumerate(pts):
@@ -310,8 +310,8 @@ def volume_lightfield_sh(points, directions: int, spatial: int, directional: int
     a block turned so that ``side`` is its side 0, as ``propagation`` and ``entry_response``
     use): each direction whose ray leaves through that side reads the entering cell of the
     opposite ray."""
-    d, w = _sphere_dirs(int(directions), hemisphere=False)
-    y = _sh9(d) * w[:, None]
+    d, w = sphere_directions(int(directions), hemisphere=False)
+    y = sh9(d) * w[:, None]
     turn = (4 - int(side)) % 4
     pts = layouts.rotate_points(np.asarray(points, np.float64).reshape(-1, 3), turn)
     dc = layouts.rotate_directions(d, turn)

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from jprt.methods.sg_environment.model import _cfg, preconvolved
+from jprt.methods.base import resolve
+from jprt.methods.sg_environment.model import DEFAULT_CONFIG, preconvolved
 
 __all__ = ["make_dataset", "TASK_LIGHTINGS", "VIEW_LIGHTINGS", "PREDICTS", "task_inputs", "task_lighting",
            "view_environments"]
@@ -29,7 +30,7 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
     ``config['scene']``) under ``config['environment']``: an ``EnvData``."""
     from jprt.methods.sg_lightfield.data import make_environment_dataset
 
-    cfg = _cfg(config)
+    cfg = resolve(DEFAULT_CONFIG, config)
     parts = {"objects": list(cfg["objects"]), "lightmap": dict(cfg["lightmap"]),
              "capture": {"block": cfg["capture"]["block"]}}
     return make_environment_dataset(parts, cfg["environment"], scene=scene if scene is not None else cfg["scene"],
@@ -58,7 +59,7 @@ def view_environments(dataset, config, face: int = 32) -> dict:
     two seeded synthetic skies (no files needed)."""
     from jprt.methods.wavelet_prt.model import prepare_environment, synthetic_environments
 
-    cfg = _cfg(config)
+    cfg = resolve(DEFAULT_CONFIG, config)
     out = {str(cfg["environment"]["map"]): prepare_environment(np.asarray(dataset.environment), face, normalise=False)}
     for i, cube in enumerate(synthetic_environments(2, face, seed=int(cfg["environment"]["seed"]) + 101)):
         out[f"synthetic sky {i + 1}"] = np.asarray(cube, np.float32)

@@ -112,7 +112,7 @@ def evaluator(params, config: dict | None = None, *, tile: int = sgm.TILE):
     """
     _cfg(config)
     n = params["sharpness"].shape[-1]
-    table = sgm._lobe_table(params)
+    table = sgm.lobe_table(params)
     tile = int(tile)
 
     def shade(table, u, alphas, uv, normal, view, roughness, specular):
@@ -121,7 +121,7 @@ def evaluator(params, config: dict | None = None, *, tile: int = sgm.TILE):
         r = 2.0 * jnp.sum(normal * view, axis=-1, keepdims=True) * normal - view
         # Eq. 1 at w_r on the fetched (..., N) planes (``environment.evaluate_lobes`` on (..., N, 3)
         # vectors is the same sum; planes keep XLA's fusions per tile, as in the light-field run time)
-        ux, uy, uz, lam, *amp = sgm._planes(atlas_lookup(table, uv), n)
+        ux, uy, uz, lam, *amp = sgm.lobe_planes(atlas_lookup(table, uv), n)
         cos = (ux * r[..., 0:1] + uy * r[..., 1:2] + uz * r[..., 2:3]) * jax.lax.rsqrt(
             jnp.maximum(ux * ux + uy * uy + uz * uz, 1e-20))
         weight = jnp.exp(lam * (cos - 1.0))

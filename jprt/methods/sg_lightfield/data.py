@@ -10,7 +10,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jprt.methods.sg_lightfield.model import GLOSSY_RECEIVERS, SGData, _cfg, texel_irradiance
+from jprt.methods.base import resolve
+from jprt.methods.sg_lightfield.model import DEFAULT_CONFIG, GLOSSY_RECEIVERS, SGData, texel_irradiance
 from jprt.progress import say
 
 __all__ = ["make_dataset", "self_check", "TASK_LIGHTINGS", "ENV_RECEIVERS", "ENV_DEFAULTS", "EnvData", "load_environment",
@@ -28,7 +29,7 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
     ``INSIDE`` flag and zero maps (the fit sees them as black, the run time never looks them up)."""
     from jprt.render.lightfield import capture_lightfield
 
-    cfg = _cfg(config)
+    cfg = resolve(DEFAULT_CONFIG, config)
     c = cfg["capture"]
     if c["field"] not in ("indirect", "full"):
         raise ValueError(f"capture.field must be 'indirect' or 'full', got {c['field']!r}")
@@ -62,7 +63,7 @@ def _check(scene, lf, c: dict, *, cache_dir: str | None, progress: bool | None) 
     import time
 
     from jprt import cache
-    from jprt.render.lightfield import INSIDE, _digest, capture_block
+    from jprt.render.lightfield import INSIDE, atlas_digest, capture_block
     from jprt.render.scenes import SceneHandle, describe
 
     desc = describe(scene)
@@ -70,7 +71,7 @@ def _check(scene, lf, c: dict, *, cache_dir: str | None, progress: bool | None) 
     seed, size, spp, jitter = int(c["seed"]), int(lf.size), int(c["spp"]), bool(c["jitter"])
     free = np.flatnonzero(np.asarray(lf.flags) != INSIDE)
     n = min(int(c["check_texels"]), max(1, len(free) // 10), len(free))
-    spec = {"format": 1, "scene": desc, "atlas": _digest(a["position"], a["normal"]), "size": size, "spp": spp,
+    spec = {"format": 1, "scene": desc, "atlas": atlas_digest(a["position"], a["normal"]), "size": size, "spp": spp,
             "seed": seed, "jitter": jitter, "texels": n, "views": CHECK_VIEWS}
 
     def build() -> dict:
@@ -121,7 +122,7 @@ def self_check(dataset: SGData, result, config: dict | None = None) -> dict:
     from jprt.methods.atlas import atlas_inputs
     from jprt.methods.sg_lightfield.model import evaluator, shade_quadrature
 
-    cfg = _cfg(config)
+    cfg = resolve(DEFAULT_CONFIG, config)
     check = dataset.meta.get("check")
     if check is None or not len(check["index"]):
         return selfcheck.result("sg_lightfield", {}, float("nan"), None,
@@ -246,7 +247,7 @@ def make_environment_dataset(config: dict | None = None, environment: dict | Non
     from jprt.render.lightfield import capture_visibility
     from jprt.render.scenes import SceneHandle, describe
 
-    cfg = _cfg(config)
+    cfg = resolve(DEFAULT_CONFIG, config)
     e = {**ENV_DEFAULTS, **(environment or {})}
     desc = describe(scene if scene is not None else ENV_RECEIVERS)
     radiance = load_environment(e)

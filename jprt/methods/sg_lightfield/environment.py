@@ -18,7 +18,7 @@ Glossy reflection of a distant environment L_E with visibility V (Eq. 3) is appr
   of r, W_E follows the visibility's own shape (for a mirror it is V(r)), which lobes fit well.
   Directions r below the surface (so is w_o) are masked like the light field's.
 * ``shade_environment``: Eq. 8 with the same G, F and n.l factor as the light-field shading
-  (``model._glossy_factor``) and the Jacobian factor n . w_o that Eq. 8 as printed lacks (its
+  (``model.glossy_factor``) and the Jacobian factor n . w_o that Eq. 8 as printed lacks (its
   docstring; an erratum found here), W_E from SG lobes (``model.Lobes``, fitted by the same CNN) or any
   other estimate of the visibility term: ``reflected_visibility`` (visibility tested along w_r
   alone, the paper's Fig. 4 leak) and 1 (no visibility) are the comparisons.
@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jprt.methods.sg_lightfield.model import _glossy_factor, ggx_ndf
+from jprt.methods.sg_lightfield.model import glossy_factor, ggx_ndf
 from jprt.sphere import octahedral
 
 __all__ = ["ggx_ndf", "octahedral_environment", "preconvolve", "weighted_visibility", "lookup_preconvolved",
@@ -175,5 +175,5 @@ def shade_environment(u_r, visibility, normal, view, roughness, specular):
     normal, view = jnp.asarray(normal), jnp.asarray(view)
     ndotv = jnp.sum(normal * view, axis=-1, keepdims=True)
     r = 2.0 * ndotv * normal - view
-    return _glossy_factor(jnp.asarray(u_r) * jnp.clip(ndotv, 0.0, 1.0) * jnp.asarray(visibility), r, normal, view,
+    return glossy_factor(jnp.asarray(u_r) * jnp.clip(ndotv, 0.0, 1.0) * jnp.asarray(visibility), r, normal, view,
                           jnp.maximum(jnp.asarray(roughness), 1e-3), specular)

@@ -314,7 +314,7 @@ def _ggx_v1_cos(m2, ndotx):
     return jnp.where(ndotx > 0.0, 1.0 / (1.0 + jnp.sqrt(1.0 - m2 + m2 / (safe * safe))), 0.0)
 
 
-def _glossy_factor(conv, wi, normal, view, roughness, specular):
+def glossy_factor(conv, wi, normal, view, roughness, specular):
     """The convolved lobes (..., 3) times Smith's G (the V = G / (4 n.l n.v) form), Schlick's
     Fresnel and n.l, all at the reflected view direction ``wi`` (Pettineo 2016)."""
     # clamped below only (a clip at 1 zeroes the derivative at normal incidence)
@@ -354,7 +354,7 @@ def shade(lobes: Lobes, normal, view, roughness, specular, diffuse_albedo, irrad
     warped = sg.ASG(asg.x[..., None, :], asg.y[..., None, :], asg.z[..., None, :], sx, sy, 1.0)
     per_lobe = scale * sg.asg_evaluate(lobes.axes, warped)  # (..., N)
     conv = jnp.sum(per_lobe[..., None] * lobes.amplitude, axis=-2)  # (..., 3)
-    return _glossy_factor(conv, asg.z, normal, view, roughness, specular) + \
+    return glossy_factor(conv, asg.z, normal, view, roughness, specular) + \
         jnp.asarray(diffuse_albedo) / jnp.pi * jnp.asarray(irradiance)
 
 
@@ -503,7 +503,7 @@ def storage_params(lobes: Lobes, data: SGData, dtype=jnp.float16, max_sharpness:
     return params
 
 
-def _lobe_table(params):
+def lobe_table(params):
     """Every atlas pixel's texture packed plane by plane as one (R, R, 7N [+ 3]) float32 image
     (gutters filled): axis x, y, z, sharpness, amplitude r, g, b (N channels each), then the
     irradiance when ``params`` has it. One bilinear fetch reads a pixel's whole texture."""
@@ -518,8 +518,8 @@ def _lobe_table(params):
     return atlas_image(jnp.concatenate(planes, axis=-1), jnp.asarray(params["fill_index"]))
 
 
-def _planes(at, n: int) -> tuple:
-    """Fetched ``_lobe_table`` texels (..., 7N [+ 3]) as seven (..., N) planes [and the irradiance]."""
+def lobe_planes(at, n: int) -> tuple:
+    """Fetched ``lobe_table`` texels (..., 7N [+ 3]) as seven (..., N) planes [and the irradiance]."""
     out = tuple(at[..., k * n:(k + 1) * n] for k in range(7))
     return out + ((at[..., 7 * n:],) if at.shape[-1] > 7 * n else ())
 
@@ -530,14 +530,14 @@ def lookup_lobes(params, uv) -> Lobes:
 
     Numerics: not differentiable (reads the float16 run-time storage; bilinear filtering in float32 by design).
     """
-    return _table_lobes(_lobe_table(params), uv, params["sharpness"].shape[-1])
+    return _table_lobes(lobe_table(params), uv, params["sharpness"].shape[-1])
 
 
 def _table_lobes(table, uv, n: int) -> Lobes:
-    """``lookup_lobes`` in a packed ``_lobe_table`` of ``n`` lobes per texel."""
+    """``lookup_lobes`` in a packed ``lobe_table`` of ``n`` lobes per texel."""
     from jprt.methods.atlas import atlas_lookup
 
-    p = _planes(atlas_lookup(table, jnp.asarray(uv, jnp.float32)), n)
+    p = lobe_planes(atlas_lookup(table, jnp.asarray(uv, jnp.float32)), n)
     axes = jnp.stack(p[0:3], axis=-1)
     axes = axes / jnp.sqrt(jnp.maximum(jnp.sum(axes * axes, axis=-1, keepdims=True), 1e-20))
     return Lobes(axes, p[3], jnp.stack(p[4:7], axis=-1))
@@ -556,7 +556,7 @@ def _warped_convolution(cos_v, r2, nu):
 
 
 def _shade_planes(at, normal, view, roughness, specular, diffuse_albedo):
-    """``shade`` for fetched texels as planes (``_planes``: seven (..., N), the irradiance
+    """``shade`` for fetched texels as planes (``lobe_planes``: seven (..., N), the irradiance
     (..., 3)): the same Eq. 15-24 arithmetic (``sg.convolve_sg_asg`` of each lobe with the warped
     NDF, axes renormalised after filtering), written on (..., N) planes; equal to ``shade`` of
     ``lookup_lobes`` to float rounding (tested)."""
@@ -573,7 +573,7 @@ def _shade_planes(at, normal, view, roughness, specular, diffuse_albedo):
     vx, vy, vz = dot(asg.x), dot(asg.y), dot(asg.z)
     per_lobe = scale * jnp.maximum(vz, 0.0) * jnp.exp(-sx * vx * vx - sy * vy * vy)
     conv = jnp.stack([jnp.sum(per_lobe * a, axis=-1) for a in at[4:7]], axis=-1)
-    return _glossy_factor(conv, asg.z, normal, view, roughness, specular) + diffuse_albedo / jnp.pi * at[7]
+    return glossy_factor(conv, asg.z, normal, view, roughness, specular) + diffuse_albedo / jnp.pi * at[7]
 
 
 #: Pixels per tile of the evaluator's loop (see ``evaluator``).
@@ -625,13 +625,13 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     from jprt.methods.atlas import atlas_lookup
 
     n = params["sharpness"].shape[-1]
-    table = _lobe_table(params)
+    table = lobe_table(params)
     tile = int(tile)
 
     @jax.jit
     def _evaluate(table, inputs, scale):
         def shade_tile(uv, normal, view, roughness, specular, diffuse):
-            at = _planes(atlas_lookup(table, uv), n)
+            at = lobe_planes(atlas_lookup(table, uv), n)
             return _shade_planes(at, normal, view, roughness, specular, diffuse)
 
         out = map_tiles(shade_tile, (inputs.uv, inputs.normal, inputs.view, inputs.roughness, inputs.specular_albedo,
