@@ -18,5 +18,5 @@ PRESETS = {
 
 METHOD = Method.of_package(
     "datadriven",
-    "Belcour, Deliot, Barbier, Soler 2022, A Data-Driven Approach to Precomputed Radiance Transfer",
+    "Belcour, Deliot, Barbier, Soler 2022, A Data-Driven Paradigm for Precomputed Radiance Transfer",
     PointRadiance, model, data, PRESETS)

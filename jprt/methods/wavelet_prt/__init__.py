@@ -24,6 +24,6 @@ PRESETS = {
 
 METHOD = Method.of_package(
     "wavelet_prt",
-    "Raghavan, Luan, Ramamoorthi, Hasan 2023, Neural Free-Viewpoint Relighting for Glossy Indirect "
+    "Raghavan, Xiao, Lin, Sun, Bi, Xu, Li, Ramamoorthi 2023, Neural Free-Viewpoint Relighting for Glossy Indirect "
     "Illumination",
     CubeMap, model, data, PRESETS)
