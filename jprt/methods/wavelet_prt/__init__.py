@@ -24,6 +24,6 @@ PRESETS = {
 
 METHOD = Method.of_package(
     "wavelet_prt",
-    "Raghavan, Xiao, Lin, Sun, Bi, Xu, Li, Ramamoorthi 2023, Neural Free-Viewpoint Relighting for Glossy Indirect "
-    "Illumination",
+    "Raghavan, Xiao, Lin, Sun, Bi, Xu, Li, Ramamoorthi 2023, "
+    "Neural Free-Viewpoint Relighting for Glossy Indirect Illumination",
     CubeMap, model, data, PRESETS)
