@@ -233,20 +233,19 @@ class EnvMap(NamedTuple):
 
     @classmethod
     def from_file(cls, path: str) -> "EnvMap":
-        """Load an HDR/EXR equirect map (Radiance .hdr through Mitsuba's Bitmap, .exr through jprt.io)."""
+        """Load an equirect map from a Radiance .hdr (``jprt.io.read_hdr``, equal to Mitsuba's
+        Bitmap bit for bit) or an .exr file (``jprt.io.read_exr``); no Mitsuba needed."""
         import os
+
+        from jprt import io
 
         if not os.path.exists(path):
             raise FileNotFoundError(f"environment map not found: {path}")
         if path.lower().endswith(".exr"):
-            from jprt import io
-
             return cls.create(io.read_exr(path, channels="RGB"))
-        from jprt.render.setup import mitsuba
-
-        mi = mitsuba()
-        bitmap = mi.Bitmap(path).convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
-        return cls.create(np.array(bitmap))
+        if path.lower().endswith((".hdr", ".rgbe", ".pic")):
+            return cls.create(io.read_hdr(path))
+        raise ValueError(f"environment map {path}: read .hdr (Radiance RGBE) or .exr files")
 
 
 class CubeMap(NamedTuple):

@@ -1,4 +1,5 @@
-"""Files: EXR images (OpenEXR), tonemapped PNG previews, pytree checkpoints. Every write is atomic.
+"""Files: EXR images (OpenEXR), Radiance HDR images (read only), tonemapped PNG previews, pytree
+checkpoints. Every write is atomic.
 
 Atomic means: data goes to a temporary file in the destination folder, is flushed and fsync-ed,
 and is renamed over the destination (``os.replace``), so a reader sees the old file or the new
@@ -24,6 +25,7 @@ __all__ = [
     "write_json",
     "write_exr",
     "read_exr",
+    "read_hdr",
     "exr_channels",
     "write_png",
     "preview_pixels",
@@ -150,6 +152,65 @@ def read_exr(path: str, channels: str | Sequence[str] | None = "RGB", dtype=np.f
     if missing:
         raise ValueError(f"EXR file {path} has channels {sorted(data)}, missing requested {missing}")
     return np.stack([np.asarray(data[n], dtype) for n in names], axis=-1)
+
+
+def read_hdr(path: str) -> np.ndarray:
+    """Read a Radiance RGBE image (.hdr) as an (H, W, 3) float32 linear RGB array.
+
+    A pixel (r, g, b, e) is (r, g, b) * 2^(e - 136) (0 where e = 0), the decoding of Walter's
+    rgbe.c that Mitsuba's Bitmap uses, so the arrays equal Mitsuba's bit for bit. Scanlines are
+    run-length encoded (the usual form) or flat; the resolution line must be ``-Y H +X W`` (rows
+    from the top, the usual orientation).
+
+    Raises:
+      FileNotFoundError: no such file.
+      ValueError: not an RGBE file, another orientation, or a damaged scanline (one line).
+    """
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"HDR file not found: {path}")
+    with open(path, "rb") as f:
+        data = f.read()
+    if not data.startswith((b"#?RADIANCE", b"#?RGBE")):
+        raise ValueError(f"{path} is not a Radiance HDR file (no #?RADIANCE header)")
+    end = data.find(b"\n\n")
+    if end < 0:
+        raise ValueError(f"{path}: the HDR header does not end")
+    fmt = re.search(r"^FORMAT=(\S+)", data[:end].decode("latin-1"), re.M)
+    if fmt and fmt.group(1) != "32-bit_rle_rgbe":
+        raise ValueError(f"{path}: HDR format {fmt.group(1)}, only 32-bit_rle_rgbe is read")
+    line_end = data.find(b"\n", end + 2)
+    size = data[end + 2:line_end].decode("latin-1").split()
+    if len(size) != 4 or size[0] != "-Y" or size[2] != "+X":
+        raise ValueError(f"{path}: HDR resolution line {' '.join(size)!r}; only '-Y H +X W' is read")
+    height, width = int(size[1]), int(size[3])
+    buf = np.frombuffer(data, np.uint8, offset=line_end + 1)
+    rgbe = np.empty((height, width, 4), np.uint8)
+    pos = 0
+    try:
+        for y in range(height):
+            if width < 8 or width > 0x7FFF or not (buf[pos] == 2 and buf[pos + 1] == 2 and buf[pos + 2] < 0x80):
+                # not run-length encoded: the rest of the file is flat pixels
+                rgbe[y:] = buf[pos:pos + (height - y) * width * 4].reshape(height - y, width, 4)
+                break
+            if (int(buf[pos + 2]) << 8 | int(buf[pos + 3])) != width:
+                raise ValueError(f"{path}: scanline {y} is not {width} pixels long")
+            pos += 4
+            for c in range(4):  # each channel of the scanline: runs (count > 128) and literal spans
+                x = 0
+                while x < width:
+                    count = int(buf[pos])
+                    run = count > 128
+                    count -= 128 if run else 0
+                    if count == 0 or x + count > width:
+                        raise ValueError(f"{path}: a bad run length in scanline {y}")
+                    rgbe[y, x:x + count, c] = buf[pos + 1] if run else buf[pos + 1:pos + 1 + count]
+                    pos += 2 if run else 1 + count
+                    x += count
+    except (IndexError, ValueError) as e:  # a truncated file ends inside a scanline
+        raise ValueError(str(e) if str(e).startswith(path) else f"{path}: the HDR pixels end early") from None
+    exponent = rgbe[..., 3:4].astype(np.int32)
+    rgb = np.ldexp(rgbe[..., :3].astype(np.float32), exponent - 136).astype(np.float32)
+    return np.where(exponent > 0, rgb, np.float32(0.0))
 
 
 # --------------------------------------------------------------------------------------------

@@ -100,3 +100,76 @@ def test_checkpoint_round_trip_and_mismatch(tmp_path):
                                        "scale": np.float64(0)})
     with pytest.raises(FileNotFoundError):
         io.load_checkpoint(str(tmp_path / "missing.npz"), like=tree)
+
+
+def _rgbe_file(path, rgbe: np.ndarray, *, rle: bool) -> None:
+    """A Radiance file of (H, W, 4) RGBE bytes: run-length encoded per channel (a run for each
+    repeated value, literal spans otherwise) or flat."""
+    h, w = rgbe.shape[:2]
+    out = bytearray(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n" + f"-Y {h} +X {w}\n".encode())
+    for y in range(h):
+        if not rle:
+            out += rgbe[y].tobytes()
+            continue
+        out += bytes([2, 2, w >> 8, w & 0xFF])
+        for c in range(4):
+            row, x = rgbe[y, :, c], 0
+            while x < w:
+                n = 1
+                while x + n < w and n < 127 and row[x + n] == row[x]:
+                    n += 1
+                if n >= 3:
+                    out += bytes([128 + n, row[x]])
+                else:
+                    n = min(w - x, 2)
+                    out += bytes([n]) + row[x:x + n].tobytes()
+                x += n
+    with open(path, "wb") as f:
+        f.write(bytes(out))
+
+
+@pytest.mark.parametrize("rle", [True, False])
+def test_read_hdr_decodes_rgbe(tmp_path, rle):
+    rng = np.random.default_rng(0)
+    rgbe = rng.integers(0, 256, size=(5, 16, 4), dtype=np.uint8)
+    rgbe[1, 3:12] = [10, 20, 30, 130]  # runs
+    rgbe[2, 5, 3] = 0  # exponent 0: black whatever the mantissas
+    path = str(tmp_path / "map.hdr")
+    _rgbe_file(path, rgbe, rle=rle)
+    got = io.read_hdr(path)
+    want = rgbe[..., :3].astype(np.float64) * np.exp2(rgbe[..., 3:].astype(np.float64) - 136)
+    want[rgbe[..., 3] == 0] = 0
+    assert got.dtype == np.float32 and got.shape == (5, 16, 3)
+    np.testing.assert_array_equal(got, want.astype(np.float32))
+
+
+def test_read_hdr_refuses_what_it_cannot_read(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        io.read_hdr(str(tmp_path / "missing.hdr"))
+    bad = tmp_path / "bad.hdr"
+    bad.write_bytes(b"not an image")
+    with pytest.raises(ValueError, match="not a Radiance HDR file"):
+        io.read_hdr(str(bad))
+    bad.write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n+Y 2 +X 2\n" + bytes(16))
+    with pytest.raises(ValueError, match="resolution line"):
+        io.read_hdr(str(bad))
+    path = str(tmp_path / "cut.hdr")
+    _rgbe_file(path, np.full((4, 16, 4), 7, np.uint8), rle=True)
+    with open(path, "rb") as f:
+        data = f.read()
+    with open(path, "wb") as f:
+        f.write(data[:-5])
+    with pytest.raises(ValueError, match="cut.hdr"):
+        io.read_hdr(path)
+
+
+@pytest.mark.mitsuba
+def test_read_hdr_equals_mitsuba(mi, tmp_path):
+    """A map Mitsuba writes as .hdr reads back through jprt.io as through Mitsuba's Bitmap, bit for bit."""
+    rng = np.random.default_rng(1)
+    image = (rng.lognormal(-1.0, 2.0, size=(12, 40, 3)) * (rng.random((12, 40, 1)) > 0.1)).astype(np.float32)
+    image[3, 5:30] = [0.5, 2.0, 8.0]  # a run
+    path = str(tmp_path / "map.hdr")
+    mi.Bitmap(image).write(path)
+    bitmap = mi.Bitmap(path).convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+    np.testing.assert_array_equal(io.read_hdr(path), np.array(bitmap))
