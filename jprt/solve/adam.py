@@ -9,7 +9,7 @@
   of being baked into the compiled program as constants.
 * The key of step t is ``fold_in(key, t)``, so a run resumed from the checkpoint of step t draws
   exactly the batches an uninterrupted run would: parameters, optimiser state and key are saved
-  bit-exactly (``jprt.io.save_checkpoint``, atomic), and the resumed run is bit-identical.
+  bit-exactly (``jprt.checkpoint.save_checkpoint``, atomic), and the resumed run is bit-identical.
 * ``ema_decay`` > 0 also keeps an exponential moving average of the parameters (Polyak
   averaging, ema <- d ema + (1 - d) params after every step, saved and resumed with the rest):
   the average over the last ~1 / (1 - d) steps is less noisy than the last iterate, so it moves
@@ -84,7 +84,7 @@ def train(loss_fn: Callable, params, sampler: Callable, *, key, steps: int, lear
     """
     import optax
 
-    from jprt.io import CorruptCheckpoint, load_checkpoint, save_checkpoint
+    from jprt.checkpoint import CorruptCheckpoint, load_checkpoint, save_checkpoint
 
     if steps < 0:
         raise ValueError(f"steps must be >= 0, got {steps}")
