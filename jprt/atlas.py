@@ -26,10 +26,9 @@ tasks (``TASKS``):
 
 seen from the file's camera and views turned about it (``views_about``).
 
-A method takes part in a task whose lighting kind is among those its task adapter lists
-(``TASK_LIGHTINGS`` with ``task_inputs(handle, dataset, camera)`` and ``task_lighting(handle,
-dataset, params, config, lighting)``, which turn a task view and a task lighting into its
-evaluator's arguments) and that has an entry under ``tasks.<task>.methods`` (its ``set`` items and
+A method takes part in a task whose lighting kind is among its ``Method.task_lightings`` (its
+``task_inputs(handle, dataset, camera)`` and ``task_lighting(handle, dataset, params, config,
+lighting)`` turn a task view and a task lighting into its evaluator's arguments) and that has an entry under ``tasks.<task>.methods`` (its ``set`` items and
 its size knob ``grid``); otherwise the atlas lists it as skipped, with the reason.
 
 Every (task, method) is one ``jprt.sweep`` over the method's knob, each point a ``jprt.runner`` run
@@ -223,9 +222,10 @@ _SCENE_METHODS = {
                     "sh_prt": {"set": [], "grid": ["sh.order=[2, 3, 5]"]}},
     "file": {},
 }
-#: The same at test sizes (each method's own ``test`` preset).
+#: The same at test sizes (each method's own ``test`` preset; one point where a second would be
+#: a second fit of seconds: RRF's networks compile per width).
 _SCENE_TEST_METHODS = {
-    "point": {"rrf": {"set": _test_sets("rrf"), "grid": ["model.hidden=[[4, 2], [6, 4]]"]},
+    "point": {"rrf": {"set": _test_sets("rrf"), "grid": ["model.hidden=[[6, 4]]"]},
               "datadriven": {"set": _test_sets("datadriven", ("scene", "data")) + ["data.n_test=0"],
                              "grid": ["basis.n=[2, 4]"]},
               "sh_prt": {"set": _test_sets("sh_prt"), "grid": ["sh.order=[2]"]}},
@@ -494,21 +494,15 @@ def equal_error(curve: list[dict], rmse: float | None, frame_ms: float | None) -
 # One (task, method) as a jprt.runner experiment
 
 
-def _adapter(method):
-    """The ``data`` module of a method's package (where its task adapter lives)."""
-    return sys.modules[method.make_dataset.__module__]
-
-
 def applicability(task: dict, name: str) -> str | None:
     """None when method ``name`` runs on ``task``, else why not."""
     if name in task.get("not_run", {}):
         return task["not_run"][name]
-    data = _adapter(REGISTRY[name])
-    kinds = getattr(data, "TASK_LIGHTINGS", None)
-    if kinds is None or (kinds and not hasattr(data, "task_inputs")):
-        return f"{name} has no task adapter (data.TASK_LIGHTINGS / task_inputs / task_lighting)"
+    kinds = REGISTRY[name].task_lightings
     if not kinds:
-        return f"{name} is baked for its scene's own emitters and relights none of the tasks' lightings"
+        return (f"{name} has no task adapter for the file's own emitters (Method.task_lightings is empty)"
+                if task["lighting"] == "file" else
+                f"{name} is baked for its scene's own emitters and relights none of the tasks' lightings")
     if task["lighting"] not in kinds:
         return f"{name} takes {', '.join(kinds)} lighting, the task is {task['lighting']}"
     if name not in task["methods"]:
@@ -526,7 +520,6 @@ class TaskExperiment:
 
     def __init__(self, task_name: str, task: dict, name: str, e: dict, out: str):
         self.task, self.method = task, REGISTRY[name]
-        self.adapter = _adapter(self.method)
         self.timing_resolution = int(e["timing_resolution"])
         self.METHOD = name
         self.LABEL = f"atlas {task_name}/{name}"
@@ -547,8 +540,8 @@ class TaskExperiment:
         return run.state["handle"]
 
     def _lighting(self, run, lighting):
-        return self.adapter.task_lighting(self._handle(run), run.dataset, run.result.params, run.method_config,
-                                          lighting)
+        return self.method.task_lighting(self._handle(run), run.dataset, run.result.params, run.method_config,
+                                         lighting)
 
     def fit(self, run):
         """The method's fit of the point's config, once per process for configs that differ only
@@ -569,7 +562,7 @@ class TaskExperiment:
         preds = []
         for it, valid in zip(td.dataset.items, td.valid):
             if it.camera not in inputs:
-                inputs[it.camera] = self.adapter.task_inputs(self._handle(run), run.dataset, td.cameras[it.camera])
+                inputs[it.camera] = self.method.task_inputs(self._handle(run), run.dataset, td.cameras[it.camera])
             lighting = self._lighting(run, td.lightings[it.lighting])
             preds.append(np.where(valid[..., None], np.asarray(run.evaluate(inputs[it.camera], lighting)), 0.0))
         return HeldOut(preds, td.references, td.valid, td.direct, td.labels)
@@ -579,7 +572,7 @@ class TaskExperiment:
         first held-out lighting."""
         td = task_data(self.task)
         camera = timed_camera(td, self.timing_resolution)
-        return self.adapter.task_inputs(self._handle(run), run.dataset, camera), self._lighting(run, td.lightings[0])
+        return self.method.task_inputs(self._handle(run), run.dataset, camera), self._lighting(run, td.lightings[0])
 
 
 # --------------------------------------------------------------------------------------------

@@ -4,7 +4,6 @@ figure are written; end to end at the ``test`` preset (slow), and on a scene fil
 
 import json
 import os
-import sys
 
 import numpy as np
 import pytest
@@ -46,7 +45,7 @@ def test_presets_resolve_for_every_method(preset):
     ran = set()
     for task_name, task in config["tasks"].items():
         ran |= _resolves(task_name, task, config["eval"])
-    relighting = {n for n in REGISTRY if sys.modules[REGISTRY[n].make_dataset.__module__].TASK_LIGHTINGS}
+    relighting = {n for n in REGISTRY if REGISTRY[n].task_lightings}
     assert ran == relighting  # every registered method that relights is on some task
 
 
@@ -178,3 +177,85 @@ def test_one_method_failing_keeps_the_others(tmp_path, monkeypatch):
     assert "Traceback" in methods["datadriven"]["traceback"]
     assert {n for n, m in methods.items() if m["status"] == "done"} >= {"sh_prt"}
     assert record["tasks"]["local_lights"]["front_frame_ms"]
+
+
+def _picture_scene(assets) -> str:
+    path = os.path.join(assets, "scenes", "cornell_box_picture", "scene_picture.xml")
+    if not os.path.isfile(path):
+        pytest.skip(f"the Cornell picture scene of ../shared/assets is absent ({path})")
+    return path
+
+
+@pytest.mark.mitsuba
+@pytest.mark.parametrize("lighting", atlas.LIGHTINGS)
+@pytest.mark.parametrize("preset", ["small", "test"])
+def test_scene_task_resolves_for_every_method(mi, assets, lighting, preset):
+    """A scene file's task under each lighting kind: every method that takes the kind runs on it
+    (MRT, a block-layout method, excepted with its reason) and its configs resolve strictly."""
+    config = atlas.atlas_config(_picture_scene(assets), lighting, preset)
+    ((name, task),) = config["tasks"].items()
+    assert name == "scene_picture" and task["scene"]["keep_emitters"] == (lighting == "file")
+    ran = _resolves(name, task, config["eval"])
+    takes = {n for n in REGISTRY if lighting in REGISTRY[n].task_lightings}
+    assert ran == takes - {"mrt"}
+    if "mrt" in takes:
+        assert "block layout" in atlas.applicability(task, "mrt")
+
+
+@pytest.mark.mitsuba
+def test_scene_task_views_and_lights(mi, assets):
+    """The file's camera and views turned about it; point lights in the scene's light region."""
+    task = atlas.scene_task(_picture_scene(assets), "point")
+    cams = atlas.task_cameras(task, resolution=8)
+    assert len(cams) == 3 and np.allclose(cams[1].origin, cams[0].origin) and cams[1].target != cams[0].target
+    lights = atlas.task_lightings(task)
+    lo, hi = np.asarray(task["lights"]["lo"]), np.asarray(task["lights"]["hi"])
+    assert len(lights) == 3 and all(np.all((lo <= li.position[0]) & (li.position[0] <= hi)) for li in lights)
+
+
+@pytest.mark.mitsuba
+def test_atlas_on_a_scene_file(mi, assets, tmp_path):
+    """``jprt atlas <scene.xml> --lighting point --select ... --minimize frame_ms --preset test``
+    runs every method that takes point lights on the file and writes the table, the fronts and the
+    selection as the built-in tasks do; a re-run with a target every point meets selects the
+    cheapest frame (nothing refitted), and its selection runs alone from ``--config``."""
+    out = str(tmp_path / "atlas")
+    args = ["atlas", _picture_scene(assets), "--lighting", "point", "--minimize", "frame_ms", "--preset", "test",
+            "--out", out]
+    assert cli_main(args + ["--select", "indirect_rel_rmse<=0.3"]) == 0
+    with open(os.path.join(out, "atlas.json")) as f:
+        record = json.load(f)
+    assert list(record["tasks"]) == ["scene_picture"]
+    task = record["tasks"]["scene_picture"]
+    assert os.path.isfile(os.path.join(out, "atlas_scene_picture.png"))
+    with open(os.path.join(out, "atlas.md")) as f:
+        assert "scene_picture: point lighting" in f.read()
+    done = {n for n, m in task["methods"].items() if m["status"] == "done"}
+    assert done == {n for n in REGISTRY if "point" in REGISTRY[n].task_lightings} - {"mrt"}
+    assert task["front_frame_ms"] and task["selected"]["select"] == "indirect_rel_rmse<=0.3"
+    for name in done:
+        m = task["methods"][name]
+        assert m["counts"]["failed"] == 0 and m["pareto"]["frame_ms"]
+        assert all(np.isfinite(r["indirect_rmse"]) and r["frame_ms"] > 0 for r in m["points"])
+        met = [r for r in m["points"] if r["indirect_rel_rmse"] <= 0.3]
+        if met:  # the cheapest point meeting the target
+            assert m["selected"]["frame_ms"] == min(r["frame_ms"] for r in met)
+        else:  # the error names the best reached
+            assert "no sweep point meets" in m["selected"]["error"]
+
+    assert cli_main(args + ["--select", "indirect_rel_rmse<=100"]) == 0
+    with open(os.path.join(out, "atlas.json")) as f:
+        task = json.load(f)["tasks"]["scene_picture"]
+    assert all(task["methods"][n]["counts"]["cached"] == len(task["methods"][n]["points"]) for n in done)
+    fastest = min((task["methods"][n]["selected"]["frame_ms"], n) for n in done)[1]
+    assert task["selected"]["method"] == fastest
+    path = task["methods"][fastest]["selected"]["config"]
+    with open(path) as f:
+        chosen = json.load(f)
+    assert chosen["command"] == f"jprt atlas --config {path}" and chosen["config"]["eval"]["methods"] == [fastest]
+    assert cli_main(["atlas", "--config", path]) == 0
+    with open(os.path.join(out, f"selected_scene_picture_{fastest}", "atlas.json")) as f:
+        alone = json.load(f)["tasks"]["scene_picture"]["methods"]
+    assert list(alone) == [fastest]
+    (row,) = alone[fastest]["points"]
+    assert row["indirect_rmse"] == pytest.approx(task["methods"][fastest]["selected"]["indirect_rmse"], rel=1e-6)
