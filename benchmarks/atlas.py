@@ -1,10 +1,12 @@
-"""The speed-accuracy atlas benchmark: experiments/atlas.py at the ``small`` preset.
+"""The speed-accuracy atlas benchmark: experiments/atlas.py (``jprt.atlas`` on its built-in tasks)
+at the ``small`` preset.
 
 Writes benchmarks/results/atlas.json (per task, per method: the swept points with the common
 summary keys, their Pareto fronts, Mitsuba's (spp, ms, rmse) curve measured in the same run), the
 figures benchmarks/results/atlas_<task>.png and the README table benchmarks/results/atlas.md.
-Every number is read from the run's own atlas.json (its folder is recorded); a re-run reuses the
-finished sweep points and cached renders, and re-measures Mitsuba's curve.
+Every number is read from the run's own atlas.json (its folder is recorded, relative to the
+repository); a re-run reuses the finished sweep points and cached renders, and re-measures
+Mitsuba's curve. ``jprt atlas`` runs the same on one task or on any scene file.
 
     python benchmarks/atlas.py                  # the small atlas (< 90 min on a 2-core CPU, cold cache),
                                                 # each method's cheapest point with relative RMSE <= 0.35
@@ -45,7 +47,7 @@ def main() -> int:
     shutil.copyfile(os.path.join(args.runs, "atlas.md"), os.path.join(args.out, "atlas.md"))
     record["preset"] = args.preset
     record["wall_s"] = wall_s
-    record["runs"] = os.path.abspath(args.runs)
+    record["runs"] = os.path.relpath(os.path.abspath(args.runs), ROOT)  # no machine's own folder in the record
     command = f"python benchmarks/atlas.py --preset {args.preset} --select '{args.select}' --minimize {args.minimize}"
     write_benchmark(os.path.join(args.out, "atlas.json"), record, command,
                     notes="indirect RMSE over every valid pixel and channel of a task's held-out images (linear "
