@@ -308,10 +308,36 @@ def run_context(command: str, **extra) -> dict:
                       f"Mitsuba llvm_ad_rgb{gpu}", **extra}
 
 
+#: The checkout this package lives in: benchmark records name their paths relative to it.
+REPOSITORY = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def portable_paths(value, root: str = REPOSITORY):
+    """``value`` (nested dicts, lists, strings) with every absolute path that names no particular
+    machine: paths inside ``root``'s parent folder (the checkout and the shared assets beside it)
+    relative to ``root``, paths under the user's home as ``~/...``; other values unchanged. A
+    committed result then reads the same whichever machine or folder ran it."""
+    if isinstance(value, dict):
+        return {k: portable_paths(v, root) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(portable_paths(v, root) for v in value)
+    if not isinstance(value, str) or not os.path.isabs(value) or "\n" in value:
+        return value
+    parent = os.path.dirname(os.path.abspath(root))
+    if value == parent or value.startswith(parent + os.sep):
+        return os.path.relpath(value, root)
+    home = os.path.expanduser("~")
+    if home not in ("", "/") and value.startswith(home + os.sep):
+        return "~" + value[len(home):]
+    return value
+
+
 def write_benchmark(path: str, result: dict, command: str, **context) -> dict:
     """Write a benchmark's ``result`` to ``path`` (JSON, atomic) with ``result["context"] =
-    run_context(command, **context)`` and say where it went."""
+    run_context(command, **context)`` and say where it went. Absolute paths in it are recorded
+    relative to the repository (``portable_paths``), so the file names no machine."""
     result["context"] = run_context(command, **context)
+    result = portable_paths(result)
     io.write_json(path, result)
     print(f"wrote {path}")
     return result

@@ -63,6 +63,30 @@ def test_write_benchmark_records_the_run(tmp_path):
     assert "cores" in r["context"]["device"] and r["context"]["date"].endswith("+00:00")
 
 
+def test_benchmark_records_name_no_machine(tmp_path):
+    """Absolute paths inside the checkout (or beside it) are written relative to the repository,
+    paths under the home folder as ~/..., anything else as it was."""
+    import json
+
+    repo = jeval.REPOSITORY
+    home = os.path.expanduser("~")
+    result = {"report": os.path.join(repo, "results", "atlas"),
+              "runs": [{"dir": os.path.join(os.path.dirname(repo), "shared", "assets", "scenes")}],
+              "cache": os.path.join(home, ".cache", "jprt", "x.npz"), "plain": "frame_ms", "n": 3}
+    path = str(tmp_path / "b.json")
+    jeval.write_benchmark(path, result, "python benchmarks/x.py")
+    with open(path) as f:
+        r = json.load(f)
+    assert r["report"] == os.path.join("results", "atlas")
+    assert r["runs"][0]["dir"] == os.path.join("..", "shared", "assets", "scenes")
+    assert r["plain"] == "frame_ms" and r["n"] == 3
+    if home.startswith(os.path.dirname(repo) + os.sep):  # a home inside the checkout's parent
+        assert not os.path.isabs(r["cache"])
+    elif home not in ("", "/"):
+        assert r["cache"] == os.path.join("~", ".cache", "jprt", "x.npz")
+    assert repo not in json.dumps(r)
+
+
 def test_roofline_counts_a_matmul_and_judges_it_against_the_peak():
     import jax
     import jax.numpy as jnp
