@@ -26,7 +26,9 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e ".[test,ray,metrics,view]"
 	touch $(STAMP)
 
+# the import layers first (pyproject.toml [tool.importlinter]): seconds, and a broken layer is a design error
 test: setup
+	$(VENV)/bin/lint-imports
 	$(PY) -m pytest -q -n 3 --dist loadfile tests
 
 test-slow: setup view-deps

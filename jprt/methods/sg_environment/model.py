@@ -35,8 +35,8 @@ import numpy as np
 from jprt.inputs import PreconvolvedEnvironment
 from jprt.methods.base import FitResult, resolve
 from jprt.methods.sg_lightfield import environment as env
+from jprt.methods.sg_lightfield.environment import ENV_DEFAULTS, ENV_RECEIVERS
 from jprt.methods.sg_lightfield import model as sgm
-from jprt.methods.sg_lightfield.data import ENV_DEFAULTS, ENV_RECEIVERS
 
 __all__ = ["DEFAULT_CONFIG", "fit", "evaluator", "example", "preconvolved"]
 
@@ -46,7 +46,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "lightmap": {"resolution": 64},
     "capture": {"block": 256},  # texels per visibility-capture batch
     # the environment W_E is weighted by, and the sizes of Eq. 6-7's quadrature
-    # (jprt.methods.sg_lightfield.data.ENV_DEFAULTS)
+    # (jprt.methods.sg_lightfield.environment.ENV_DEFAULTS)
     "environment": dict(ENV_DEFAULTS),
     "model": {"n_lobes": 16, "channels": [32, 64, 128, 256], "min_sharpness": 0.5, "max_sharpness": 1.0e4,
               "init_sharpness": 1.0},

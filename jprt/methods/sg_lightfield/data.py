@@ -11,7 +11,8 @@ from typing import NamedTuple
 import numpy as np
 
 from jprt.methods.base import resolve
-from jprt.methods.sg_lightfield.model import DEFAULT_CONFIG, GLOSSY_RECEIVERS, SGData, texel_irradiance
+from jprt.methods.sg_lightfield.environment import ENV_DEFAULTS, ENV_RECEIVERS  # noqa: F401 (re-exported)
+from jprt.methods.sg_lightfield.model import DEFAULT_CONFIG, SGData, texel_irradiance
 from jprt.progress import say
 
 __all__ = ["make_dataset", "self_check", "TASK_LIGHTINGS", "ENV_RECEIVERS", "ENV_DEFAULTS", "EnvData", "load_environment",
@@ -164,26 +165,6 @@ def self_check(dataset: SGData, result, config: dict | None = None) -> dict:
         f"{int(ok.sum())} texels captured again ({field} field, {int(cfg['capture']['spp'])} spp, other seeds; "
         f"capture.check_texels) x {v} held-out views, shaded with their materials; training error against the "
         "training capture of the same texels and views")
-
-
-#: The Table 3 setting: the receivers of ``model.GLOSSY_RECEIVERS`` in the Cornell box without its
-#: ceiling and light, lit by a distant environment through the open top and front.
-ENV_RECEIVERS = {"name": "cornell_box", "area_light": False, "open_top": True,
-                 "materials": GLOSSY_RECEIVERS["materials"]}
-
-#: Defaults of the environment-visibility setting (``make_environment_dataset``).
-ENV_DEFAULTS = {
-    "map": "immenstadter_horn_1k",  # a stem of ../shared/assets/envmaps, or "synthetic" (seeded, no files)
-    "folder": "",
-    "seed": 0,
-    "rotation": 0.0,  # degrees about +Y
-    "visibility_size": 64,  # octahedral visibility / environment grid of Eq. 7's quadrature
-    "samples": 4,  # jittered visibility rays per pixel
-    "size": 32,  # the W_E maps the lobes fit (reflected directions)
-    "u_size": 64,  # the pre-convolved environment's octahedral maps (Eq. 6)
-    "u_env_size": 128,  # the environment grid Eq. 6 integrates over
-    "alphas": [0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0],  # GGX alpha levels of U
-}
 
 
 class EnvData(NamedTuple):

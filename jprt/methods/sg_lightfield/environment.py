@@ -32,11 +32,31 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jprt.methods.sg_lightfield.model import glossy_factor, ggx_ndf
+from jprt.methods.sg_lightfield.model import GLOSSY_RECEIVERS, ggx_ndf, glossy_factor
 from jprt.sphere import octahedral
 
-__all__ = ["ggx_ndf", "octahedral_environment", "preconvolve", "weighted_visibility", "lookup_preconvolved",
-           "octahedral_lookup", "evaluate_lobes", "shade_environment"]
+__all__ = ["ENV_RECEIVERS", "ENV_DEFAULTS", "ggx_ndf", "octahedral_environment", "preconvolve", "weighted_visibility",
+           "lookup_preconvolved", "octahedral_lookup", "evaluate_lobes", "shade_environment"]
+
+#: The Table 3 setting: the receivers of ``model.GLOSSY_RECEIVERS`` in the Cornell box without its
+#: ceiling and light, lit by a distant environment through the open top and front.
+ENV_RECEIVERS = {"name": "cornell_box", "area_light": False, "open_top": True,
+                 "materials": GLOSSY_RECEIVERS["materials"]}
+
+#: Defaults of the environment-visibility setting
+#: (``jprt.methods.sg_lightfield.data.make_environment_dataset``).
+ENV_DEFAULTS = {
+    "map": "immenstadter_horn_1k",  # a stem of ../shared/assets/envmaps, or "synthetic" (seeded, no files)
+    "folder": "",
+    "seed": 0,
+    "rotation": 0.0,  # degrees about +Y
+    "visibility_size": 64,  # octahedral visibility / environment grid of Eq. 7's quadrature
+    "samples": 4,  # jittered visibility rays per pixel
+    "size": 32,  # the W_E maps the lobes fit (reflected directions)
+    "u_size": 64,  # the pre-convolved environment's octahedral maps (Eq. 6)
+    "u_env_size": 128,  # the environment grid Eq. 6 integrates over
+    "alphas": [0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 1.0],  # GGX alpha levels of U
+}
 
 
 def octahedral_environment(radiance, size: int) -> np.ndarray:
