@@ -182,8 +182,9 @@ def _frame_time(page, generation, timeout_s=60.0) -> float:
 def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
     """``jprt view`` on a test-preset run folder: the page loads, the light is moved (or the map
     turned, or the bake rescaled) through the page's own inputs, the frame changes and its
-    statistics equal the evaluator's for that lighting; the frame time on the page is within 20 %
-    of the evaluator's measured here; a screenshot is written; Ctrl-C stops the server."""
+    statistics equal the evaluator's for that lighting; the frame time on the page is this
+    evaluator's (within 3x of the same measurement here); compare mode's RMSE is that of the model's
+    frame and Mitsuba's image it shows; a screenshot is written; Ctrl-C stops the server."""
     playwright = pytest.importorskip("playwright.sync_api", reason="`make view-deps` installs Playwright")
     pytest.importorskip("viser", reason="`pip install -e .[view]` installs viser")
     if _chromium() is None:
@@ -240,7 +241,10 @@ def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
                     break
                 (_, generation_now, _), shown = _settled(page, generation_now)
             assert quiet, "the page never stayed quiet for a measurement"
-            assert abs(shown - measured) <= 0.2 * measured, (shown, measured)
+            # the page shows a time of this evaluator at this size (not of the preview, the Mitsuba
+            # render or the page's drawing): the same measurement here agrees to well within 3x on any
+            # machine; a tighter bound would test the timer's noise on a millisecond frame
+            assert np.isfinite(shown) and shown > 0 and measured / 3 <= shown <= 3 * measured, (shown, measured)
             if session.kind != "scale":  # compare: Mitsuba of the same view and lighting beside the model
                 page.get_by_label("Mitsuba spp").fill("8")
                 page.get_by_label("Mitsuba spp").press("Enter")
@@ -249,7 +253,12 @@ def test_the_page_relights_like_the_evaluator(mi, tmp_path_factory, name):
                        "no compare frame")
                 _wait_ready(page)
                 rmse = re.search(rf"{session.predicts} RMSE=([-\d.e+]+)", page.get_by_text("stats (").inner_text())
-                assert rmse is not None and 0 < float(rmse[1]) < 10 * max(want), page.get_by_text("stats (").inner_text()
+                assert rmse is not None, page.get_by_text("stats (").inner_text()
+                # the RMSE of the two images the page shows: the model's frame and Mitsuba's at the
+                # page's spp, seeds and passes (Mitsuba in two processes agrees to about an ulp)
+                ref = session.reference(size, 8, passes=4)
+                own = float(np.sqrt(np.mean(np.square(session.prediction(size) - ref))))
+                assert float(rmse[1]) == pytest.approx(own, rel=1e-4, abs=1e-9), (rmse[1], own)
             notice = page.get_by_text("Software WebGL rendering detected")  # headless Chromium has no GPU
             if notice.count():
                 notice.locator("xpath=ancestor::div[.//button][1]//button").first.click()
