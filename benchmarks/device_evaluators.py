@@ -184,7 +184,7 @@ def _wavelet_cases(d: dict, chunks) -> list:
 
     import jax
 
-    from jprt.cli import resolve_config
+    from jprt.experiment import resolve_config
     from jprt.inputs import CubeMap
     from jprt.methods import REGISTRY
     from jprt.methods.wavelet_prt import model as wp

@@ -64,7 +64,7 @@ def main() -> int:
     parser.add_argument("--out", default=os.path.join(HERE, "results", "real_scenes.json"))
     args = parser.parse_args()
     sys.path.insert(0, ROOT)
-    from jprt.cli import load_experiment, resolve_config
+    from jprt.experiment import load_experiment, resolve_config
     from jprt.eval import write_benchmark
 
     module = load_experiment(os.path.join(ROOT, "experiments", "real_scenes.py"))

@@ -38,7 +38,7 @@ RERUNS = (("default XLA flags", ""),
 def experiment_config(preset: str):
     """(the experiment module, its resolved config for ``preset``, the method, the method's config)."""
     sys.path.insert(0, ROOT)
-    from jprt.cli import load_experiment, resolve_config
+    from jprt.experiment import load_experiment, resolve_config
     from jprt.methods import REGISTRY
     from jprt.runner import method_config
 

@@ -141,7 +141,7 @@ def test_cli_sweep_select_and_run_the_selected_config(monkeypatch, tmp_path):
     os.path.abspath(__file__))), "experiments", "sweeps")) if f.endswith(".py")))
 def test_sweep_files_are_valid_for_their_experiments(name):
     """Every shipped sweep file names an experiment, a preset and grid keys that exist (no run)."""
-    from jprt.cli import load_experiment, resolve_config
+    from jprt.experiment import load_experiment, resolve_config
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     spec = sweep.load_sweep_file(os.path.join(root, "experiments", "sweeps", name))
