@@ -120,7 +120,8 @@ def test_atlas_test_preset(mi, tmp_path):
         assert [c["spp"] for c in curve] == [1, 4, 16] and all(c["ms"] > 0 and c["rmse"] > 0 for c in curve)
         assert os.path.isfile(os.path.join(out, f"atlas_{task_name}.png"))
         done = {n for n, m in task["methods"].items() if m["status"] == "done"}
-        assert done == ({"rrf", "datadriven", "sh_prt"} if task_name == "local_lights" else {"wavelet_prt", "sh_prt"})
+        assert done == ({"rrf", "datadriven", "sh_prt", "mrt"} if task_name == "local_lights"
+                        else {"wavelet_prt", "sh_prt"})
         for name in done:
             m = task["methods"][name]
             assert m["counts"]["failed"] == 0
