@@ -35,7 +35,7 @@ PRESETS = {
         "data": {"n_lights": 2, "n_views": 2, "n_rays": 30, "spp": 4},
         "model": {"hidden": [4, 2]},
         "tree": {"max_depth": 0},
-        "train": {"max_iters": 2, "progress": False},
+        "train": {"max_iters": 2},
         "eval": {"n_views": 1, "n_lights": 1, "resolution": 10, "reference_spp": 8, "ablations": False,
                  "equal_error_spp": [1, 2], "timing_resolution": 12, "timing_repeats": 1, "pathtrace_repeats": 1,
                  "images": 1},

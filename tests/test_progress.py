@@ -57,4 +57,5 @@ def test_methods_leave_progress_to_the_policy(name):
         parameter = inspect.signature(fn).parameters.get("progress")
         if parameter is not None:
             assert parameter.default is None, f"{name}: {fn.__qualname__}(progress={parameter.default!r})"
-    assert m.resolve().get("train", {}).get("progress") is None
+    for config in (m.resolve(), *(m.resolve(preset) for preset in m.presets.values())):
+        assert config.get("train", {}).get("progress") is None, f"{name}: a config that fixes train.progress"

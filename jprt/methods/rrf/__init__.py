@@ -13,7 +13,7 @@ PRESETS = {
         "data": {"n_lights": 3, "n_views": 3, "n_rays": 40, "spp": 8},
         "model": {"hidden": [6, 4]},
         "tree": {"max_depth": 1, "min_samples": 40, "max_leaves": 10},
-        "train": {"max_iters": 3, "trial_iters": 1, "trial_samples": 64, "progress": False},
+        "train": {"max_iters": 3, "trial_iters": 1, "trial_samples": 64},
     },
 }
 
