@@ -220,7 +220,9 @@ _SCENE_METHODS = {
     "environment": {"wavelet_prt": {"set": ["cameras.target=null", "cameras.near=0", "cameras.far=0"],
                                     "grid": ["render.k=[16, 32, 64]"]},
                     "sh_prt": {"set": [], "grid": ["sh.order=[2, 3, 5]"]}},
-    "file": {},
+    # a method baked under the file's own emitters (every object a receiver); it takes part once
+    # its task adapter lists "file"
+    "file": {"sg_lightfield": {"set": ["objects=[]"], "grid": ["model.n_lobes=[4, 8]"]}},
 }
 #: The same at test sizes (each method's own ``test`` preset; one point where a second would be
 #: a second fit of seconds: RRF's networks compile per width).
@@ -233,7 +235,8 @@ _SCENE_TEST_METHODS = {
                                                                         "cameras.far=0"],
                                     "grid": ["render.k=[8, 16]"]},
                     "sh_prt": {"set": _test_sets("sh_prt"), "grid": ["sh.order=[2]"]}},
-    "file": {},
+    "file": {"sg_lightfield": {"set": _test_sets("sg_lightfield", ("scene", "objects")) + ["objects=[]"],
+                               "grid": ["model.n_lobes=[2]"]}},
 }
 #: Registered methods a scene file's task does not run, and why.
 _SCENE_NOT_RUN = {"mrt": "MRT relights a block layout (its proxy.*), which a scene file does not give"}

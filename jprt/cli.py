@@ -81,8 +81,10 @@ def _atlas(args) -> int:
         config = atlas.atlas_config(args.target, args.lighting, args.preset, out=args.out, select=args.select or "",
                                     minimize=args.minimize, overrides=args.overrides)
     record = atlas.run_atlas(config)
-    done = [m for t in record["tasks"].values() for m in t["methods"].values() if m["status"] == "done"]
-    return 0 if done else 1
+    status = [m["status"] for t in record["tasks"].values() for m in t["methods"].values()]
+    if "done" not in status:
+        print("jprt atlas: no method ran (atlas.md says why each was not run)", file=sys.stderr)
+    return 0 if "done" in status and "failed" not in status else 1
 
 
 def _info() -> int:

@@ -22,13 +22,15 @@ EXPERIMENT = load_experiment(os.path.join(ROOT, "experiments", "atlas.py"))
 
 
 def _resolves(task_name: str, task: dict, e: dict) -> set:
-    """The methods that run on ``task``; each one's config with the task's ``set`` items and its
-    grid's first and last points resolves strictly."""
+    """The methods that run on ``task``; each one with an entry under the task's methods (run or
+    not): its config with the entry's ``set`` items and its grid's first and last points resolves
+    strictly."""
     ran = set()
     for name in REGISTRY:
-        if atlas.applicability(task, name):
+        if not atlas.applicability(task, name):
+            ran.add(name)
+        elif name not in task["methods"]:
             continue
-        ran.add(name)
         target = atlas.TaskExperiment(task_name, task, name, e, "/tmp/unused")
         grid = parse_grid(task["methods"][name]["grid"])
         for point in [dict()] + [{k: v[i] for k, v in grid.items()} for i in (0, -1)]:
