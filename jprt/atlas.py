@@ -28,8 +28,10 @@ seen from the file's camera and views turned about it (``views_about``).
 
 A method takes part in a task whose lighting kind is among its ``Method.task_lightings`` (its
 ``task_inputs(handle, dataset, camera)`` and ``task_lighting(handle, dataset, params, config,
-lighting)`` turn a task view and a task lighting into its evaluator's arguments) and that has an entry under ``tasks.<task>.methods`` (its ``set`` items and
-its size knob ``grid``); otherwise the atlas lists it as skipped, with the reason.
+lighting)`` turn a task view and a task lighting into its evaluator's arguments) and that has an
+entry under ``tasks.<task>.methods`` (its ``set`` items and its size knob ``grid``); otherwise
+the atlas lists it as skipped, with the reason (a scene file's task also names the methods it
+does not run, ``not_run``).
 
 Every (task, method) is one ``jprt.sweep`` over the method's knob, each point a ``jprt.runner`` run
 of a ``TaskExperiment`` (resumable, in ``output.dir/<task>/<method>/``); points that differ only in
