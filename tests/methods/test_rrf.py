@@ -6,8 +6,11 @@ import numpy as np
 import pytest
 
 from jprt.methods.rrf import data as rrf_data
+from jprt.methods.rrf import features as rrf_features
+from jprt.methods.rrf import fitting as rrf_fitting
 from jprt.methods.rrf import kdtree
 from jprt.methods.rrf import model as rrf
+from jprt.methods.rrf import renderer as rrf_renderer
 from jprt.render.gbuffer import GBuffer
 from jprt.render.lights import PointLights
 
@@ -56,7 +59,7 @@ def test_smooth_target_single_leaf():
     test = rng.random((500, 3)).astype(np.float32)
     ref = 1.0 + 0.5 * np.sin(2.0 * test[:, 0]) + 0.3 * test[:, 1] * test[:, 2]
     pred = _sorted(params, test, np.zeros(500, np.int32), clamp=False)
-    assert rrf._relative_error(pred[:, 0], ref) < 0.01
+    assert rrf_fitting.relative_error(pred[:, 0], ref) < 0.01
 
 
 def test_a_feature_constant_in_training_stays_constant_at_run_time():
@@ -79,10 +82,10 @@ def test_a_feature_constant_in_training_stays_constant_at_run_time():
 
 
 def _sorted(params, x, object_id, **kw) -> np.ndarray:
-    """``rrf._predict_sorted`` compiled as one program (the trained tree closed over, as the
+    """``rrf_renderer._predict_sorted`` compiled as one program (the trained tree closed over, as the
     evaluator does): run eagerly, each of its many small operations compiles on its own, several
     times slower in the suite."""
-    predict = jax.jit(lambda a, b: rrf._predict_sorted(params, a, b, **kw))
+    predict = jax.jit(lambda a, b: rrf_renderer._predict_sorted(params, a, b, **kw))
     return np.asarray(predict(jnp.asarray(x), jnp.asarray(object_id)))
 
 
@@ -105,7 +108,7 @@ def test_rescale_is_exact():
     dst = {"in_center": rng.normal(size=3), "in_halfrange": rng.random(3) + 0.5,
            "out_center": rng.normal(size=2), "out_halfrange": rng.random(2) + 0.5}
     x = rng.normal(size=(20, 3))
-    np.testing.assert_allclose(_reference_phi(rrf._rescale(layers, src, dst), dst, x), _reference_phi(layers, src, x),
+    np.testing.assert_allclose(_reference_phi(rrf_fitting._rescale(layers, src, dst), dst, x), _reference_phi(layers, src, x),
                                rtol=1e-10, atol=1e-10)
 
 
@@ -195,7 +198,7 @@ def test_raw_thresholds_traverse_raw_inputs_as_the_tree_does_normalised(model):
     obj = rng.integers(0, lo.shape[0], 2000)
     x = (lo[obj] + rng.uniform(-0.1, 1.1, (2000, lo.shape[1])) * (hi - lo)[obj]).astype(np.float32)
     tree = kdtree.KDTree(**{k: np.asarray(v) for k, v in params["tree"].items()})
-    want = kdtree.traverse(tree, obj, rrf._normalise(x, obj, lo, hi), xp=np)
+    want = kdtree.traverse(tree, obj, rrf_features.normalise(x, obj, lo, hi), xp=np)
     got = kdtree.traverse(tree._replace(threshold=rrf.raw_thresholds(params)), obj, x, xp=np)
     assert len(np.unique(want)) > 2
     np.testing.assert_array_equal(got, want)
@@ -361,7 +364,7 @@ def test_blocked_prediction_matches_per_leaf_numpy(model):
     shared = np.delete(x, [6, 7, 8], axis=1)
     ref = _sorted(params, x, obj, block=16, clamp=True)
     for tile, chunk in ((4, 3), (16, 1)):  # a chunk that does not divide the tiles, and one chunk
-        tiles = jax.jit(lambda a, b, light, o: rrf._predict_tiles(  # noqa: B023 (called at once)
+        tiles = jax.jit(lambda a, b, light, o: rrf_renderer._predict_tiles(  # noqa: B023 (called at once)
             params, [a, b], light, jnp.ones((1, 3)), o, light_cols=(6, 7, 8), tile=tile, chunk=chunk, clamp=True,
             nonnegative=False))
         tiled = tiles(jnp.asarray(shared[:, :6].reshape(40, 25, -1)), jnp.asarray(shared[:, 6:].reshape(40, 25, -1)),
@@ -450,7 +453,7 @@ def test_a_wall_coordinate_constant_up_to_rounding_is_never_split():
     assert float(params["obj_hi"][0, 0] - params["obj_lo"][0, 0]) == 0.0  # the box is flat there
     # both roundings of the wall go through the same leaf
     probe = np.array([[-1.0, 0.5, 0.3], [np.nextafter(np.float32(-1.0), np.float32(0.0)), 0.5, 0.3]], np.float32)
-    leaf = np.asarray(rrf._leaf_of(params, jnp.asarray(probe), jnp.zeros(2, jnp.int32)))
+    leaf = np.asarray(rrf_renderer._leaf_of(params, jnp.asarray(probe), jnp.zeros(2, jnp.int32)))
     assert leaf[0] == leaf[1]
 
 
@@ -459,7 +462,7 @@ def test_renderer_tanh_matches_float64():
     matters and past its clamp (+-7.9: exactly +-1 in float32), including 0 and denormal-small."""
     x = np.concatenate([np.linspace(-20, 20, 200001), [0.0, 1e-30, -1e-30, 7.9053111, -7.9053111, 1e4, -1e4]])
     x = x.astype(np.float32)
-    got = np.asarray(rrf._tanh(jnp.asarray(x)), np.float64)
+    got = np.asarray(rrf_renderer._tanh(jnp.asarray(x)), np.float64)
     want = np.tanh(x.astype(np.float64))
     assert np.abs(got - want).max() <= 3.2e-7  # measured 3.13e-7 (jnp.tanh: 2.6e-7)
     assert np.all(np.abs(got) <= 1.0) and np.all(np.sign(got) == np.sign(want))
