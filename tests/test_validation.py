@@ -47,7 +47,7 @@ CASES = {
     "envmap-shape": (lambda: jin.EnvMap.create(np.ones((4, 8, 2))), ValueError, "environment map radiance must have shape (H, W, 3)"),
     "envmap-finite": (lambda: jin.EnvMap.create(np.where(ONES > 0, np.inf, 0)), ValueError, "environment map radiance must be finite"),
     "envmap-negative": (lambda: jin.EnvMap.create(-ONES), ValueError, "environment map radiance must be >= 0"),
-    "wavelet-envmap": (lambda: __import__("jprt.methods.wavelet_prt.model", fromlist=["x"]).prepare_environment(
+    "wavelet-envmap": (lambda: __import__("jprt.sphere.envmap", fromlist=["x"]).prepare_environment(
         np.ones((8, 16, 2)), 4), ValueError, "environment map radiance must have shape (H, W, 3)"),
     "cubemap-shape": (lambda: jin.CubeMap.create(np.ones((6, 4, 4, 2))), ValueError, "cube map radiance must have shape (6, n, n, 3)"),
     "cubemap-finite": (lambda: jin.CubeMap.create(np.full((6, 2, 2, 3), np.nan)), ValueError, "cube map radiance must be finite"),

@@ -157,7 +157,7 @@ def test_task_adapter(mi, fitted, name):
     """The task adapter (``Method.task_lightings``, ``task_inputs``, ``task_lighting``) turns an 8 x 8
     view and every task lighting the method takes into evaluator arguments: finite (8, 8, 3) light."""
     from jprt.inputs import CubeMap, PointLights
-    from jprt.methods.wavelet_prt.model import render_equirect, synthetic_environments
+    from jprt.sphere.envmap import render_equirect, synthetic_environments
     from jprt.render.cameras import look_at
     from jprt.render.lights import EnvMap
     from jprt.render.scenes import SceneHandle

@@ -16,9 +16,10 @@ from jprt.hashing import stable_hash
 from jprt.inputs import CubeMap
 from jprt.methods import REGISTRY
 from jprt.methods.wavelet_prt import model as wp
+from jprt.methods.wavelet_prt import views as wp_views
 from jprt.nn.mlp import mlp
 from jprt.solve import losses
-from jprt.sphere import cubemap, haar
+from jprt.sphere import cubemap, envmap, haar
 
 TINY = {
     "envmaps": {"synthetic": 4, "face_size": 4, "rotations_deg": [0]},
@@ -43,9 +44,9 @@ def _fake_data(seed=0, e=3, v=2, h=6, w=5, n=4) -> wp.WaveletData:
         "direct": rng.uniform(0, 1, shape + (3,)), "indirect": rng.uniform(0, 0.5, shape + (3,)),
     }
     train = {k: np.asarray(a, np.bool_ if k == "valid" else np.float32) for k, a in train.items()}
-    importance = np.stack([wp.importance_maps(train["indirect"][i], train["position"][i], train["valid"][i],
+    importance = np.stack([wp_views.importance_maps(train["indirect"][i], train["position"][i], train["valid"][i],
                                               train["specular_albedo"][i], train["roughness"][i]) for i in range(e)])
-    envs = wp.synthetic_environments(e, n, seed)
+    envs = envmap.synthetic_environments(e, n, seed)
     return wp.WaveletData(train, importance, envs, {}, envs[:1], [f"e{i}" for i in range(e)], ["held"],
                           {}, {"spp": 1})
 
@@ -96,7 +97,7 @@ def test_relighting_error_falls_with_k():
     rng = np.random.default_rng(4)
     p, n = 20, 8
     transport = np.abs(rng.normal(size=(p, 6, n, n, 3))).astype(np.float32)
-    cube = np.asarray(wp.synthetic_environments(1, n, 5)[0])
+    cube = np.asarray(envmap.synthetic_environments(1, n, 5)[0])
     out = wp.transport_check(transport, cube, ks=(8, 32, 128, 6 * n * n))
     errs = [np.linalg.norm(out["by_k"][k] - out["full"]) for k in (8, 32, 128, 6 * n * n)]
     assert errs[-1] < 1e-3 * np.linalg.norm(out["full"])
@@ -341,7 +342,7 @@ def test_importance_view_variance_finds_view_dependent_voxels():
     pos[:, :, 4:] = [0.9, 0.9, 0.9]
     ind = np.ones((v, h, w, 3), np.float32)
     ind[:, :, 4:] *= np.arange(1, v + 1)[:, None, None, None]  # right half changes with the view
-    p = wp.importance_maps(ind, pos, np.ones((v, h, w), bool), np.zeros((v, h, w, 3)), np.ones((v, h, w)))
+    p = wp_views.importance_maps(ind, pos, np.ones((v, h, w), bool), np.zeros((v, h, w, 3)), np.ones((v, h, w)))
     view = p[1].reshape(v, h, w)
     assert view[:, :, :4].sum() == 0 and view[:, :, 4:].sum() == pytest.approx(1.0, rel=1e-5)
 
@@ -349,12 +350,12 @@ def test_importance_view_variance_finds_view_dependent_voxels():
 def test_environment_preparation():
     rng = np.random.default_rng(0)
     eq = rng.uniform(0.5, 2.0, (32, 64, 3)).astype(np.float32)
-    cube = wp.prepare_environment(eq, 8)
+    cube = envmap.prepare_environment(eq, 8)
     omega = np.asarray(cubemap.texel_solid_angles(8))
     assert cube.shape == (6, 8, 8, 3)
     assert np.sum(cube.mean(-1) * omega) / (4 * np.pi) == pytest.approx(1.0, rel=1e-4)
-    np.testing.assert_array_equal(wp.rotate_equirect(eq, 360.0 / 64 * 3), np.roll(eq, 3, axis=1))
-    re = wp.render_equirect(cube, scale=4)
+    np.testing.assert_array_equal(envmap.rotate_equirect(eq, 360.0 / 64 * 3), np.roll(eq, 3, axis=1))
+    re = envmap.render_equirect(cube, scale=4)
     d = np.asarray(cubemap.equirect_directions(*re.shape[:2]))
     np.testing.assert_array_equal(re, np.asarray(cubemap.sample_cubemap_nearest(jnp.asarray(cube), d)))
 
@@ -362,12 +363,12 @@ def test_environment_preparation():
 def test_trajectories():
     spec = {"radius": 2.0, "azimuth": [-30.0, 30.0], "elevation": [0.0, 40.0], "turns": 2.0}
     for kind in ("sphere", "helix"):
-        o = wp.trajectory(kind, 10, spec, [0, 0, 0])
+        o = wp_views.trajectory(kind, 10, spec, [0, 0, 0])
         np.testing.assert_allclose(np.linalg.norm(o, axis=-1), 2.0, rtol=1e-6)
         el = np.degrees(np.arcsin(o[:, 1] / 2.0))
         assert el.min() >= -1e-6 and el.max() <= 40 + 1e-6
     with pytest.raises(ValueError, match="trajectory"):
-        wp.trajectory("spiral", 3, spec, [0, 0, 0])
+        wp_views.trajectory("spiral", 3, spec, [0, 0, 0])
 
 
 def test_indirect_baseline_scale_is_least_squares():
@@ -497,7 +498,7 @@ def test_sun_skies_hold_a_sun_in_one_texel():
     """Mean radiance 1; the brightest texel (above the horizon) holds 20-80 % of the energy; seeded."""
     from jprt.sphere import cubemap
 
-    maps = wp.sun_skies(6, 8, seed=3)
+    maps = envmap.sun_skies(6, 8, seed=3)
     omega = np.asarray(cubemap.texel_solid_angles(8))
     d = np.asarray(cubemap.texel_directions(8))
     for m in maps:
@@ -505,7 +506,7 @@ def test_sun_skies_hold_a_sun_in_one_texel():
         assert energy.sum() / (4 * np.pi) == pytest.approx(1.0, rel=1e-5)
         sun = np.unravel_index(np.argmax(energy), energy.shape)
         assert 0.2 <= energy[sun] / energy.sum() <= 0.81 and d[sun][1] >= -0.2  # 0.8 + the sky in that texel
-    np.testing.assert_array_equal(maps, wp.sun_skies(6, 8, seed=3))
+    np.testing.assert_array_equal(maps, envmap.sun_skies(6, 8, seed=3))
 
 
 def test_fit_rejects_mismatched_face_size():
@@ -549,18 +550,18 @@ def test_turned_maps_follow_the_rotation():
     rotations are uniform (the mean matrix of many is near 0)."""
     rng = np.random.default_rng(0)
     eq = rng.uniform(0.5, 2.0, (32, 64, 3)).astype(np.float32)
-    np.testing.assert_array_equal(wp.turn_equirect(eq, np.eye(3)), eq)
+    np.testing.assert_array_equal(envmap.turn_equirect(eq, np.eye(3)), eq)
     a = np.radians(90.0)
     about_y = np.array([[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]])
-    np.testing.assert_array_equal(wp.turn_equirect(eq, about_y), wp.rotate_equirect(eq, 90.0))
-    rs = np.stack([wp.random_rotation(np.random.default_rng([5, i])) for i in range(500)])
+    np.testing.assert_array_equal(envmap.turn_equirect(eq, about_y), envmap.rotate_equirect(eq, 90.0))
+    rs = np.stack([envmap.random_rotation(np.random.default_rng([5, i])) for i in range(500)])
     np.testing.assert_allclose(rs @ np.swapaxes(rs, 1, 2), np.broadcast_to(np.eye(3), rs.shape), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(rs), 1.0, atol=1e-12)
     assert np.abs(rs.mean(axis=0)).max() < 0.1  # E[R] = 0 for the uniform (Haar) measure; 500 draws
     sun = np.zeros((64, 128, 3), np.float32)
     d = np.asarray(cubemap.equirect_directions(64, 128))
     sun[20, 30] = 1.0
-    turned = wp.turn_equirect(sun, rs[0])
+    turned = envmap.turn_equirect(sun, rs[0])
     hit = np.unravel_index(np.argmax(turned[..., 0]), turned.shape[:2])
     assert np.dot(d[hit], rs[0] @ d[20, 30]) > np.cos(np.radians(4.0))  # within a texel or so
 
@@ -611,7 +612,7 @@ def test_cameras_without_a_target_come_from_the_scene_file(mi, tmp_path):
     np.testing.assert_allclose(target, regions["view_target"])
     assert fov == pytest.approx(regions["fov"])
     orbit = wp_data._cameras(desc, wp.DEFAULT_CONFIG["cameras"], seed=0)  # a target: the orbits, as before
-    np.testing.assert_array_equal(orbit[0], wp.camera_sets(wp.DEFAULT_CONFIG["cameras"], 0)[0])
+    np.testing.assert_array_equal(orbit[0], wp_views.camera_sets(wp.DEFAULT_CONFIG["cameras"], 0)[0])
 
 
 @pytest.mark.mitsuba

@@ -11,15 +11,16 @@ from jprt.render.images import indirect_rays
 from jprt.render.lights import EnvMap
 from jprt.render.scenes import SceneHandle, glossy_cornell
 from jprt.render.transport import environment_transport
+from jprt.sphere import envmap
 
 N = 4  # cube-map face size
 
 
 @pytest.fixture(scope="module")
 def setup():
-    cube = wp.synthetic_environments(1, N, seed=2)[0]
+    cube = envmap.synthetic_environments(1, N, seed=2)[0]
     handle = SceneHandle(glossy_cornell(open_top=True, floor_roughness=0.2, sphere_roughness=0.1),
-                         EnvMap.create(wp.render_equirect(cube, scale=8)))
+                         EnvMap.create(envmap.render_equirect(cube, scale=8)))
     cam = look_at((0.3, 1.2, 3.6), (0.0, -0.1, 0.0), width=6, height=6)
     o, d = camera_rays(cam)
     return handle, cube, o.reshape(-1, 3), d.reshape(-1, 3)

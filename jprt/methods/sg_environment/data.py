@@ -48,7 +48,7 @@ def task_lighting(handle, dataset, params, config, lighting):
     """A ``CubeMap`` (or ``EnvMap``) pre-convolved (Eq. 6, ``model.preconvolved``): once per
     environment, as a renderer would."""
     from jprt.inputs import CubeMap
-    from jprt.methods.wavelet_prt.model import render_equirect
+    from jprt.sphere.envmap import render_equirect
 
     radiance = render_equirect(np.asarray(lighting.radiance)) if isinstance(lighting, CubeMap) else lighting.radiance
     return preconvolved(radiance, config)
@@ -57,7 +57,7 @@ def task_lighting(handle, dataset, params, config, lighting):
 def view_environments(dataset, config, face: int = 32) -> dict:
     """{name: (6, face, face, 3) cube map} the viewer offers: the map W_E was computed under, then
     two seeded synthetic skies (no files needed)."""
-    from jprt.methods.wavelet_prt.model import prepare_environment, synthetic_environments
+    from jprt.sphere.envmap import prepare_environment, synthetic_environments
 
     cfg = resolve(DEFAULT_CONFIG, config)
     out = {str(cfg["environment"]["map"]): prepare_environment(np.asarray(dataset.environment), face, normalise=False)}

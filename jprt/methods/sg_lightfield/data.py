@@ -120,7 +120,7 @@ def self_check(dataset: SGData, result, config: dict | None = None) -> dict:
 
     from jprt.inputs import GBuffer
     from jprt.methods import selfcheck
-    from jprt.methods.atlas import atlas_inputs
+    from jprt.methods.lightmap_lookup import atlas_inputs
     from jprt.methods.sg_lightfield.model import evaluator, shade_quadrature
 
     cfg = resolve(DEFAULT_CONFIG, config)
@@ -198,7 +198,7 @@ def load_environment(spec: dict) -> np.ndarray:
     ``spec['folder']`` (default ../shared/assets/envmaps) or a seeded procedural sky with suns
     (``"synthetic"``: no files needed), rotated by ``spec['rotation']`` degrees about +Y."""
     from jprt.methods.wavelet_prt.data import SHARED_ENVMAPS
-    from jprt.methods.wavelet_prt.model import render_equirect, rotate_equirect, synthetic_environments
+    from jprt.sphere.envmap import render_equirect, rotate_equirect, synthetic_environments
     from jprt.render.lights import EnvMap
 
     s = {**ENV_DEFAULTS, **spec}

@@ -103,9 +103,9 @@ CHECK_FACE = 16
 
 def check_maps(n: int, seed: int) -> np.ndarray:
     """The self-check's held-out lightings: ``n`` procedural skies with one or two broad lobes
-    (``jprt.methods.wavelet_prt.model.synthetic_environments``, (n, 6, 16, 16, 3) cube maps), a
+    (``jprt.sphere.envmap.synthetic_environments``, (n, 6, 16, 16, 3) cube maps), a
     seed stream of their own."""
-    from jprt.methods.wavelet_prt.model import synthetic_environments
+    from jprt.sphere.envmap import synthetic_environments
 
     return np.asarray(synthetic_environments(int(n), CHECK_FACE, 45_000 + int(seed)), np.float32)
 
@@ -118,7 +118,7 @@ def _check(desc: dict, spec: dict, atlas: dict, n: int, *, cache_dir: str | None
     s = spec["sh"]
 
     def build() -> dict:
-        from jprt.methods.wavelet_prt.model import render_equirect
+        from jprt.sphere.envmap import render_equirect
         from jprt.render import lightmap
         from jprt.render.lights import EnvMap
         from jprt.render.scenes import SceneHandle

@@ -13,9 +13,11 @@ import numpy as np
 
 from jprt import cache
 from jprt.methods.base import resolve
-from jprt.methods.wavelet_prt.model import (DEFAULT_CONFIG, GBUFFER_FIELDS, WaveletData, camera_sets, cubemap, haar,
-                                            importance_maps, prepare_environment, random_rotation, render_equirect,
-                                            rotate_equirect, sun_skies, synthetic_environments, turn_equirect)
+from jprt.methods.wavelet_prt.model import DEFAULT_CONFIG, GBUFFER_FIELDS, WaveletData
+from jprt.methods.wavelet_prt.views import camera_sets, importance_maps
+from jprt.sphere import cubemap, haar
+from jprt.sphere.envmap import (prepare_environment, random_rotation, render_equirect, rotate_equirect, sun_skies,
+                                synthetic_environments, turn_equirect)
 
 __all__ = ["make_dataset", "add_vertex_interpolation", "gbuffer_fields", "load_environments", "self_check",
            "SHARED_ENVMAPS", "TASK_LIGHTINGS", "task_inputs", "task_lighting"]
