@@ -26,10 +26,10 @@ import numpy as np
 from jprt import eval as jeval
 from jprt import io
 from jprt.inputs import PointRadiance
-from jprt.methods.atlas import atlas_inputs
 from jprt.methods.base import FitResult
 from jprt.methods.datadriven import data as dd_data
 from jprt.methods.datadriven import model as dd
+from jprt.methods.lightmap_lookup import atlas_inputs
 from jprt.methods.sh_prt import model as sh_prt
 from jprt.methods import REGISTRY
 from jprt.runner import HeldOut
@@ -158,7 +158,7 @@ def fit(run) -> FitResult:
 
 def held_out(run) -> HeldOut:
     """The held-out lighting configurations: each lightmap as an atlas image, predicted by the
-    evaluator on the atlas itself (``jprt.methods.atlas.atlas_inputs``)."""
+    evaluator on the atlas itself (``jprt.methods.lightmap_lookup.atlas_inputs``)."""
     data, params = run.dataset, run.result.params
     inputs = atlas_inputs(int(data.atlas["resolution"]), data.atlas["texel_index"])
     fine = np.asarray(params["fine_index"])

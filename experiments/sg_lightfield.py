@@ -255,7 +255,7 @@ def oct_quadrature(run) -> dict:
     (``model.shade_quadrature``): what the lobes could reach with no compression at all. And the
     run's lobes shaded the same way: the gap between the two is the fit's, the gap from there to
     ``psnr_indirect`` that of Appendix B's SG x ASG shading."""
-    from jprt.methods.atlas import atlas_image, atlas_lookup
+    from jprt.methods.lightmap_lookup import atlas_image, atlas_lookup
 
     data, e = run.dataset, run.config["eval"]
     n = data.images.shape[1]
@@ -376,7 +376,7 @@ def environment_visibility(run) -> dict:
     included), and compared with visibility tested only along the reflected direction (exact per
     pixel: one ray), with no visibility, with the raw W_E maps (no lobes), and with Eq. 3 by
     quadrature of the captured visibility x environment (no split-sum approximation at all)."""
-    from jprt.methods.atlas import atlas_image, atlas_lookup
+    from jprt.methods.lightmap_lookup import atlas_image, atlas_lookup
     from jprt.methods.sg_lightfield import data as sgdata
     from jprt.methods.sg_lightfield import environment as env
     from jprt.render import lightmap

@@ -1,5 +1,6 @@
-"""Lightmap atlases on the evaluator side (pure JAX/NumPy): the bilinear texel lookup of the
-lightmap methods (data-driven PRT, SH PRT) and the G-buffer of an atlas itself.
+"""Looking up a lightmap on the evaluator side (pure JAX/NumPy): the bilinear texel lookup the
+lightmap methods (data-driven PRT, SH PRT, MRT, the SG methods) shade pixels with, the atlas
+image of a lightmap's texels, and the G-buffer of an atlas itself.
 
 A lightmap lives in an (R, R) atlas (``jprt.render.lightmap.Atlas``): ``texel_index`` (T,) are the
 flat atlas pixels covered by a surface, ``fill_index`` (R * R,) the texel each atlas pixel shows

@@ -13,8 +13,8 @@ from scipy.spatial.distance import pdist
 import jax
 
 from jprt.inputs import PointRadiance
-from jprt.methods.atlas import atlas_inputs
 from jprt.methods.datadriven import model as dd
+from jprt.methods.lightmap_lookup import atlas_inputs
 
 
 def _layout(params, texels, res=8):

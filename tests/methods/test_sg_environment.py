@@ -95,7 +95,7 @@ def test_fast_evaluator_equals_the_reference_shading_of_its_fetched_lobes():
     """The evaluator's planar path (one packed fetch, (..., N) planes) against ``shade`` of
     ``lookup_lobes``: the same numbers to float rounding."""
     from jprt.inputs import GBuffer, LightScale
-    from jprt.methods.atlas import atlas_image, atlas_lookup
+    from jprt.methods.lightmap_lookup import atlas_image, atlas_lookup
 
     rng = np.random.default_rng(1)
     t, r, n, h = 40, 8, 5, 12

@@ -54,11 +54,12 @@ import numpy as np
 
 MODULES = [
     "jprt.sphere.cubemap", "jprt.sphere.haar", "jprt.sphere.octahedral", "jprt.sphere.quadrature",
-    "jprt.sphere.sg", "jprt.sphere.sh",
+    "jprt.sphere.sg", "jprt.sphere.sh", "jprt.sphere.envmap",
     "jprt.nn.cnn", "jprt.nn.encoding", "jprt.nn.factor", "jprt.nn.hashgrid", "jprt.nn.mlp",
     "jprt.solve.losses",
 ] + [f"jprt.methods.{m}.model" for m in ("datadriven", "mrt", "rrf", "sg_lightfield", "sh_prt", "wavelet_prt")] + [
     "jprt.methods.rrf.features", "jprt.methods.rrf.fitting", "jprt.methods.rrf.renderer",
+    "jprt.methods.wavelet_prt.views", "jprt.methods.mrt.block_atlas",
 ]
 
 MAX_RTOL = 1e-3  # issue 20: float32 within 1e-3 relative (or a stated absolute tolerance near 0)

@@ -56,8 +56,8 @@ import numpy as np
 
 from jprt.config import merge
 from jprt.inputs import PointRadiance
-from jprt.methods.atlas import atlas_image, atlas_inputs, atlas_lookup
 from jprt.methods.base import FitResult, resolve
+from jprt.methods.lightmap_lookup import atlas_image, atlas_inputs, atlas_lookup
 
 __all__ = [
     "DEFAULT_CONFIG",
@@ -619,7 +619,7 @@ def evaluator(params: dict, config: dict | None = None):
     """``evaluate(inputs, lighting) -> (H, W, 3)`` indirect radiance (§4.3).
 
     ``inputs`` is a G-buffer with ``uv`` in atlas coordinates and ``valid``
-    (``jprt.render.lightmap.atlas_gbuffer``; ``jprt.methods.atlas.atlas_inputs`` for the atlas
+    (``jprt.render.lightmap.atlas_gbuffer``; ``jprt.methods.lightmap_lookup.atlas_inputs`` for the atlas
     itself, which makes the output the lightmap as an (R, R, 3) image);
     ``lighting`` a ``PointRadiance``: the direct radiance (S, 3) at the fine measurement points
     (the method's lighting input, §4.3 "fake G-buffer"). Pure and jitted: the lightmap

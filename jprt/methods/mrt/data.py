@@ -172,9 +172,10 @@ TASK_LIGHTINGS = ("point",)
 
 
 def task_inputs(handle, dataset: MRTData, camera):
-    """The camera's G-buffer with ``uv`` in the lightmap atlas (``model.proxy_uv``: each pixel on
-    the face of its block that faces its way) and ``valid`` where a pixel maps to a block."""
-    from jprt.methods.mrt.model import proxy_uv
+    """The camera's G-buffer with ``uv`` in the lightmap atlas (``block_atlas.proxy_uv``: each
+    pixel on the face of its block that faces its way) and ``valid`` where a pixel maps to a
+    block."""
+    from jprt.methods.mrt.block_atlas import proxy_uv
     from jprt.render.gbuffer import gbuffer
 
     cfg = dataset.meta["config"]

@@ -72,16 +72,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from jprt import cache, layouts
-from jprt.inputs import GBuffer, PointRadiance
-from jprt.methods.atlas import atlas_lookup
+from jprt.inputs import PointRadiance
 from jprt.methods.base import FitResult, resolve
+from jprt.methods.lightmap_lookup import atlas_lookup
 from jprt.methods.mrt import operators as ops
+from jprt.methods.mrt.block_atlas import atlas_gbuffer_inputs, atlas_layout, texels_of
 
 __all__ = ["DEFAULT_CONFIG", "MRTData", "block_prior", "reduce_transfer", "enrich_prior", "block_operators",
            "interface_operators", "dictionary", "layout_operators", "lightmap", "lightmap_parts",
            "lightmap_parts_texels", "feedback_operators", "level_feedback", "coefficients",
-           "projection", "vector_irradiance", "volume_probes", "atlas_layout", "atlas_gbuffer_inputs", "proxy_uv", "fit",
-           "evaluator", "example", "TYPES"]
+           "projection", "vector_irradiance", "volume_probes", "fit", "evaluator", "example", "TYPES"]
 
 #: The dictionary types in storage order.
 TYPES = tuple(layouts.DICTIONARY)
@@ -673,70 +673,6 @@ class MRTData(NamedTuple):
     meta: dict
 
 
-def atlas_layout(n_blocks: int, t: int) -> tuple[int, np.ndarray, np.ndarray]:
-    """The padded lightmap atlas (§6.2, §7.3 step 6): each block face a (t + 2)^2 tile whose
-    one-texel gutter repeats its edge. Returns (resolution R, texel_index (B n,) atlas pixel of
-    each texel, fill_index (R^2,) texel each pixel shows).
-
-    Numerics: not differentiable (integer atlas layout).
-    """
-    tiles = n_blocks * 6
-    per_row = int(np.ceil(np.sqrt(tiles)))
-    tile = t + 2
-    res = per_row * tile
-    fill = np.zeros((res, res), np.int64)
-    texel_index = np.zeros(tiles * t * t, np.int64)
-    jj, ii = np.meshgrid(np.arange(tile), np.arange(tile), indexing="ij")
-    src = np.clip(jj - 1, 0, t - 1) * t + np.clip(ii - 1, 0, t - 1)
-    for k in range(tiles):
-        r0, c0 = (k // per_row) * tile, (k % per_row) * tile
-        fill[r0:r0 + tile, c0:c0 + tile] = k * t * t + src
-        inner = np.arange(t * t)
-        texel_index[k * t * t + inner] = (r0 + 1 + inner // t) * res + c0 + 1 + inner % t
-    return res, texel_index, fill.reshape(-1)
-
-
-def proxy_uv(position, normal, layout, origin, size: float, t: int) -> tuple[np.ndarray, np.ndarray]:
-    """Lightmap-atlas UVs (..., 2) and validity (...) of surface points of a scene mapped to its
-    block proxy (§7.2): the cell that holds the point (nudged along its normal into the room),
-    the face of that block whose inward normal is closest to the point's normal (so a box top is
-    lit like a floor, a box side like the wall facing the same way; the paper picks the face by
-    the direction from the block's centre), and the point's orthographic projection onto it.
-
-    Numerics: not differentiable (atlas coordinates of scene points in NumPy).
-    """
-    lay = layouts.layout_from_dict(layout)
-    p = np.asarray(position, np.float64)
-    n = np.asarray(normal, np.float64)
-    q = (p - np.asarray(origin, np.float64)) / float(size) + 1e-4 * n
-    ci, cj = np.floor(q[..., 0]).astype(int), np.floor(q[..., 2]).astype(int)
-    index = {c: k for k, c in enumerate(lay.cells)}
-    if len(lay.cells) == 1:  # one block: everything maps to it (clamped)
-        ci, cj = np.full_like(ci, lay.cells[0][0]), np.full_like(cj, lay.cells[0][1])
-    block = np.vectorize(lambda i, j: index.get((int(i), int(j)), -1), otypes=[int])(ci, cj) if ci.size else ci
-    local = np.clip(q - np.stack([ci, np.zeros_like(ci), cj], -1), 0.0, 1.0)
-    face = np.argmax(n @ layouts.FACE_NORMALS.T, axis=-1)
-    rel = local - layouts.FACE_ORIGINS[face]
-    u = np.clip(np.sum(rel * layouts.FACE_U[face], -1), 0.0, 1.0)
-    v = np.clip(np.sum(rel * layouts.FACE_V[face], -1), 0.0, 1.0)
-    res, _, _ = atlas_layout(len(lay.cells), t)
-    per_row = res // (t + 2)
-    tile = np.maximum(block, 0) * 6 + face
-    uv = np.stack([((tile % per_row) * (t + 2) + 1 + u * t) / res, ((tile // per_row) * (t + 2) + 1 + v * t) / res], -1)
-    present = np.stack([np.asarray(b) for b in _present_faces(lay)])[np.maximum(block, 0), face]
-    return uv.astype(np.float32), (block >= 0) & present
-
-
-def _present_faces(lay: layouts.Layout) -> list:
-    return [[True, True] + [k not in b.open_sides for k in range(4)] for b in lay.blocks]
-
-
-def texels_of(albedo: np.ndarray) -> tuple[int, int]:
-    """(blocks B, texels per face side n) of a per-texel array (B, 6 n^2, ...)."""
-    b, n = albedo.shape[:2]
-    return b, int(round(np.sqrt(n // 6)))
-
-
 def fit(data: MRTData, config: dict | None = None) -> FitResult:
     """The dictionary (scene-independent, cached) and the layout's operators. ``info``:
     precompute and T_b->r build seconds, k's, singular values for Table 2.
@@ -816,22 +752,3 @@ def example(data: MRTData, config: dict | None = None):
     """
     return atlas_gbuffer_inputs(data.albedo), PointRadiance(
         np.asarray(data.direct_test[0], np.float32).reshape(-1, 3))
-
-
-def atlas_gbuffer_inputs(albedo) -> GBuffer:
-    """The G-buffer of the padded atlas: every texel's own centre, with its albedo; gutters and
-    missing faces invalid. The evaluator given it returns the texels as an (R, R, 3) image.
-
-    Numerics: not differentiable (builds a G-buffer).
-    """
-    from jprt.methods.atlas import atlas_inputs
-
-    alb = np.asarray(albedo, np.float32)
-    b, t = texels_of(alb)
-    res, texel_index, _ = atlas_layout(b, t)
-    g = atlas_inputs(res, texel_index)
-    img = np.zeros((res * res, 3), np.float32)
-    img[texel_index] = alb.reshape(-1, 3)
-    present = np.zeros(res * res, bool)
-    present[texel_index] = np.any(alb.reshape(-1, 3) > 0, axis=-1)
-    return g._replace(diffuse_albedo=img.reshape(res, res, 3), valid=present.reshape(res, res))

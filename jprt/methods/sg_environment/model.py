@@ -116,7 +116,7 @@ def evaluator(params, config: dict | None = None, *, tile: int = sgm.TILE):
     tile = int(tile)
 
     def shade(table, u, alphas, uv, normal, view, roughness, specular):
-        from jprt.methods.atlas import atlas_lookup
+        from jprt.methods.lightmap_lookup import atlas_lookup
 
         r = 2.0 * jnp.sum(normal * view, axis=-1, keepdims=True) * normal - view
         # Eq. 1 at w_r on the fetched (..., N) planes (``environment.evaluate_lobes`` on (..., N, 3)
@@ -147,7 +147,7 @@ def example(data, config: dict | None = None):
 
     Numerics: not differentiable (a held-out input and lighting from a dataset).
     """
-    from jprt.methods.atlas import atlas_inputs
+    from jprt.methods.lightmap_lookup import atlas_inputs
 
     _cfg(config)
     r = int(data.atlas["resolution"])

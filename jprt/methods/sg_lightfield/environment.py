@@ -152,7 +152,7 @@ def octahedral_lookup(image, d):
     Texel centres as ``octahedral.texel_centers`` (the atlas lookup's convention on the square
     mapped to [0, 1]^2); clamped at the square's border (the octahedral fold is not wrapped, a
     half-texel approximation there)."""
-    from jprt.methods.atlas import atlas_lookup
+    from jprt.methods.lightmap_lookup import atlas_lookup
 
     return atlas_lookup(image, (octahedral.encode(d) + 1.0) * 0.5)
 

@@ -507,7 +507,7 @@ def lobe_table(params):
     """Every atlas pixel's texture packed plane by plane as one (R, R, 7N [+ 3]) float32 image
     (gutters filled): axis x, y, z, sharpness, amplitude r, g, b (N channels each), then the
     irradiance when ``params`` has it. One bilinear fetch reads a pixel's whole texture."""
-    from jprt.methods.atlas import atlas_image
+    from jprt.methods.lightmap_lookup import atlas_image
 
     axes = jnp.asarray(params["axes"], jnp.float32)
     amp = jnp.asarray(params["amplitude"], jnp.float32)
@@ -535,7 +535,7 @@ def lookup_lobes(params, uv) -> Lobes:
 
 def _table_lobes(table, uv, n: int) -> Lobes:
     """``lookup_lobes`` in a packed ``lobe_table`` of ``n`` lobes per texel."""
-    from jprt.methods.atlas import atlas_lookup
+    from jprt.methods.lightmap_lookup import atlas_lookup
 
     p = lobe_planes(atlas_lookup(table, jnp.asarray(uv, jnp.float32)), n)
     axes = jnp.stack(p[0:3], axis=-1)
@@ -622,7 +622,7 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     Numerics: not differentiable (builds the float32 run-time program; its arithmetic is ``shade``'s, covered).
     """
     _cfg(config)
-    from jprt.methods.atlas import atlas_lookup
+    from jprt.methods.lightmap_lookup import atlas_lookup
 
     n = params["sharpness"].shape[-1]
     table = lobe_table(params)
@@ -651,7 +651,7 @@ def example(data: SGData, config: dict | None = None):
 
     Numerics: not differentiable (a held-out input and lighting from a dataset).
     """
-    from jprt.methods.atlas import atlas_inputs
+    from jprt.methods.lightmap_lookup import atlas_inputs
 
     _cfg(config)
     r = int(data.atlas["resolution"])

@@ -30,8 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jprt.inputs import SHLighting
-from jprt.methods.atlas import atlas_image, atlas_inputs, atlas_lookup
 from jprt.methods.base import FitResult, resolve
+from jprt.methods.lightmap_lookup import atlas_image, atlas_inputs, atlas_lookup
 from jprt.sphere import sh
 
 __all__ = ["DEFAULT_CONFIG", "SHData", "delta_light_coefficients", "lightmap", "order_to_degree", "fit",
