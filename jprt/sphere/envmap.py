@@ -137,10 +137,8 @@ def sun_skies(n_maps: int, face_size: int, seed: int = 0) -> np.ndarray:
     (bluer towards the zenith), a dim ground, and a sun holding a fraction U(0.2, 0.8) of the
     map's energy (real clear skies: 20-70 %) in the one texel that contains its direction, which
     is uniform on the upper hemisphere. A sun this small puts large coefficients on the finest
-    Haar wavelets at its position, whose features W[k] are otherwise trained only by the few
-    training maps with a sun there (issue 18: after the `small` training, the median row of W
-    had moved 13 % from its random initialisation, the held-out clear sky's sun wavelets 10-24 %).
-    Measured (`small`, 40 % of the lightings such skies): no better on that sky, worse elsewhere.
+    Haar wavelets at its position (neural-wavelet PRT's ``envmaps.procedural = "sun"`` trains on
+    such skies).
 
     Numerics: not differentiable (seeded procedural maps).
     """

@@ -27,8 +27,8 @@ Indirect light of an asset is predicted from a few measurements of *direct* ligh
   function (``evaluator``).
 * **Mean** (``basis.mean``): the paper scales the stored mean by |x| at run time (``"norm"``).
   That makes the model y = m |x| + U_n M_n x non-linear in x, and a linear M_n must then also
-  absorb the constant -U_n^T m of the normalised coefficients; on our data this costs about 1.5x
-  in RMSE at n = 64. ``"linear"`` (the default; not in the paper) keeps the mean as one more
+  absorb the constant -U_n^T m of the normalised coefficients, which costs accuracy (measured:
+  docs/methods/datadriven.md). ``"linear"`` (the default; not in the paper) keeps the mean as one more
   basis vector whose coefficient is regressed like the others, so y = B_n M_n x is exactly linear.
 * **Colour** (§5.2): ``channels="mono"`` treats R, G, B as separate examples of one basis with
   one transfer matrix per channel; ``"multi"`` interleaves the channels in one vector.
@@ -89,40 +89,56 @@ DEFAULT_CONFIG: dict[str, Any] = {
     # the built-in Cornell box lit by spot lights inside it; lightmap over every object
     "scene": {"name": "cornell_box", "area_light": False},
     "objects": [],  # object names of the asset; [] = every object of the scene
-    "lightmap": {"resolution": 64},
+    "lightmap": {"resolution": 64},  # the lightmap atlas's size in texels per side
     "points": {
         "candidates": 4096,  # dense uniform surface samples (also the sample-elimination input)
         # measurement points P (length of the direct vector per channel); direct measured at
-        # count * supersample points, averaged to count (§5.1). 1024 x 2: the count that brings the
-        # held-out error within 1.4x of the projection floor at n = 64 on both benchmark scenes
-        # (1.28 Cornell, 1.37 Spot; 256 x 4, the former default: 1.44 / 1.66)
+        # count * supersample points, averaged to count (§5.1). 1024 x 2 was chosen by held-out
+        # error against the projection floor on both benchmark scenes (docs/methods/datadriven.md)
         "count": 1024,
         "supersample": 2,
         "objects": [],  # objects carrying measurement points; [] = the lightmap's objects. An asset lit
         # mostly by bounce light from its surroundings needs points there too (Spot in a room)
-        "seed": 0,
+        "seed": 0,  # seed of the candidates and the sample elimination
     },
     "lights": {  # the lighting scenario (§4.1): one light per configuration
         "kind": "spot",  # "spot" (the paper's) or "point" (target and cutoff unused)
+        # light positions and spot targets uniform in these world-space boxes [x, y, z]
         "position_lo": [-0.8, -0.7, -0.7],
         "position_hi": [0.8, 0.9, 0.9],
         "target_lo": [-0.9, -1.0, -0.9],
         "target_hi": [0.9, 0.3, 0.3],
-        "cutoff_deg": [20.0, 50.0],
+        "cutoff_deg": [20.0, 50.0],  # the spot's cutoff angle, uniform in this range (degrees)
         "intensity": [1.0, 6.0],  # W/sr on the axis, times a random colour of max channel 1
         "saturation": 0.6,  # 0 = white lights, 1 = fully random colours
         "clearance": 0.3,  # positions inside objects or this close to a surface are redrawn
     },
-    "data": {"n_train": 256, "n_test": 32, "spp": 64, "test_spp": 256, "seed": 0},
-    # mean: "norm" = the paper's mean scaled by |x| at run time (§4.2); "linear" (the default) =
-    # the mean is one more basis vector with a regressed coefficient, exactly linear in x like the
-    # light transport itself (not in the paper; at n = 64 it halves the gap to the projection
-    # floor: benchmarks/results/datadriven.json reports both)
-    "basis": {"n": 16, "channels": "mono", "gamma": 0.0, "center": True, "mean": "linear"},
-    # lam: Tikhonov lambda of Eq. 14 on unit-norm direct vectors; when lam_cv lists candidates,
-    # lambda is chosen among them by cv_folds-fold cross-validation over the training configurations
-    "transfer": {"lam": 0.1, "lam_cv": [1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0], "cv_folds": 4, "rcond": 1e-12,
-                 "warn_condition": 1e7},
+    "data": {
+        "n_train": 256,  # training lighting configurations (one light each)
+        "n_test": 32,  # held-out lighting configurations
+        "spp": 64,  # path-traced samples per texel of a training lightmap
+        "test_spp": 256,  # samples per texel of a held-out reference lightmap
+        "seed": 0,  # seed of the lights and the renders
+    },
+    "basis": {
+        "n": 16,  # basis vectors kept (the reduced lightmap space's size)
+        "channels": "mono",  # "mono": R, G, B as examples of one basis (§5.2); "multi": one vector of all three
+        "gamma": 0.0,  # g(v) = sign(v) |v|^(1 / gamma) applied to the data (§5.3); <= 0: none
+        "center": True,  # subtract the mean lightmap before the SVD
+        # "norm" = the paper's mean scaled by |x| at run time (§4.2); "linear" (the default) = the
+        # mean is one more basis vector with a regressed coefficient, exactly linear in x like the
+        # light transport itself (not in the paper; both measured: docs/methods/datadriven.md)
+        "mean": "linear",
+    },
+    "transfer": {
+        "lam": 0.1,  # Tikhonov lambda of Eq. 14 on unit-norm direct vectors
+        # lambda candidates chosen among by cv_folds-fold cross-validation over the training
+        # configurations; [] uses lam
+        "lam_cv": [1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0],
+        "cv_folds": 4,
+        "rcond": 1e-12,  # singular values of the direct vectors below rcond x the largest are dropped
+        "warn_condition": 1e7,  # warn when the direct vectors' condition number s_max / s_min exceeds this
+    },
 }
 
 

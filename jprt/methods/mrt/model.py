@@ -113,9 +113,17 @@ DEFAULT_CONFIG: dict[str, Any] = {
     # "exterior" openings), the world position of cell (0, 0)'s corner and the block size. null
     # for "blocks" scenes, whose layout is the proxy
     "proxy": {"layout": None, "origin": [0.0, 0.0, 0.0], "size": 1.0},
-    "lights": {"count": 1, "intensity": [0.5, 2.0], "saturation": 0.5, "clearance": 0.15},
-    # held-out lightings; the references' spp keeps their own noise well under MRT's error
-    "data": {"n_test": 8, "test_spp": 4096, "seed": 0},
+    "lights": {
+        "count": 1,  # point lights per held-out lighting, each in a block drawn uniformly
+        "intensity": [0.5, 2.0],  # W/sr (max channel), uniform in this range, times a random colour
+        "saturation": 0.5,  # 0 = white lights, 1 = fully random colours
+        "clearance": 0.15,  # least distance of a light from its block's faces (a fraction of a block)
+    },
+    "data": {
+        "n_test": 8,  # held-out lightings
+        "test_spp": 4096,  # samples per texel of the references (their noise well under MRT's error)
+        "seed": 0,  # seed of the lights and the references
+    },
 }
 
 

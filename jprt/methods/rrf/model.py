@@ -58,60 +58,87 @@ __all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "feature
            "refit_leaves", "parameter_count", "light_box", "raw_thresholds", "RENDER_LAYOUTS", "render_layout"]
 
 DEFAULT_CONFIG: dict = {
+    # the scene rendered for training: a built-in name (jprt.render.scenes) or a file, with its options
     "scene": {"name": "cornell_box", "area_light": False},
     "data": {
         "mode": "view",  # "view" (x_p, v, l, ...) or "material" (Appendix B: v replaced by an edit)
-        # sampling regions of lights and views; None: from the scene (data.scene_regions: the
-        # built-in boxes' tuned regions, else the scene's bounds and free space)
+        # sampling regions of lights and views, world-space boxes [x, y, z]; None: from the scene
+        # (data.scene_regions: the built-in boxes' tuned regions, else the scene's bounds and free space)
         "light_lo": None,
         "light_hi": None,
         "view_lo": None,
         "view_hi": None,
-        "view_target": None,
-        "target_jitter": 0.15,
-        "fov": None,  # None: from the scene, as the regions above (the built-in boxes' 39.3077)
-        "n_lights": 20,
-        "n_views": 20,
-        "n_rays": 100,
+        "view_target": None,  # the point every training camera looks at (world units; None: from the scene)
+        "target_jitter": 0.15,  # each camera's target moved by up to this much per axis (world units, uniform)
+        "fov": None,  # camera field of view in degrees; None: from the scene, as the regions above
+        "n_lights": 20,  # N_l training light positions (Latin hypercube in the light box)
+        "n_views": 20,  # N_v training viewpoints (Latin hypercube in the view box)
+        "n_rays": 100,  # N_r primary rays (samples) per (light, view) pair
         # > 1: n_rays drawn from oversample x n_rays screen rays, balanced over the surfaces they hit
         # (data.py): for small budgets, where uniform rays miss faces seen at grazing angles
         "oversample": 1,
         # at least this many of each view-light pair's rays on every object the candidate rays hit
-        # (drawn first; 0: none). Small objects then get samples (issue 21: one ray or none before)
+        # (drawn first; 0: none), so small objects get samples that uniform rays may all miss
         "min_object_rays": 0,
         # at least this many of each view-light pair's rays on every face (object x signed dominant
         # normal axis) that 16 x n_rays candidate screen rays hit, drawn first, the rest uniform
         # (0: none): a face seen only at grazing angles (the tall box's top) gets samples
         "min_face_rays": 0,
-        "spp": 512,
-        "seed": 0,
-        "val_fraction": 0.3,
+        "spp": 512,  # path-traced samples per training ray (the indirect radiance's Monte Carlo budget)
+        "seed": 0,  # seed of the light, view and ray draws and of the renders
+        "val_fraction": 0.3,  # fraction of the samples held out for validation (Appendix A: 70/30)
         # held-out point lights (their own seed stream, never fitted) rendered from every view (or
         # material) at n_rays / 2 rays each for the self-check (data.self_check; at the defaults
         # 5 % of the training render; 0: none). Not part of the training data's cache key
         "check_lights": 2,
+        # material mode (Appendix B): the edited object, its GGX roughness and albedo ranges,
+        # n_materials edits by Latin hypercube, all seen from view_origin (world units)
         "material": {"object": "floor", "roughness": [0.05, 0.5], "albedo": [0.1, 0.8], "n_materials": 8,
                      "view_origin": [0.0, 0.0, 3.9]},
     },
+    # hidden: the widths of Phi's tanh hidden layers (Eq. 8: 20 and 10); attributes: Phi's inputs,
+    # an ATTRIBUTE_SETS name (Fig. 3)
     "model": {"hidden": [20, 10], "attributes": "augmented"},
-    # split_on: the attributes (ATTRIBUTE_SETS names) whose axes a node may split; None, every
-    # axis, is the paper's. Without "light" every leaf serves every light, so a frame's lights
-    # share each pixel's traversal and the light-free part of the first layer (experiments/
-    # rrf_cornell.py's `small` config bars it). That config on 2026-12-02 (benchmarks/results/
-    # rrf_cornell.json, 2-core AMD CPU, both rules on the same samples, frames timed interleaved):
-    # without the light 31 leaves, RMSE 0.0065, p99.9 8.4x, 512^2 frame 16.3 ms, four lights 1.83x;
-    # None: 28 leaves (20 of 21 splits on the light), 0.0067, 7.6x, 12.2 ms, 3.68x
-    "tree": {"threshold": 0.05, "axis": "all", "expand": 0.1, "max_depth": 6, "min_samples": 1500, "max_leaves": 64,
-             "group_below": 32, "split_on": None},
-    # progress: the fit's messages on stderr; None follows jprt.progress (JPRT_PROGRESS, else
-    # whether stderr is a terminal), as every fit does; fit's progress= argument wins over it
-    "train": {"max_iters": 40, "trial_iters": 10, "trial_samples": 1024, "max_fail": 6, "rtol": 1e-6, "damping": 1e-3, "chunk_size": 1024, "seed": 0,
-              "subset": 1.0, "progress": None},
-    # evaluator: lights outside the trained box ("error" | "clamp" | "allow", box grown by
-    # `tolerance` of its size); the tiled networks (None: by JAX's default backend, ``RENDER_LAYOUTS``)
-    # and their input / output clamps (evaluator docstring)
-    "render": {"extrapolation": "error", "tolerance": 0.02, "tile": None, "chunk": None,
-               "clamp_inputs": True, "nonnegative": True},
+    "tree": {
+        "threshold": 0.05,  # a node splits while its training or validation relative error exceeds this (§4: 5 %)
+        "axis": "all",  # split axis: "all" (try every axis, keep the best pair of children) or "random"
+        "expand": 0.1,  # a node trains on its cell grown by this fraction of its width (half per side)
+        "max_depth": 6,  # splits from an object's root to a leaf, at most
+        "min_samples": 1500,  # training samples each child of a split needs, at least
+        "max_leaves": 64,  # leaves over all objects, at most
+        "group_below": 32,  # objects with fewer training samples share one tree
+        # the attributes (ATTRIBUTE_SETS names) whose axes a node may split; None, every axis, is
+        # the paper's. Without "light" every leaf serves every light, so a frame's lights share each
+        # pixel's traversal and the light-free part of the first layer (experiments/rrf_cornell.py's
+        # `small` config bars it; docs/methods/rrf.md has its measured cost and accuracy)
+        "split_on": None,
+    },
+    "train": {
+        "max_iters": 40,  # LM iterations per node fit (a chosen candidate's trial iterations count towards them)
+        "trial_iters": 10,  # LM iterations of each candidate pair when every axis is tried (tree.axis "all")
+        "trial_samples": 1024,  # candidates are compared on at most this many of their training samples (0: all)
+        "max_fail": 6,  # accepted LM steps without a better validation error before a fit stops (0: no early stop)
+        "rtol": 1e-6,  # an LM fit stops when an accepted step lowers the squared error by less than this fraction
+        "damping": 1e-3,  # initial LM damping mu, relative to diag(J^T J)
+        "chunk_size": 1024,  # samples per Jacobian chunk (memory, not results)
+        "seed": 0,  # seed of the initial weights, the 70/30 split and the subsets
+        "subset": 1.0,  # fraction of the training samples kept (Table 3, Fig. 6)
+        # the fit's messages on stderr; None follows jprt.progress (JPRT_PROGRESS, else whether
+        # stderr is a terminal), as every fit does; fit's progress= argument wins over it
+        "progress": None,
+    },
+    "render": {
+        # lights outside the trained box (grown by `tolerance` of its size per axis): "error"
+        # raises, "clamp" moves them onto the box, "allow" evaluates anyway
+        "extrapolation": "error",
+        "tolerance": 0.02,
+        # the renderer's pixel tiles (tile x tile pixels) and (leaf, tile) items per dense product;
+        # None: by JAX's default backend (``RENDER_LAYOUTS``). The image does not depend on them
+        "tile": None,
+        "chunk": None,
+        "clamp_inputs": True,  # each leaf network's inputs clipped to the range of its training samples
+        "nonnegative": True,  # max(Phi, 0) per light (indirect radiance is never negative)
+    },
 }
 
 

@@ -28,11 +28,10 @@ __all__ = ["RENDER_LAYOUTS", "render_layout", "raw_thresholds", "render_frame", 
 
 
 #: ``render.tile`` x ``render.chunk`` by JAX backend when the config leaves them None, each the
-#: fastest one-light 512^2 frame of ``benchmarks/device_evaluators.py`` on that kind of device
-#: (benchmarks/results/device_evaluators.json): on a 2-core CPU small tiles and chunks keep a
-#: chunk's activations in cache (8 x 64: 17 ms; 32 x 64: 23 ms); on an H200 each loop step is a
-#: few kernel launches, so fewer, larger steps win (8 x 64: 3.1 ms; 32 x 64: 0.7-0.9 ms, and the
-#: fastest four-light frame, 3.8 ms).
+#: fastest one-light 512^2 frame of ``benchmarks/device_evaluators.py`` on that kind of device: on
+#: a CPU small tiles and chunks keep a chunk's activations in cache; on a GPU each loop step is a
+#: few kernel launches, so fewer, larger steps win (frame times by layout: the docs' "Evaluators
+#: on a GPU" benchmark page, generated from benchmarks/results/device_evaluators.json).
 RENDER_LAYOUTS = {"cpu": (8, 64), "gpu": (32, 64)}
 
 
@@ -240,8 +239,8 @@ def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols
         # the input scaling folded into the first layer: W^T (z - c) / h = (W / h)^T z - (W / h)^T c
         w_rest = w0[rest] / s["in_halfrange"][rest][:, None]  # (Ds, H1)
         # (H1, N): the light-free part, once for all lights. The barrier keeps z's transpose a copy
-        # of its own: fused into the product as a transposed operand, XLA's CPU dot ran at half the
-        # rate (49 against 136 GFLOP/s for this 20 x 16 x 4096 product, 2026-12-02)
+        # of its own: fused into the product as a transposed operand, XLA's CPU dot ran at about
+        # half the rate
         h0 = w_rest.T @ jax.lax.optimization_barrier(z.T)
         bias = zl @ w0[lc] + layers[0]["b"][lf][None, :] - (s["in_center"][rest] @ w_rest)[None, :]  # (K, H1)
 

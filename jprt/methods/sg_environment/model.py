@@ -43,15 +43,26 @@ __all__ = ["DEFAULT_CONFIG", "fit", "evaluator", "example", "preconvolved"]
 DEFAULT_CONFIG: dict[str, Any] = {
     "scene": ENV_RECEIVERS,  # the glossy receivers in the Cornell box without ceiling and light
     "objects": ["floor", "back", "small-box", "large-box"],  # the receivers: the texture covers them
-    "lightmap": {"resolution": 64},
+    "lightmap": {"resolution": 64},  # the lightmap atlas's size in texels per side
     "capture": {"block": 256},  # texels per visibility-capture batch
     # the environment W_E is weighted by, and the sizes of Eq. 6-7's quadrature
     # (jprt.methods.sg_lightfield.environment.ENV_DEFAULTS)
     "environment": dict(ENV_DEFAULTS),
-    "model": {"n_lobes": 16, "channels": [32, 64, 128, 256], "min_sharpness": 0.5, "max_sharpness": 1.0e4,
-              "init_sharpness": 1.0},
-    "train": {"steps": 2000, "batch": 64, "learning_rate": 1e-3, "final_lr_fraction": 0.1, "seed": 0,
-              "jitter": True},
+    "model": {
+        "n_lobes": 16,  # N, spherical Gaussians per texel
+        "channels": [32, 64, 128, 256],  # the encoder CNN's channels, one per stage (jprt.nn.cnn.sg_encoder)
+        "min_sharpness": 0.5,  # the bounds of a lobe's sharpness lambda (``constrain``)
+        "max_sharpness": 1.0e4,
+        "init_sharpness": 1.0,  # the sharpness of a lobe whose raw parameters are 0 (broad lobes at the start)
+    },
+    "train": {
+        "steps": 2000,  # Adam steps
+        "batch": 64,  # texels per step
+        "learning_rate": 1e-3,  # Adam's initial learning rate, decayed over the steps
+        "final_lr_fraction": 0.1,  # the last step's learning rate over the first's
+        "seed": 0,  # seed of the initial weights, the batches and the jitter
+        "jitter": True,  # evaluate P at a direction jittered uniformly inside each octahedral pixel (§4)
+    },
 }
 
 
@@ -103,9 +114,8 @@ def evaluator(params, config: dict | None = None, *, tile: int = sgm.TILE):
     Schlick's Fresnel with f0 = ``specular_albedo`` and n . w_o. Invalid pixels are 0. The texture
     is packed once here (one bilinear fetch reads a pixel's lobes, one more all of U's alpha
     levels); pixels are shaded in tiles of ``tile`` (a ``lax.map``: a tile's (pixels, N) planes
-    stay in cache). Measured at 256^2, 16 lobes, 8 alpha levels of 64^2 on this 2-core CPU: 72 ms
-    untiled with one fetch per level and the lobes as (..., N, 3) vectors, 14 ms as here (the
-    same view of the `small` run).
+    stay in cache), several times faster on a CPU than one fetch per level with the lobes as
+    (..., N, 3) vectors.
 
     Numerics: not differentiable (builds the float32 run-time program from
     ``sg_lightfield.model``'s lobe fetch and ``environment``'s Eq. 8).

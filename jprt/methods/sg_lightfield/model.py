@@ -31,7 +31,7 @@
 * **Run-time layout**: ``evaluator`` packs the texture plane by plane (axis x, y, z, sharpness,
   amplitude r, g, b), fetches it with one bilinear lookup per pixel and shades on (..., N) planes
   (``_shade_planes``, equal to ``shade`` to rounding, tested), tile by tile: the same arithmetic,
-  laid out for XLA on CPU (``evaluator``'s docstring has the measured frame times).
+  laid out for XLA on CPU (``evaluator``'s docstring says why).
 * **Environment visibility** (§5, Eq. 3-8): ``jprt.methods.sg_lightfield.environment``.
 """
 
@@ -66,22 +66,39 @@ GLOSSY_RECEIVERS = {"name": "cornell_box", "area_light": True, "materials": {
 DEFAULT_CONFIG: dict[str, Any] = {
     "scene": GLOSSY_RECEIVERS,
     "objects": ["floor", "back", "small-box", "large-box"],  # the receivers: the light-field texture covers them
-    "lightmap": {"resolution": 64},
-    # octahedral maps of `size`^2 directions, `spp` paths each; `field`: "indirect" (paths that
-    # bounced: the evaluator then predicts indirect light, as every jprt method does) or "full"
-    # (the emitters seen in the lobes too: direct + indirect, as the paper bakes); `jitter`: each
-    # path along its own direction within the map pixel (box-filtered, ``jprt.render.lightfield.
-    # capture_block``) instead of the pixel centre, same cost; on veach-bidir's lamp-lit room it
-    # took the room from 0.34 to 0.28 relative RMSE and left the table at 0.90 (README)
-    # check_texels: texels captured a second time (other seeds) for the self-check (data.self_check),
-    # at most a tenth of the capturable ones (at the defaults ~5 % of the capture; 0: none); not
-    # part of the light field's cache key
-    "capture": {"size": 32, "spp": 64, "seed": 0, "block": 256, "field": "indirect", "jitter": False,
-                "check_texels": 128},
-    "model": {"n_lobes": 16, "channels": [32, 64, 128, 256], "min_sharpness": 0.5, "max_sharpness": 1.0e4,
-              "init_sharpness": 1.0},
-    "train": {"steps": 2000, "batch": 64, "learning_rate": 1e-3, "final_lr_fraction": 0.1, "seed": 0,
-              "jitter": True},
+    "lightmap": {"resolution": 64},  # the lightmap atlas's size in texels per side
+    "capture": {
+        "size": 32,  # each texel's light field: an octahedral map of size^2 directions
+        "spp": 64,  # paths per direction
+        "seed": 0,  # seed of the capture's paths
+        "block": 256,  # texels per capture batch (memory, not results)
+        # "indirect" (paths that bounced: the evaluator then predicts indirect light, as every jprt
+        # method does) or "full" (the emitters seen in the lobes too: direct + indirect, as the paper bakes)
+        "field": "indirect",
+        # each path along its own direction within the map pixel (box-filtered, ``jprt.render.
+        # lightfield.capture_block``) instead of the pixel centre, same cost (measured on a
+        # lamp-lit room: docs/methods/sg_lightfield.md)
+        "jitter": False,
+        # texels captured a second time (other seeds) for the self-check (data.self_check), at most
+        # a tenth of the capturable ones (at the defaults ~5 % of the capture; 0: none); not part of
+        # the light field's cache key
+        "check_texels": 128,
+    },
+    "model": {
+        "n_lobes": 16,  # N, spherical Gaussians per texel
+        "channels": [32, 64, 128, 256],  # the encoder CNN's channels, one per stage (jprt.nn.cnn.sg_encoder)
+        "min_sharpness": 0.5,  # the bounds of a lobe's sharpness lambda (``constrain``)
+        "max_sharpness": 1.0e4,
+        "init_sharpness": 1.0,  # the sharpness of a lobe whose raw parameters are 0 (broad lobes at the start)
+    },
+    "train": {
+        "steps": 2000,  # Adam steps
+        "batch": 64,  # texels per step
+        "learning_rate": 1e-3,  # Adam's initial learning rate, decayed over the steps
+        "final_lr_fraction": 0.1,  # the last step's learning rate over the first's
+        "seed": 0,  # seed of the initial weights, the batches and the jitter
+        "jitter": True,  # evaluate P at a direction jittered uniformly inside each octahedral pixel (§4)
+    },
 }
 
 
@@ -614,10 +631,9 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     The texture (lobes and irradiance of every atlas pixel, float32 from the float16 storage) is
     packed once here, as a renderer uploads its textures once. Pixels are shaded in tiles of
     ``tile`` (a ``lax.map``, one program): one bilinear fetch of the packed texture per pixel, then
-    the shading on (..., N) planes (``_shade_planes``). Measured at 256^2, 16 lobes on this 2-core
-    CPU: 12 ms, against 35 ms for the same program untiled and 97 ms for ``shade`` on (..., N, 3)
-    vectors (XLA fuses the fetch into every use of its result and streams the whole frame through
-    each fusion; a tile stays in cache).
+    the shading on (..., N) planes (``_shade_planes``): on a CPU several times faster than the
+    same program untiled or ``shade`` on (..., N, 3) vectors (XLA fuses the fetch into every use
+    of its result and streams the whole frame through each fusion; a tile stays in cache).
 
     Numerics: not differentiable (builds the float32 run-time program; its arithmetic is ``shade``'s, covered).
     """

@@ -40,12 +40,18 @@ __all__ = ["DEFAULT_CONFIG", "SHData", "delta_light_coefficients", "lightmap", "
 DEFAULT_CONFIG = {
     "scene": {"name": "cornell_box", "area_light": False},
     "objects": [],  # object names of the asset; [] = every object of the scene
-    "lightmap": {"resolution": 64},
-    # Sloan's order (bands); the bake renders every SH function's positive and negative parts.
-    # check_maps: held-out procedural environment maps whose indirect light at every texel is
-    # rendered at `spp` for the self-check (data.self_check; one render each, against the bake's
-    # 2 (degree + 1)^2 - 1; 0: none). Not part of the bake's cache key
-    "sh": {"order": 3, "spp": 64, "env_height": 32, "seed": 0, "check_maps": 1},
+    "lightmap": {"resolution": 64},  # the lightmap atlas's size in texels per side
+    "sh": {
+        # Sloan's order (bands); the bake renders every SH function's positive and negative parts
+        "order": 3,
+        "spp": 64,  # path-traced samples per texel of each bake render
+        "env_height": 32,  # the height in pixels of the equirect map each SH function is rendered as
+        "seed": 0,  # seed of the bake's renders
+        # held-out procedural environment maps whose indirect light at every texel is rendered at
+        # `spp` for the self-check (data.self_check; one render each, against the bake's
+        # 2 (degree + 1)^2 - 1; 0: none). Not part of the bake's cache key
+        "check_maps": 1,
+    },
 }
 
 

@@ -27,7 +27,7 @@ GGX parameters rho = (k_d, k_s, remapped roughness log(25 sigma + 1) / log 26).
   wavelet weight 1); ``train.objective = "unbiased"`` weights the uniform half by its inverse
   inclusion probability (as printed, the 300 wavelets' sum is fitted to an image lit by all of
   them, so T_k learns to carry the unselected wavelets' share) and ``"exact"`` sums every
-  wavelet; on the six held-out maps both scored lower than the paper's (issue 18, README).
+  wavelet (how each scored: docs/methods/wavelet_prt.md).
   Departures, each a config switch: B is clipped at 0 in the image and the loss
   (``model.nonnegative``); each step jitters exposure and white balance of lighting and target
   alike (exact: B is linear in each colour channel of the lighting); the model is the moving
@@ -123,14 +123,13 @@ DEFAULT_CONFIG = {
                        ["immenstadter_horn_1k", "overcast"], ["studio_small_03_1k", "indoor"]],
         # "per_image": every training image its own lighting (a training map at a uniform rotation,
         # mirrored half the time, or a procedural sky); "shared": maps x rotations_deg (§5)
-        "lighting": "per_image", "mirror": True, "procedural_fraction": 0.2,
+        "lighting": "per_image",
+        "mirror": True,  # "per_image": each file map mirrored left-right with probability 1/2
+        "procedural_fraction": 0.2,  # "per_image": the fraction of training lightings that are procedural skies
         # "per_image" only: the fraction of the file maps turned by a uniformly random 3D rotation
         # instead of about +Y. Turned about +Y only, every training lighting is bright above and dark
         # below in much the same ratio, so the light of the sky and of the ground are hard to tell
-        # apart (a validation fit on the opened Cornell picture put 0.0016 of transport on the -Y
-        # face's scaling wavelet, where Mitsuba's transport has 0, and 0.0010 against 0.0023 on +Y).
-        # Measured there (2026-12-02, README): tilt 0.5 scored the unseen sun's worst / mean object
-        # 0.520 / 0.437 against 0.438 / 0.414 untilted, and left it as dark; so 0 stays the default
+        # apart; 0 (no tilted maps) scored better on a held-out sun in validation (CHANGELOG.md)
         "tilt": 0.0,
         # the procedural lightings: "lobes" (synthetic_environments: a sky and one or two broad lobes)
         # or "sun" (sun_skies: a clear sky whose sun holds 20-80 % of the energy in one texel)
@@ -141,46 +140,63 @@ DEFAULT_CONFIG = {
         "normalise": True,  # scale every map to mean radiance 1 (equal exposure across maps)
     },
     "cameras": {
-        "width": 64, "height": 64, "fov": 39.3077,
+        "width": 64,  # image size in pixels
+        "height": 64,
+        "fov": 39.3077,  # field of view in degrees (with target set; else the scene's)
         # the orbits' centre; None: views from the scene instead (a file's own camera and field of
         # view, jittered in a box about it: jprt.render.sampling.scene_regions), for interiors
         "target": [0.0, -0.1, 0.0],
-        # spherical trajectory: a spiral over a cap of the sphere (azimuth / elevation ranges, degrees)
+        # spherical trajectory: a spiral of n training views over a cap of the sphere of `radius`
+        # (world units) about the target (azimuth / elevation ranges, degrees)
         "sphere": {"n": 45, "radius": 3.9, "azimuth": [-35.0, 35.0], "elevation": [-5.0, 45.0]},
-        # helix for occluded regions: sweeps the azimuth range `turns` times while rising
+        # helix for occluded regions: n views sweeping the azimuth range `turns` times while rising
         "helix": {"n": 30, "radius": 3.0, "azimuth": [-30.0, 30.0], "elevation": [0.0, 40.0], "turns": 2.0},
         "near": 6,  # held-out views on the training trajectories
-        "far": 6,  # views away from them
-        "far_radius": [2.4, 2.8], "far_azimuth": [-45.0, 45.0], "far_elevation": [-10.0, 55.0],
+        "far": 6,  # held-out views away from them, drawn in the ranges below
+        "far_radius": [2.4, 2.8],  # world units from the target
+        "far_azimuth": [-45.0, 45.0],  # degrees
+        "far_elevation": [-10.0, 55.0],  # degrees
     },
-    # test_pairs: "all" -> every near / far view under every held-out map; "cycle" -> view i under map i
-    # rays: "image" renders each pixel over its footprint (Mitsuba's box-filtered image, as the
-    # paper's training images); "centre" traces the pixel-centre rays the G-buffer reads
-    # (jprt.render.images.centre_rays), so a target is the radiance of the one point the model sees
-    "data": {"spp": 128, "test_spp": 1024, "envs_per_view": 2, "seed": 0, "max_depth": -1, "test_pairs": "all",
-             "rays": "image"},
+    "data": {
+        "spp": 128,  # path-traced samples per pixel of a training image
+        "test_spp": 1024,  # samples per pixel of a held-out reference
+        "envs_per_view": 2,  # training lightings each training camera is rendered under
+        "seed": 0,  # seed of the cameras, lightings and renders
+        "max_depth": -1,  # Mitsuba's path depth of the full render (-1: unbounded)
+        # "all" -> every near / far view under every held-out map; "cycle" -> view i under map i
+        "test_pairs": "all",
+        # "image" renders each pixel over its footprint (Mitsuba's box-filtered image, as the
+        # paper's training images); "centre" traces the pixel-centre rays the G-buffer reads
+        # (jprt.render.images.centre_rays), so a target is the radiance of the one point the model sees
+        "rays": "image",
+    },
     "model": {
-        "n_levels": 8, "features_per_level": 2,  # M = n_levels x features_per_level (paper: 64)
-        "log2_table_size": 14,  # paper: 19
-        "base_resolution": 4, "per_level_scale": 1.6,
+        # the hash grid S of Eq. 6: M = n_levels x features_per_level features per point (paper: 64)
+        "n_levels": 8,
+        "features_per_level": 2,
+        "log2_table_size": 14,  # log2 of the hash table's entries per level (paper: 19)
+        "base_resolution": 4,  # the coarsest level's grid cells per axis
+        "per_level_scale": 1.6,  # each level's resolution over the previous one's
         "n_features": 32,  # L, the width of h_k (paper: 64)
-        "hidden": 128, "layers": 2,  # f: 2 x 128 ReLU (paper)
+        "hidden": 128,  # f: the width of its ReLU hidden layers (paper: 128)
+        "layers": 2,  # f: its number of hidden layers (paper: 2)
         "reflection": "sh4",  # "sh4" | "raw" (w_r as 3 numbers) | "none"   (Table 4)
         # S_m[x]: "hashgrid" (the paper), or "vertex": learned features at the vertices of the scene
         # mesh subdivided to edges <= vertex_edge, interpolated, softplus (Table 6's baseline)
-        "spatial": "hashgrid", "vertex_edge": 0.1,
+        "spatial": "hashgrid",
+        "vertex_edge": 0.1,  # "vertex": the longest mesh edge after subdivision (world units)
         # B = max(sum_k L_k T_k, 0) in the image and in the loss (indirect radiance is never negative);
         # the loss also penalises the clipped negative part, so a negative B still gets a gradient
         "nonnegative": True,
-        # W[k] ~ N(0, w_init^2) at the start: a row whose wavelet no training lighting excites keeps
-        # about its initial value (issue 18), so it starts near zero (1 before; see null_transport)
+        # W[k] ~ N(0, w_init^2) at the start (standard deviation): a row whose wavelet no training
+        # lighting excites keeps about its initial value, so it starts near zero (see null_transport)
         "w_init": 0.01,
         # what a wavelet whose features are zero (h_k = 0) transports: "free" is Eq. 4 as written,
         # f(0, pixel) (the same for every such wavelet, whatever training left it); "zero" subtracts
         # it, T_k = f(h_k, pixel) - f(0, pixel), so a wavelet no training lighting excited carries
         # nearly nothing instead of the pixel's average transport times L_k. Under a sun the top-K
         # Haar details at the sun all have the sun's sign, and with "free" their sum lit the scene
-        # 3-4x too bright (issue 18: rooitou_park 14.1 dB with "free", 18.7 with "zero", `small`)
+        # several times too bright (measured: docs/methods/wavelet_prt.md)
         "null_transport": "zero",
         # the Haar detail levels of the lighting the model reads, coarsest first; None: every level
         # (the paper). An integer D keeps the scaling wavelets and the D coarsest detail levels (each
@@ -188,43 +204,50 @@ DEFAULT_CONFIG = {
         # run time: the lighting is then exactly the cube map box-filtered to face 2^D (energy kept),
         # the targets stay rendered under the full map. Indirect light is smooth in the light's
         # direction, and 6 x 4^D transport functions are learnt instead of 6 n^2 from the same
-        # training lightings (lighting_levels, README, issue 21)
+        # training lightings (``lighting_mask``)
         "lighting_levels": None,
     },
     "train": {
-        # paper: 2048 pixels per step; 256 keeps the `small` run near 0.5 s per step on 2 CPU cores
-        "steps": 1500, "learning_rate": 1e-2, "final_lr_fraction": 0.1, "pixels": 256, "wavelets": 300,
-        "seed": 0, "checkpoint_every": 250, "log_every": 50,
+        "steps": 1500,  # Adam steps
+        "learning_rate": 1e-2,  # Adam's initial learning rate, decayed exponentially over the steps
+        "final_lr_fraction": 0.1,  # the last step's learning rate over the first's
+        "pixels": 256,  # training pixels per step (paper: 2048; fewer keep a CPU step short)
+        "wavelets": 300,  # wavelets per step (§5: half the largest |L_k|, half uniform among the rest)
+        "seed": 0,  # seed of the initial parameters and of every step's draws
+        "checkpoint_every": 250,  # steps between checkpoints (fit's checkpoint_path)
+        "log_every": 50,  # steps between loss log lines
         "mu": 10.0,  # mu-law constant (eps = 1)
         # "unbiased": the uniformly drawn half of the wavelets weighted by (N - n/2) / (n - n/2), so the
         # step's sum is an unbiased estimate of sum over all N wavelets and T_k is not rewarded for
         # carrying the share of wavelets it was not shown; "paper": every selected wavelet weight 1 (§5);
         # "exact": every wavelet of the lighting (B itself, no estimate), on pixels * wavelets / N
-        # pixels per step (the same number of (pixel, wavelet) products; at least 4). On the `small`
-        # benchmark "paper" scored 26.36 / 21.92 dB (mean / worst held-out map) where "unbiased"
-        # scored 25.88 / 18.68 (issue 18)
+        # pixels per step (the same number of (pixel, wavelet) products; at least 4). "paper" scored
+        # best on the held-out maps (docs/methods/wavelet_prt.md)
         "objective": "paper",
         # per-step lighting jitter, exact by linearity (lighting and target scaled per channel alike):
-        # exposure 2^U(-s, s) and a white balance exp(N(0, wb^2)) per channel (mean log 0)
-        "exposure_stops": 1.0, "white_balance": 0.2,
+        # exposure 2^U(-s, s) with s = exposure_stops (stops), and a white balance exp(N(0, wb^2))
+        # per channel (mean log 0) with wb = white_balance
+        "exposure_stops": 1.0,
+        "white_balance": 0.2,
         # > 0: the model is the exponential moving average of the parameters with this decay
-        # (``jprt.solve.adam``; 0.99: about the last 100 steps), not the last Adam iterate (0). Two
-        # runs of `small` with different XLA flags differed by up to 1.29 dB on a held-out map with
-        # the last iterate, by up to 0.47 dB with the average (issue 18)
+        # (``jprt.solve.adam``; 0.99: about the last 100 steps), not the last Adam iterate (0); two
+        # trainings on different machine code agree more closely on it (docs/methods/wavelet_prt.md)
         "ema": 0.99,
         # > 0: a penalty on the light the finest ``fine_levels`` Haar detail levels carry, added to
         # the loss: fine_penalty x sum over pixels and selected fine wavelets of |L_k T_k|^2 over the
-        # sum of |target|^2 (dimensionless, so exposure jitter leaves it alone). Measured against
-        # Mitsuba's own transport of the opened Cornell picture, a fit put 0.13-0.39 of the light in
-        # the finest two levels where the truth has 0.04-0.05, and too little in the faces'
-        # scaling wavelets (0.40 against 0.68), even under its training maps (README, issue 21);
+        # sum of |target|^2 (dimensionless, so exposure jitter leaves it alone): against a fit that
+        # puts more light in the finest levels than Mitsuba's transport has (CHANGELOG.md);
         # 0: off (the paper's loss, Eq. 8)
-        "fine_penalty": 0.0, "fine_levels": 2,
+        "fine_penalty": 0.0,
+        "fine_levels": 2,  # how many of the finest Haar detail levels fine_penalty counts
     },
-    # chunk: pixels per step of the render loop; 0 -> ``auto_chunk``: 8192 // K on a CPU, about
-    # 8192 (pixel, wavelet) rows per product, which keeps a 2 x 128 MLP's activations in cache
-    # (measured fastest on 2 CPU cores); 2^22 // K on a GPU (fastest on an H200)
-    "render": {"k": 64, "chunk": 0},
+    "render": {
+        "k": 64,  # K: the largest area-weighted wavelets of a lighting the evaluator sums (Algorithm 1)
+        # pixels per step of the render loop; 0 -> ``auto_chunk``: 8192 // K on a CPU, about 8192
+        # (pixel, wavelet) rows per product, which keeps a 2 x 128 MLP's activations in cache;
+        # 2^22 // K on a GPU (each the fastest measured on its kind of device, ``CHUNK_ROWS``)
+        "chunk": 0,
+    },
 }
 
 #: G-buffer arrays the model reads, with their trailing shapes.
@@ -413,12 +436,10 @@ def model(config: dict | None = None, *, n_vertices: int | None = None) -> Model
         With ``null_transport = "zero"`` and ``prepare(exact=True)`` (``transport``, training)
         T_k = f(h_k, pixel) - f(0, pixel) is carried through the layers as a difference of
         activations: relative precision for any T_k, and the gradients of a T_k near 0 (every
-        T_k at initialisation) are not rounding noise. Measured on the numerics case (T_k ~ 1e-7):
-        value error 2.3e-8 -> 7e-15, weight gradients wrong by up to 20x their size -> 2e-13. With
-        ``exact=False`` (the run-time ``evaluator``) it is f(h_k, pixel) less the prepared
-        f(0, pixel): absolute rounding of f's output, ~1e-7 of |f(0, pixel)| (out_scale units),
-        and 15-25 % faster than the difference form on this CPU (256^2 pixels, K = 64, the default
-        2 x 128 f; measured 2026-12-01)."""
+        T_k at initialisation) are not rounding noise (the numerics harness's case for ``model``
+        checks it). With ``exact=False`` (the run-time ``evaluator``) it is f(h_k, pixel) less the
+        prepared f(0, pixel): absolute rounding of f's output, ~1e-7 of |f(0, pixel)| (out_scale
+        units), and faster than the difference form on a CPU."""
         layers = params["f"]["layers"]
         n_h = params["field"]["U"].shape[-1]
         w = params["field"]["W"][jnp.asarray(k, jnp.int32)]  # (K, M)
@@ -773,10 +794,10 @@ def fit(data: WaveletData, config: dict | None = None, *, checkpoint_path: str |
 
 
 #: Rows (pixels x K) per ``render_pixels`` step when ``render.chunk`` is 0, by JAX backend: on a
-#: 2-core CPU 8192 rows keep a step's activations in cache; on an H200 a step is a few kernel
-#: launches, and 2^22 rows (65536 pixels at K = 64, the whole 256^2 frame in one step, 2 GiB per
-#: 128-wide activation) ran 4.4x faster than 8192 (4.2 against 18.3 ms at 256^2;
-#: benchmarks/results/device_evaluators.json).
+#: CPU 8192 rows keep a step's activations in cache; on a GPU a step is a few kernel launches, and
+#: 2^22 rows (65536 pixels at K = 64, the whole 256^2 frame in one step, 2 GiB per 128-wide
+#: activation) run faster than smaller steps (frame times: the docs' "Evaluators on a GPU"
+#: benchmark page, from benchmarks/results/device_evaluators.json).
 CHUNK_ROWS = {"cpu": 8192, "gpu": 2 ** 22}
 
 
