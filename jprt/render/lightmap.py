@@ -422,6 +422,9 @@ def _fit_texel(sizes: np.ndarray, res: int, start: float, n_charts: int) -> floa
 
 #: An atlas whose charts do not fit its resolution doubles up to this factor (then it raises).
 ATLAS_GROWTH = 8
+#: An object whose area gives it too few texels has its texel density raised, but its charts grow
+#: to at most this fraction of the atlas's side.
+MAX_RAISED_SIDE = 1.0 / 8.0
 
 
 def _fit_texel_growing(sizes: np.ndarray, res: int, start: float, n_charts: int, asked: int) -> tuple[float, int]:
@@ -491,6 +494,9 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
         warnings.warn(f"lightmap atlas: {sum(dropped.values())} zero-area triangles left out "
                       f"({', '.join(f'{k}: {v}' for k, v in sorted(dropped.items()))})", stacklevel=2)
     object_area = np.array([_areas(t).sum() for t in per_object])
+    chart_object = np.array([c[0] for c in charts])
+    unscaled = np.array([np.ptp(c[2].reshape(-1, 2), axis=0).max() for c in charts])
+    object_extent = np.array([unscaled[chart_object == oi].max() for oi in range(len(ids))])
     scale = np.ones(len(ids))
     for _ in range(4):  # raise the density of objects below min_texels until every one has them
         coords = [c[2] * scale[c[0]] for c in charts]
@@ -499,9 +505,15 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
         texel, res = _fit_texel_growing(sizes, res, guess * 0.4, len(charts), int(resolution))
         texels = object_area * scale ** 2 / texel ** 2
         short = texels < 2.0 * int(min_texels)  # rasterised texel centres fall short of the area's count
+        # a raised object's charts stay within MAX_RAISED_SIDE of the atlas's side: an object of
+        # almost no area spread over a wide layout (many tiny charts with gutters, slivers) would
+        # otherwise grow without bound, take the atlas over and leave every other object short
+        cap = np.maximum(MAX_RAISED_SIDE * res * texel / np.maximum(object_extent, 1e-300), 1.0)
+        raised = np.minimum(scale * np.sqrt(2.0 * int(min_texels) / np.maximum(texels, 1e-12)), cap)
+        short &= raised > scale * (1.0 + 1e-9)
         if not short.any():
             break
-        scale[short] *= np.sqrt(2.0 * int(min_texels) / np.maximum(texels[short], 1e-12))
+        scale[short] = raised[short]
     origin = _pack(sizes, res, texel)
     if res != int(resolution):
         warnings.warn(f"lightmap atlas: {len(charts)} charts (with {_GUTTER}-texel gutters) do not fit a "

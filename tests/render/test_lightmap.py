@@ -270,3 +270,41 @@ def test_an_object_without_area_is_left_out_of_the_atlas(mi, tmp_path):
     with pytest.warns(UserWarning, match="1 objects without area left out \\(flat\\)"):
         atlas = lightmap.build_atlas(handle, resolution=32)
     assert names.index("flat") not in atlas.objects.tolist() and len(atlas.objects) == 2
+
+
+def _specks_file(tmp_path) -> str:
+    """A 4 x 4 floor and one mesh of 40 tiny triangles (1 mm, random orientations) strewn over 2 m:
+    almost no area over a wide layout (xatlas charts, each with its gutter)."""
+    rng = np.random.default_rng(3)
+    lines, faces = [], []
+    for k in range(40):
+        centre = rng.uniform(-1.0, 1.0, 3) + [0.0, 0.0, 1.0]
+        a, b = rng.normal(size=3), rng.normal(size=3)
+        for p in (centre, centre + 1e-3 * a / np.linalg.norm(a), centre + 1e-3 * b / np.linalg.norm(b)):
+            lines.append("v {:.6f} {:.6f} {:.6f}".format(*p))
+        faces.append(f"f {3 * k + 1} {3 * k + 2} {3 * k + 3}")
+    (tmp_path / "specks.obj").write_text("\n".join(lines + faces) + "\n")
+    path = tmp_path / "specks.xml"
+    path.write_text('<scene version="3.0.0"><shape type="rectangle" id="floor"><transform name="to_world">'
+                    '<scale value="2"/></transform></shape>'
+                    '<shape type="obj" id="specks"><string name="filename" value="specks.obj"/></shape></scene>')
+    return str(path)
+
+
+def test_an_object_of_almost_no_area_cannot_take_the_atlas_over(mi, tmp_path, monkeypatch):
+    """Raising the texel density of an object too small for its texels keeps its charts within
+    MAX_RAISED_SIDE of the atlas: the atlas stays at the asked resolution and the floor gets the
+    texels its area asks at the atlas's texel size, the specks some of their own. With no bound (the
+    cap at infinity) the same file's specks blow the atlas up (the failure this prevents)."""
+    from jprt.render.scenes import SceneHandle, xml
+
+    handle = SceneHandle(xml(_specks_file(tmp_path)))
+    names = handle.object_names()
+    atlas = lightmap.build_atlas(handle, resolution=32)
+    counts = np.bincount(np.asarray(atlas.texel_object), minlength=2)
+    assert atlas.resolution == 32
+    assert counts[names.index("floor")] >= 0.9 * 16.0 / atlas.texel_size ** 2
+    assert counts[names.index("specks")] >= 1
+    monkeypatch.setattr(lightmap, "MAX_RAISED_SIDE", np.inf)
+    with pytest.raises(ValueError, match="do not fit"):
+        lightmap.build_atlas(handle, resolution=32)
