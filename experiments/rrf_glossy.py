@@ -7,10 +7,14 @@ roughness and albedo replace the view direction as inputs).
     jprt run experiments/rrf_glossy.py --preset paper     # the paper's sizes (needs an accelerator)
 """
 
-from rrf_common import LABEL, METHOD, PAPER_PRESET, STAGES, config, frame, held_out, material_edit  # noqa: F401
-from rrf_common import pathtracer  # noqa: F401
+import os
 
+from rrf_common import LABEL, METHOD, PAPER_PRESET, STAGES, config, frame, held_out, pathtracer  # noqa: F401
+
+from jprt import eval as jeval
+from jprt import io
 from jprt.config import merge
+from jprt.methods.rrf import evaluation as ev
 
 CONFIG = config("results/rrf_glossy", {
     "scene": {"name": "glossy_cornell", "floor_roughness": 0.15, "sphere_roughness": 0.02},
@@ -43,6 +47,22 @@ PRESETS = {
                           "data": {"n_lights": 2, "n_rays": 20, "spp": 2, "material": {"n_materials": 2}}},
     },
 }
+
+
+def material_edit(run) -> dict:
+    """Appendix B (``evaluation.material_edit``): a fixed-view RRF whose view inputs are one
+    object's roughness and albedo; its edits beside Mitsuba's in the ``material_edit/`` folder.
+    ``config['material_demo']`` holds them."""
+    demo = run.config["material_demo"]
+    if not demo["enabled"]:
+        return {}
+    cfg = run.with_config({"data": {**demo["data"], "mode": "material"}})
+    out = os.path.join(run.out, "material_edit")
+    os.makedirs(out, exist_ok=True)
+    summary, rows = ev.material_edit(run.config["scene"], cfg, demo, run.config["eval"], run.say)
+    jeval.side_by_side(os.path.join(out, "material_edit.png"), rows, exposure=float(run.config["eval"]["exposure"]))
+    io.write_json(os.path.join(out, "summary.json"), summary)
+    return {"material_edit": summary}
 
 
 #: The RRF report's stages, then the material-editing demo.

@@ -1,195 +1,121 @@
-"""Where the RRF's worst pixels are, and what training settings do to them (issue 17's seam item).
+"""Where the RRF's worst pixels are, and what training settings do to them.
 
-Fits the ``small`` config of experiments/rrf_cornell.py with each named override and scores it on
-that experiment's held-out pairs (64^2, references along the pixel-centre rays at its
-``eval.reference_spp``; rendered once, cached beside the output): indirect RMSE, the 99.9th
+Fits experiments/rrf_cornell.py's config with each named variant of ``tail.variants`` (overrides
+of that config) and scores it on that experiment's held-out pairs (references along the
+pixel-centre rays at ``eval.reference_spp``, cached by ``jprt.cache``): indirect RMSE, the 99.9th
 percentile of |error| over every valid pixel and channel, their ratio, and which surfaces the
 worst 0.1 % lie on ("object/normal axis": 1/1 the ceiling, 2/2 the back wall, 6/1 the tall box's
 top face in the built-in Cornell box).
 
-    python experiments/rrf_tail.py '{"small": {}, "face1": {"data": {"min_face_rays": 1}}}'
-    python experiments/rrf_tail.py --noise '{"small": {}}'
-    python experiments/rrf_tail.py --figure results/rrf_tail '{"small": {}}'
-    python experiments/rrf_tail.py --timing '{"small": {}, "no_light_split": {"tree": {"split_on":
-        ["position", "view", "normal", "brdf"]}}}'
+    jprt run experiments/rrf_tail.py                      # the config itself ("small")
+    jprt run experiments/rrf_tail.py --set 'tail.variants={"small": {}, "face1": {"data": {"min_face_rays": 1}}}'
+    jprt run experiments/rrf_tail.py --set tail.noise=true --set tail.figures=true --set tail.timing=true
+    jprt run experiments/rrf_tail.py --preset test        # tiny sizes
 
-One JSON line per variant on stdout. The numbers of 2026-11-30 are in experiments/rrf_cornell.py.
-With ``--noise`` a second reference set of the same pairs (other seeds) is rendered too: a first
-line gives the references' own noise (|A - B| / sqrt 2: its RMSE, 99.9th percentile and their
+With ``tail.noise`` a second reference set of the same pairs (other seeds) is rendered too: a first
+row gives the references' own noise (|A - B| / sqrt 2: its RMSE, 99.9th percentile and their
 ratio), and each variant is also scored against the mean of the two (half the noise variance).
-With ``--figure DIR`` each variant writes ``DIR/tail_<name>.png``: the four held-out pairs that
-hold most of the worst 0.1 %, one row each: reference | RRF | |error| (white at 0.1), the worst
-0.1 % in red. With ``--timing`` each variant's frame is timed too, as rrf_cornell times it: the
-first held-out view at ``eval.timing_resolution`` (512^2) with one light and with its four lights
-(median of ``eval.timing_repeats``, the two alternating), their ratio, and the FLOP counts.
+With ``tail.figures`` each variant writes ``tail_<name>.png`` into the report folder: the four
+held-out pairs that hold most of the worst 0.1 %, one row each: reference | RRF | |error| (white
+at 0.1), the worst 0.1 % in red. With ``tail.timing`` each variant's frame is timed as
+rrf_cornell times it: the first held-out view at ``eval.timing_resolution`` with one light and
+with its four lights, interleaved (``jprt.methods.rrf.evaluation.light_times``), and the FLOPs.
+One JSON line per row on stdout; every row in ``<output.dir>/<config hash>/tail.json``.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
-import sys
 import time
 
 import numpy as np
+import rrf_cornell
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
+from jprt import cache, io
+from jprt.config import merge, save_resolved
+from jprt.hashing import config_hash
+from jprt.methods import REGISTRY
+from jprt.methods.rrf import data as rrf_data
+from jprt.methods.rrf import evaluation as ev
+from jprt.runner import method_config
 
+CONFIG = merge(rrf_cornell.CONFIG, {"output": {"dir": "results/rrf_tail"}}) | {
+    # variants: {name: overrides of rrf_cornell's config} ({}: the config itself, as "small");
+    # noise: also score against a second reference set; figures: a tail figure per variant;
+    # timing: time each variant's frame with one and four lights
+    "tail": {"variants": {}, "noise": False, "figures": False, "timing": False},
+}
 
-def held_out(config: dict, cache: str, seed_offset: int = 0):
-    """(testset, references, valid masks) of rrf_cornell's held-out pairs; references cached in ``cache``."""
-    import rrf_common
-
-    cameras, lights, testset = rrf_common.held_out_inputs(config)
-    valid = [np.asarray(testset.gbuffer(item.camera).valid, bool) for item in testset.items]
-    if os.path.exists(cache):
-        return testset, list(np.load(cache)["references"]), valid
-    refs = rrf_common.held_out_references(config, cameras, lights, testset, seed_offset)[1]
-    os.makedirs(os.path.dirname(os.path.abspath(cache)), exist_ok=True)
-    np.savez(cache, references=np.stack(refs))
-    return testset, refs, valid
-
-
-def abs_errors(preds, refs, valid) -> list[np.ndarray]:
-    """|preds - refs| per pair, (H, W, 3), 0 where the G-buffer is invalid."""
-    return [np.where(v[..., None], np.abs(p - r), 0.0) for p, r, v in zip(preds, refs, valid)]
+PRESETS = {"test": {**rrf_cornell.PRESETS["test"], "tail": {"noise": True, "figures": True, "timing": True}}}
 
 
-def tail(preds, refs, valid) -> dict:
-    """RMSE and 99.9th percentile of |preds - refs| over every valid pixel and channel
-    (``rrf_common.rmse_p999``), and their ratio."""
-    import rrf_common
-
-    rmse, p999 = rrf_common.rmse_p999(preds, refs, valid)
-    return {"rmse": rmse, "p999_abs_error": p999, "p999_over_rmse": p999 / rmse}
-
-
-def figure(path: str, preds, refs, errors, counts, threshold: float, rows: int = 4, scale: int = 4) -> list[int]:
-    """The tail figure of ``--figure`` (module docstring) from each pair's ``abs_errors`` and its
-    count of channels at or above ``threshold``; returns the pairs shown, worst first."""
-    from jprt import io
-    from jprt.metrics import tonemap
-
-    err = [e.max(-1) for e in errors]
-    shown = [int(i) for i in np.argsort(counts, kind="stable")[::-1][:rows]]
-    lines = []
-    for i in shown:
-        grey = np.clip(err[i] / 0.1, 0.0, 1.0)
-        worst = err[i] >= threshold
-        panel = np.stack([grey, np.where(worst, 0.0, grey), np.where(worst, 0.0, grey)], -1)
-        panel[worst, 0] = 1.0
-        lines.append(np.concatenate([np.asarray(tonemap(refs[i])), np.asarray(tonemap(preds[i])), panel], axis=1))
-    image = np.concatenate(lines, axis=0)
-    image = np.repeat(np.repeat(image, scale, axis=0), scale, axis=1)
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    io.write_png(path, image, tonemapped=True)
-    return shown
+def references(config: dict, testset, cameras, lightings, seed_offset: int = 0) -> list:
+    """The held-out references of ``config`` (``evaluation.held_out_references``), a ``jprt.cache`` entry."""
+    spec = {"scene": config["scene"], "data": config["data"], "eval": config["eval"], "seed_offset": int(seed_offset)}
+    arrays, _ = cache.cached("rrf_tail_references", spec, lambda: {"references": np.stack(
+        ev.held_out_references(config, cameras, lightings, testset, seed_offset)[1])})
+    return list(arrays["references"])
 
 
-def timing_inputs(config: dict):
-    """(G-buffer, one light, four lights) of rrf_cornell's timing frame (``rrf_common.frame`` and
-    ``four_light_inputs``: the first held-out view at ``eval.timing_resolution``)."""
-    import rrf_common
-
-    from jprt.render.gbuffer import gbuffer
-    from jprt.render.scenes import SceneHandle
-
-    cameras, lightings = rrf_common.held_out_pairs(config)
-    gb = gbuffer(SceneHandle(config["scene"], lightings[0]), rrf_common.timing_camera(config, cameras))
-    return gb, lightings[0], rrf_common.four_light_inputs(config)
-
-
-def timing(evaluate, params, cfg, inputs, repeats: int) -> dict:
-    """Median 512^2 frame times with one and four lights, measured interleaved
-    (``rrf_common.interleaved_times``), and the FLOPs."""
-    import jax
-    import rrf_common
-
-    from jprt.methods.rrf import model as rrf
-
-    gb, one, four = inputs
-    dev = jax.device_put((gb, one, four))
-    timed = rrf_common.interleaved_times({"rrf": jax.jit(evaluate)}, dev[0], {1: dev[1], 4: dev[2]}, repeats)
-    ms1, ms4 = timed[("rrf", 1)]["median_ms"], timed[("rrf", 4)]["median_ms"]
-    f1, f4 = rrf.frame_flops(params, cfg, gb, one), rrf.frame_flops(params, cfg, gb, four)
-    return {"frame_ms": ms1, "frame_ms_4lights": ms4, "frame_ms_4lights_over_1light": ms4 / ms1,
-            "frame_flops": f1, "frame_flops_4lights": f4, "frame_flops_4lights_over_1light": f4 / f1}
-
-
-def score(config: dict, override: dict, testset, refs, valid, refs2=None, figure_path: str | None = None,
-          frame_inputs=None) -> dict:
-    """Fit rrf_cornell's config with ``override`` merged in; its tail statistics on the held-out set
-    (and with ``refs2``, a second reference set, against the mean of the two)."""
-    from jprt.config import merge
-    from jprt.methods import REGISTRY
-    from jprt.methods.rrf import data as rrf_data
-    from jprt.runner import method_config
-
+def score(config: dict, override: dict, testset, refs, refs2=None, figure_path: str | None = None) -> dict:
+    """Fit ``config`` with ``override`` merged in; its tail statistics on the held-out set (and,
+    with ``refs2``, against the mean of two reference sets), its figure and frame times."""
     method = REGISTRY["rrf"]
     cfg = method_config(method, merge(config, override))
     t0 = time.perf_counter()
-    fit = method.fit(rrf_data.make_dataset(config["scene"], cfg, progress=False),
-                     {**cfg, "train": {**cfg["train"], "progress": False}})
-    evaluate = method.evaluator(fit.params, cfg)
+    fit = method.fit(rrf_data.make_dataset(config["scene"], cfg, progress=False), cfg)
     gbs = [testset.gbuffer(item.camera) for item in testset.items]
-    preds = [np.asarray(evaluate(g, testset.lighting(item.lighting))) for g, item in zip(gbs, testset.items)]
-    errors = abs_errors(preds, refs, valid)
-    err = np.concatenate([e[v].ravel() for e, v in zip(errors, valid)])
-    stats = tail(preds, refs, valid)
-    p999 = stats["p999_abs_error"]
-    surface = np.concatenate([np.repeat(np.asarray(g.object_id)[v] * 10 + np.argmax(np.abs(np.asarray(g.normal)), -1)[v], 3)
-                              for g, v in zip(gbs, valid)])
-    ids, counts = np.unique(surface[err >= p999], return_counts=True)
-    worst = {f"{i // 10}/{i % 10}": int(c) for i, c in sorted(zip(ids, counts), key=lambda t: -t[1])}
-    per_pair = [int(np.sum(e >= p999)) for e in errors]
+    preds = ev.predict(method.evaluator(fit.params, cfg), testset)
+    worst = ev.worst_pixels(preds, refs, gbs)
+    errors = worst.pop("errors")
     n_leaves, n_inputs = np.shape(fit.params["leaves"]["layers"][0]["w"])[:2]
     axes = np.asarray(fit.params["tree"]["axis"])
-    out = {**stats, "n_leaves": int(n_leaves), "splits_per_axis": np.bincount(axes[axes >= 0], minlength=n_inputs).tolist(),
-           "worst_0.1%_by_surface": worst, "worst_0.1%_by_pair": per_pair}
-    if frame_inputs is not None:  # ``timing_inputs``
-        out["timing"] = timing(evaluate, fit.params, cfg, frame_inputs, int(config["eval"]["timing_repeats"]))
+    out = {**worst, "n_leaves": int(n_leaves),
+           "splits_per_axis": np.bincount(axes[axes >= 0], minlength=n_inputs).tolist()}
+    if config["tail"]["timing"]:
+        cameras, lightings = ev.held_out_pairs(config)
+        frame = ev.timing_frame(config, cameras, lightings)
+        t = ev.light_times({"rrf": (fit.params, cfg)}, frame["gbuffer"], lightings[0], ev.four_light_inputs(config),
+                           int(config["eval"]["timing_repeats"]))["rrf"]
+        out["timing"] = {"frame_ms": t["ms1"], "frame_ms_4lights": t["ms4"],
+                         "frame_ms_4lights_over_1light": t["ms4"] / t["ms1"], "frame_flops": t["flops1"],
+                         "frame_flops_4lights": t["flops4"],
+                         "frame_flops_4lights_over_1light": t["flops4"] / t["flops1"]}
     if refs2 is not None:
-        out["against_mean_of_two_references"] = tail(preds, [(a + b) / 2 for a, b in zip(refs, refs2)], valid)
+        valid = [g.valid for g in gbs]
+        out["against_mean_of_two_references"] = ev.tail(preds, [(a + b) / 2 for a, b in zip(refs, refs2)], valid)
     if figure_path:
-        out["figure"] = {"path": figure_path, "pairs": figure(figure_path, preds, refs, errors, per_pair, p999)}
+        shown = ev.tail_figure(figure_path, preds, refs, errors, worst["worst_0.1%_by_pair"], worst["p999_abs_error"])
+        out["figure"] = {"path": figure_path, "pairs": shown}
     return {**out, "seconds": round(time.perf_counter() - t0)}
 
 
-def main() -> None:
-    import rrf_cornell
+def main(config: dict) -> dict:
+    """Score every variant (module docstring); write ``tail.json`` (and the figures) to
+    ``<output.dir>/<config hash>/``; returns {"rows": [...], "output": folder}."""
+    out = os.path.abspath(os.path.join(config["output"]["dir"], config_hash(config)))
+    os.makedirs(out, exist_ok=True)
+    save_resolved(config, out)
+    tc = config["tail"]
+    base = {k: v for k, v in config.items() if k != "tail"}
+    cameras, lightings, testset = ev.held_out_inputs(base)
+    refs = references(base, testset, cameras, lightings)
+    rows, refs2 = [], None
 
-    from jprt.config import merge
+    def emit(row: dict) -> None:
+        rows.append(row)
+        print(json.dumps(row), flush=True)
 
-    args = sys.argv[1:]
-    noise, timed = "--noise" in args, "--timing" in args
-    args = [a for a in args if a not in ("--noise", "--timing")]
-    figures = None
-    if "--figure" in args:
-        at = args.index("--figure")
-        if at + 1 >= len(args):
-            sys.exit(__doc__)
-        figures = args[at + 1]
-        del args[at:at + 2]
-    if len(args) != 1:
-        sys.exit(__doc__)
-    config = merge(rrf_cornell.CONFIG, {})
-    folder = config["output"]["dir"]
-    testset, refs, valid = held_out(config, os.path.join(folder, "tail_references.npz"))
-    refs2 = None
-    if noise:
-        import rrf_common
-
-        refs2 = held_out(config, os.path.join(folder, "tail_references_2.npz"), rrf_common.NOISE_SEED_OFFSET)[1]
-        own = tail([a / np.sqrt(2) for a in refs], [b / np.sqrt(2) for b in refs2], valid)
-        print(json.dumps({"name": "reference noise (|A - B| / sqrt 2)", "reference_spp":
-                          int(config["eval"]["reference_spp"]), **own}), flush=True)
-    inputs = timing_inputs(config) if timed else None
-    for name, override in json.loads(args[0]).items():
-        print(json.dumps({"name": name, "override": override,
-                          **score(config, override, testset, refs, valid, refs2,
-                                  figures and os.path.join(figures, f"tail_{name}.png"), inputs)}), flush=True)
-
-
-if __name__ == "__main__":
-    main()
+    if tc["noise"]:
+        refs2 = references(base, testset, cameras, lightings, ev.NOISE_SEED_OFFSET)
+        valid = [testset.gbuffer(item.camera).valid for item in testset.items]
+        emit({"name": "reference noise (|A - B| / sqrt 2)", "reference_spp": int(config["eval"]["reference_spp"]),
+              **ev.tail([a / math.sqrt(2.0) for a in refs], [b / math.sqrt(2.0) for b in refs2], valid)})
+    for name, override in (tc["variants"] or {"small": {}}).items():
+        figure = os.path.join(out, f"tail_{name}.png") if tc["figures"] else None
+        emit({"name": name, "override": override, **score(config, override, testset, refs, refs2, figure)})
+    io.write_json(os.path.join(out, "tail.json"), {"rows": rows})
+    print(f"rrf_tail report (tail.json{', figures' if tc['figures'] else ''}) written to {out}")
+    return {"rows": rows, "output": out}

@@ -12,17 +12,20 @@ number of valid pixels.
 
 from __future__ import annotations
 
+import math
 import os
 import statistics
 import time
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from jprt import io
+from jprt import io, metrics
 from jprt.metrics import error_map, tonemap
 
-__all__ = ["set_rmse", "object_scores", "noise_removed", "DARK_OBJECT_SCALE", "time_call", "xla_flops", "matmul_peak_gflops", "roofline", "equal_error_spp", "side_by_side",
+__all__ = ["set_rmse", "object_scores", "noise_removed", "DARK_OBJECT_SCALE", "HeldOut", "SCORES", "SUMMARY_SCORES",
+           "score_images", "score_held_out", "optional_metric", "time_call", "interleaved_times", "xla_flops",
+           "matmul_peak_gflops", "roofline", "PathTracer", "EqualErrorCurve", "equal_error_spp", "side_by_side",
            "plot_series"]
 
 
@@ -136,6 +139,121 @@ def noise_removed(rel: float, floor: float) -> float:
     return float(np.sqrt(max(float(rel) ** 2 - 0.5 * float(floor) ** 2, 0.0)))
 
 
+class HeldOut(NamedTuple):
+    """Held-out predictions and references, all (H, W, 3) images (one per view / lighting pair).
+
+    Fields:
+      predictions: list of (H, W, 3) indirect predictions of the method.
+      references: list of (H, W, 3) path-traced indirect references.
+      valid: list of (H, W) masks of the pixels that count.
+      direct: list of (H, W, 3) direct radiance (for psnr_full), or None.
+      labels: one label per image (figure rows).
+    """
+
+    predictions: list
+    references: list
+    valid: list
+    direct: list | None = None
+    labels: list | None = None
+
+
+#: The scores of a held-out set that every run's summary carries (``score_images``' default).
+SUMMARY_SCORES = ("indirect_rmse", "indirect_rel_rmse", "p999_abs_error", "psnr_indirect", "ssim_indirect",
+                  "psnr_full", "flip_indirect", "lpips_indirect")
+#: Every score ``score_images`` computes: the summary's, SSIM of direct + indirect, and the mean over
+#: images of each image's RMSE (the per-image convention of some papers' tables).
+SCORES = SUMMARY_SCORES + ("ssim_full", "image_rmse_mean")
+
+
+def score_images(predictions: Sequence, references: Sequence, valid: Sequence | None = None,
+                 direct: Sequence | None = None, *, exposure: float = 0.0, scores: Sequence[str] = SUMMARY_SCORES,
+                 psnr_valid: bool = False) -> dict:
+    """The scores of a held-out set of (H, W, C) images, the one definition every report uses.
+
+    ``valid``: (H, W) masks of the pixels that count (None: all); ``direct``: the direct images,
+    for the scores of direct + indirect (None: those scores are None). ``scores`` names the ones
+    to compute (a subset of ``SCORES``; FLIP and LPIPS are the costly ones):
+
+    * ``indirect_rmse``: ``set_rmse`` over every valid pixel and channel of all images (HDR);
+    * ``indirect_rel_rmse``: that over the RMS of the references on the same pixels;
+    * ``p999_abs_error``: 99.9th percentile of |prediction - reference| over the same entries;
+    * ``psnr_indirect``, ``ssim_indirect``, ``psnr_full``, ``ssim_full``: of the sRGB-tonemapped
+      images at ``exposure`` (clipped, peak 1), mean over images; over the whole image (pixels that
+      do not count are expected to be 0 in both), or over the valid pixels with ``psnr_valid``;
+      SSIM is None for images smaller than its 11 x 11 window;
+    * ``flip_indirect``, ``lpips_indirect``: ``jprt.metrics.flip`` / ``lpips`` of the tonemapped
+      images, mean over images (None, with a warning, without their package; LPIPS None under
+      ``metrics.LPIPS_MIN_SIZE`` pixels a side);
+    * ``image_rmse_mean``: the mean over images of each image's RMSE over its valid pixels.
+
+    Returns {name: float or None} in the order of ``scores``.
+    """
+    unknown = set(scores) - set(SCORES)
+    if unknown:
+        raise ValueError(f"unknown scores {sorted(unknown)}; known: {list(SCORES)}")
+    preds, refs = list(predictions), list(references)
+    valid = list(valid) if valid is not None else None
+    masks = [np.ones(np.shape(r)[:2], bool) if m is None else np.asarray(m, bool)
+             for r, m in zip(refs, valid if valid is not None else [None] * len(refs))]
+    out: dict = {}
+    if {"indirect_rmse", "indirect_rel_rmse"} & set(scores):
+        out["indirect_rmse"] = set_rmse(preds, refs, valid)
+        ref_rms = set_rmse([np.zeros_like(np.asarray(r)) for r in refs], refs, valid)
+        out["indirect_rel_rmse"] = out["indirect_rmse"] / max(ref_rms, 1e-30)
+    if "p999_abs_error" in scores:
+        errors = np.concatenate([np.abs(np.asarray(p, np.float64) - np.asarray(r, np.float64))[m].ravel()
+                                 for p, r, m in zip(preds, refs, masks)])
+        out["p999_abs_error"] = float(np.percentile(errors, 99.9)) if errors.size else None
+
+    def mean(metric, pairs, **kw):
+        return float(np.mean([float(metrics.tonemapped(metric, p, r, exposure, **kw)) for p, r in pairs]))
+
+    def psnr(pairs):
+        if not psnr_valid:
+            return mean(metrics.psnr, pairs)
+        return float(np.mean([float(metrics.tonemapped(metrics.psnr, p, r, exposure, valid=m))
+                              for (p, r), m in zip(pairs, masks)]))
+
+    small = min(min(np.shape(r)[:2]) for r in refs) < 11  # SSIM's 11 x 11 window does not fit
+    full = None if direct is None else [(d + p, d + r) for p, r, d in zip(preds, refs, direct)]
+    if "psnr_indirect" in scores:
+        out["psnr_indirect"] = psnr(zip(preds, refs))
+    if "ssim_indirect" in scores:
+        out["ssim_indirect"] = None if small else mean(metrics.ssim, zip(preds, refs))
+    if "psnr_full" in scores:
+        out["psnr_full"] = None if full is None else psnr(full)
+    if "ssim_full" in scores:
+        out["ssim_full"] = None if full is None or small else mean(metrics.ssim, full)
+    if "flip_indirect" in scores:
+        out["flip_indirect"] = optional_metric(
+            lambda: float(np.mean([metrics.flip(p, r, exposure) for p, r in zip(preds, refs)])))
+    if "lpips_indirect" in scores:
+        tiny = min(min(np.shape(r)[:2]) for r in refs) < metrics.LPIPS_MIN_SIZE
+        out["lpips_indirect"] = None if tiny else optional_metric(
+            lambda: float(np.mean([metrics.lpips(p, r, exposure) for p, r in zip(preds, refs)])))
+    if "image_rmse_mean" in scores:
+        out["image_rmse_mean"] = float(np.mean([float(metrics.rmse(p, r, None if valid is None else valid[k]))
+                                                for k, (p, r) in enumerate(zip(preds, refs))]))
+    return {k: out[k] for k in scores}
+
+
+def score_held_out(held: HeldOut, exposure: float = 0.0, scores: Sequence[str] = SUMMARY_SCORES, **kw) -> dict:
+    """``score_images`` of a ``HeldOut`` set (its predictions, references, masks and direct images)."""
+    return score_images(held.predictions, held.references, held.valid, held.direct, exposure=exposure, scores=scores,
+                        **kw)
+
+
+def optional_metric(compute: Callable[[], float]) -> float | None:
+    """A metric that needs an optional package: its value, or None (with a warning) without it."""
+    try:
+        return compute()
+    except RuntimeError as e:  # the package is missing: say so, do not fail the whole run
+        import warnings
+
+        warnings.warn(str(e), RuntimeWarning, stacklevel=3)
+        return None
+
+
 def time_call(fn: Callable, *args, repeats: int = 10, warmup: int = 2) -> dict:
     """Wall time of ``fn(*args)`` in milliseconds: median (and min, all) of ``repeats`` runs after
     ``warmup`` runs; JAX results are waited for with ``block_until_ready``."""
@@ -207,9 +325,76 @@ def _leaves(out):
         yield out
 
 
+class PathTracer(NamedTuple):
+    """Mitsuba as the peer of the evaluator.
+
+    Fields:
+      render_at: ``spp -> list`` of indirect images of the held-out set (a seed unlike the references').
+      time_at: ``spp -> ms``: wall time of one frame of the timed view at ``spp`` (None: not timed).
+      note: how it was timed (stored in ``extra``).
+    """
+
+    render_at: Callable[[int], Sequence]
+    time_at: Callable[[int], float] | None
+    note: str = ""
+
+
+class EqualErrorCurve:
+    """Mitsuba's speed-accuracy curve on a held-out set, and a model's error read off it.
+
+    ``points`` are Mitsuba's measurements, ascending in spp: {"spp", "ms", "rmse"} (``ms`` the
+    wall time of one timed frame at that spp, None when not timed; ``rmse`` the ``set_rmse`` of
+    the held-out set path traced at that spp against the references). ``measure`` adds points;
+    ``read`` answers "how many samples, and how much time, does Mitsuba need to be as accurate as
+    a model of this error".
+    """
+
+    def __init__(self, points: Sequence[dict] = ()):
+        self.points: list[dict] = sorted((dict(p) for p in points), key=lambda p: p["spp"])
+
+    @property
+    def tried(self) -> list[dict]:
+        """The measured points as {"spp", "rmse"} (without their times)."""
+        return [{"spp": p["spp"], "rmse": p["rmse"]} for p in self.points]
+
+    def measure(self, tracer: PathTracer, references: Sequence, valid: Sequence | None, spp_list: Sequence[int], *,
+                target: float = -math.inf, progress: Callable | None = None) -> "EqualErrorCurve":
+        """Measure the spp of ``spp_list`` above the largest measured one, ascending, until one's
+        RMSE is at most ``target`` (default: every one): each rendered by ``tracer.render_at`` and
+        scored against ``references`` (``set_rmse`` over ``valid``), then timed by
+        ``tracer.time_at`` (when it has one). Returns the curve itself."""
+        done = max((p["spp"] for p in self.points), default=0)
+        for spp in sorted(int(s) for s in spp_list):
+            if spp <= done:
+                continue
+            rmse = set_rmse(tracer.render_at(spp), references, valid)
+            if progress:
+                progress(f"path tracing at {spp} spp: RMSE {rmse:.5f} (target {target:.5f})")
+            ms = None if tracer.time_at is None else float(tracer.time_at(spp))
+            self.points.append({"spp": spp, "ms": ms, "rmse": rmse})
+            if rmse <= target:
+                break
+        return self
+
+    def read(self, rmse: float | None, frame_ms: float | None = None) -> dict:
+        """A model's equal-error numbers: the smallest measured spp whose RMSE is at most ``rmse``
+        (``equal_error_spp``), its time (``pathtrace_ms_equal_error``) and the speedup over a frame of
+        ``frame_ms``; when no spp reaches it, spp None and the time of the largest spp (a lower
+        bound; ``equal_error_reached`` False). All None without an error or a curve."""
+        if rmse is None or not self.points:
+            return {"equal_error_spp": None, "pathtrace_ms_equal_error": None, "speedup_equal_error": None,
+                    "equal_error_reached": None}
+        hit = next((p for p in self.points if p["rmse"] <= rmse), None)
+        ms = (hit or self.points[-1])["ms"]
+        return {"equal_error_spp": hit["spp"] if hit else None, "pathtrace_ms_equal_error": ms,
+                "speedup_equal_error": ms / frame_ms if frame_ms and ms is not None else None,
+                "equal_error_reached": hit is not None}
+
+
 def equal_error_spp(render_at: Callable[[int], Sequence], references: Sequence, target_rmse: float,
                     spp_list: Sequence[int], valids: Sequence | None = None, progress: Callable | None = None) -> dict:
-    """The smallest sample count whose path-traced images are at least as accurate as a method.
+    """The smallest sample count whose path-traced images are at least as accurate as a method
+    (``EqualErrorCurve`` without timing).
 
     Args:
       render_at: spp -> list of images for the test pairs (independent of the reference's seed).
@@ -220,15 +405,24 @@ def equal_error_spp(render_at: Callable[[int], Sequence], references: Sequence, 
 
     Returns {"spp": int or None (not reached within spp_list), "tried": [{"spp", "rmse"}, ...]}.
     """
-    tried = []
-    for spp in sorted(int(s) for s in spp_list):
-        rmse = set_rmse(render_at(spp), references, valids)
-        tried.append({"spp": spp, "rmse": rmse})
-        if progress:
-            progress(f"path tracing at {spp} spp: RMSE {rmse:.5f} (target {target_rmse:.5f})")
-        if rmse <= target_rmse:
-            return {"spp": spp, "tried": tried}
-    return {"spp": None, "tried": tried}
+    curve = EqualErrorCurve().measure(PathTracer(render_at, None), references, valids, spp_list, target=target_rmse,
+                                      progress=progress)
+    return {"spp": curve.read(target_rmse)["equal_error_spp"], "tried": curve.tried}
+
+
+def interleaved_times(fns: dict, inputs, lightings: dict, repeats: int) -> dict:
+    """Median and fastest wall time (ms) of each jitted evaluator in ``fns`` on ``inputs`` under
+    each lighting in ``lightings``, one call at a time in turn (f1 l1, f1 l2, f2 l1, ...)
+    ``repeats`` times after one warm-up call each: every (evaluator, lighting) sees the same spells
+    of machine load, so their ratios are the programs' even on a busy machine where a burst of
+    consecutive calls of one frame moves by 2x from one burst to the next.
+    Returns {(fn name, lighting name): {"median_ms", "min_ms"}}."""
+    times = {(f, n): [] for f in fns for n in lightings}
+    for r in range(max(1, int(repeats))):
+        for f, fn in fns.items():
+            for n, lighting in lightings.items():
+                times[(f, n)] += time_call(fn, inputs, lighting, repeats=1, warmup=0 if r else 1)["times_ms"]
+    return {key: {"median_ms": float(np.median(v)), "min_ms": float(np.min(v))} for key, v in times.items()}
 
 
 def side_by_side(path: str, rows: Sequence[tuple], *, exposure: float = 0.0, diff_scale: float | None = None,

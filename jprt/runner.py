@@ -32,13 +32,13 @@ import os
 import sys
 import time
 from types import ModuleType
-from typing import Any, Callable, NamedTuple, Sequence
+from typing import Any, Callable, Sequence
 
 import jax
 import numpy as np
 
 from jprt import eval as jeval
-from jprt import io, metrics
+from jprt import io
 from jprt.config import merge, save_resolved
 from jprt.hashing import config_hash
 from jprt.methods import REGISTRY
@@ -87,36 +87,9 @@ SUMMARY_SCHEMA: dict[str, str] = {
 __doc__ += "\n" + "\n".join(f"* ``{k}``: {v}." for k, v in SUMMARY_SCHEMA.items()) + "\n"
 
 
-class HeldOut(NamedTuple):
-    """Held-out predictions and references, all (H, W, 3) images (one per view / lighting pair).
-
-    Fields:
-      predictions: list of (H, W, 3) indirect predictions of the method.
-      references: list of (H, W, 3) path-traced indirect references.
-      valid: list of (H, W) masks of the pixels that count.
-      direct: list of (H, W, 3) direct radiance (for psnr_full), or None.
-      labels: one label per image (figure rows).
-    """
-
-    predictions: list
-    references: list
-    valid: list
-    direct: list | None = None
-    labels: list | None = None
-
-
-class PathTracer(NamedTuple):
-    """Mitsuba as the peer of the evaluator.
-
-    Fields:
-      render_at: ``spp -> list`` of indirect images of the held-out set (a seed unlike the references').
-      time_at: ``spp -> ms``: wall time of one frame of the timed view at ``spp``.
-      note: how it was timed (stored in ``extra``).
-    """
-
-    render_at: Callable[[int], Sequence]
-    time_at: Callable[[int], float]
-    note: str = ""
+#: Held-out images and Mitsuba as the peer: defined in ``jprt.eval`` (kept here under their old names).
+HeldOut = jeval.HeldOut
+PathTracer = jeval.PathTracer
 
 
 class Run:
@@ -159,40 +132,11 @@ def method_config(method: Method, config: dict) -> dict:
 
 
 def common_summary(held: HeldOut, exposure: float = 0.0) -> dict:
-    """The accuracy keys of ``SUMMARY_SCHEMA`` for a held-out set: indirect_rmse, indirect_rel_rmse,
-    p999_abs_error, psnr_indirect, ssim_indirect, psnr_full, flip_indirect, lpips_indirect (None where a metric does
-    not apply: images too small for its window, no direct images, its package not installed)."""
-    preds, refs, valid = held.predictions, held.references, held.valid
-    rmse = jeval.set_rmse(preds, refs, valid)
-    ref_rms = jeval.set_rmse([np.zeros_like(np.asarray(r)) for r in refs], refs, valid)
-    masks = [np.ones(np.shape(r)[:2], bool) if m is None else np.asarray(m, bool)
-             for r, m in zip(refs, valid if valid is not None else [None] * len(refs))]
-    errors = np.concatenate([np.abs(np.asarray(p, np.float64) - np.asarray(r, np.float64))[m].ravel()
-                             for p, r, m in zip(preds, refs, masks)])
-    out = {"indirect_rmse": rmse, "indirect_rel_rmse": rmse / max(ref_rms, 1e-30),
-           "p999_abs_error": float(np.percentile(errors, 99.9)) if errors.size else None}
-    tm = lambda metric, p, r: float(metrics.tonemapped(metric, p, r, exposure))  # noqa: E731
-    out["psnr_indirect"] = float(np.mean([tm(metrics.psnr, p, r) for p, r in zip(preds, refs)]))
-    small = min(min(np.shape(r)[:2]) for r in refs) < 11  # SSIM's 11 x 11 window does not fit
-    out["ssim_indirect"] = None if small else float(np.mean([tm(metrics.ssim, p, r) for p, r in zip(preds, refs)]))
-    out["psnr_full"] = None if held.direct is None else float(np.mean(
-        [tm(metrics.psnr, d + p, d + r) for p, r, d in zip(preds, refs, held.direct)]))
-    out["flip_indirect"] = _optional(lambda: float(np.mean([metrics.flip(p, r, exposure) for p, r in zip(preds, refs)])))
-    tiny = min(min(np.shape(r)[:2]) for r in refs) < metrics.LPIPS_MIN_SIZE
-    out["lpips_indirect"] = None if tiny else _optional(
-        lambda: float(np.mean([metrics.lpips(p, r, exposure) for p, r in zip(preds, refs)])))
-    return out
-
-
-def _optional(compute: Callable[[], float]) -> float | None:
-    """A metric that needs an optional package: its value, or None (with a warning) without it."""
-    try:
-        return compute()
-    except RuntimeError as e:  # the package is missing: say so, do not fail the whole run
-        import warnings
-
-        warnings.warn(str(e), RuntimeWarning, stacklevel=3)
-        return None
+    """The accuracy keys of ``SUMMARY_SCHEMA`` for a held-out set (``jprt.eval.score_held_out``):
+    indirect_rmse, indirect_rel_rmse, p999_abs_error, psnr_indirect, ssim_indirect, psnr_full,
+    flip_indirect, lpips_indirect (None where a metric does not apply: images too small for its
+    window, no direct images, its package not installed)."""
+    return jeval.score_held_out(held, exposure)
 
 
 def _figures(run: Run, held: HeldOut, n: int, exposure: float) -> None:
@@ -228,6 +172,9 @@ def _timing(run: Run, experiment: ModuleType, repeats: int) -> None:
 
 
 def _equal_error(run: Run, experiment: ModuleType, held: HeldOut) -> None:
+    """Mitsuba's curve on the held-out set (``jeval.EqualErrorCurve``), measured up to the model's
+    error, and the model's equal-error numbers read off it; the curve and the path tracer stay in
+    ``run.state`` ("pathtrace_curve", "pathtracer") for stages that read other models off it."""
     s = run.summary
     s.update(equal_error_spp=None, pathtrace_ms_equal_error=None, speedup_equal_error=None)
     make = getattr(experiment, "pathtracer", None)
@@ -235,24 +182,23 @@ def _equal_error(run: Run, experiment: ModuleType, held: HeldOut) -> None:
     if make is None or not spp_list:
         return
     pt = make(run)
-    eq = jeval.equal_error_spp(pt.render_at, held.references, s["indirect_rmse"], spp_list, held.valid, run.say)
-    s["equal_error_spp"] = eq["spp"]
-    s["extra"]["pathtrace_rmse_by_spp"] = eq["tried"]
+    curve = jeval.EqualErrorCurve().measure(pt, held.references, held.valid, spp_list, target=s["indirect_rmse"],
+                                            progress=run.say)
+    run.state.update(pathtracer=pt, pathtrace_curve=curve)
+    read = curve.read(s["indirect_rmse"], s["frame_ms"])
+    s.update({k: read[k] for k in ("equal_error_spp", "pathtrace_ms_equal_error", "speedup_equal_error")})
+    s["extra"]["pathtrace_rmse_by_spp"] = curve.tried
     jeval.plot_series(os.path.join(run.out, "equal_error.png"),
-                      {"Mitsuba path tracing": ([t["spp"] for t in eq["tried"]], [t["rmse"] for t in eq["tried"]])},
+                      {"Mitsuba path tracing": ([p["spp"] for p in curve.points], [p["rmse"] for p in curve.points])},
                       xlabel="spp", ylabel="indirect RMSE (held-out set)", title=f"path tracing vs {run.method.name}",
                       logx=True, logy=True, hlines={run.method.name: s["indirect_rmse"]})
-    # Mitsuba's own speed-accuracy curve, every spp tried timed at the frame resolution (a search
-    # that never reaches the error tries the largest spp last: it is the lower bound timed)
-    curve = [{"spp": t["spp"], "ms": float(pt.time_at(t["spp"])), "rmse": t["rmse"]} for t in eq["tried"]]
-    s["extra"]["pathtrace_curve"] = curve
-    spp = eq["spp"] or max(int(v) for v in spp_list)
-    s["pathtrace_ms_equal_error"] = next((c["ms"] for c in curve if c["spp"] == spp), None) or float(pt.time_at(spp))
-    s["speedup_equal_error"] = s["pathtrace_ms_equal_error"] / s["frame_ms"]
-    s["extra"]["pathtrace_spp_timed"] = spp
-    s["extra"]["pathtrace_note"] = pt.note + ("" if eq["spp"] else "; equal error NOT reached: timed at the "
-                                                                   "largest spp tried (a lower bound)")
-    run.say(f"equal-error spp {eq['spp']}: Mitsuba {s['pathtrace_ms_equal_error']:.0f} ms -> speedup "
+    # every spp tried is timed at the frame resolution; a search that never reaches the error
+    # tries the largest spp last: its time is the lower bound reported
+    s["extra"]["pathtrace_curve"] = [dict(p) for p in curve.points]
+    s["extra"]["pathtrace_spp_timed"] = read["equal_error_spp"] or curve.points[-1]["spp"]
+    s["extra"]["pathtrace_note"] = pt.note + ("" if read["equal_error_reached"] else "; equal error NOT reached: "
+                                              "timed at the largest spp tried (a lower bound)")
+    run.say(f"equal-error spp {read['equal_error_spp']}: Mitsuba {s['pathtrace_ms_equal_error']:.0f} ms -> speedup "
             f"{s['speedup_equal_error']:.2f}x")
 
 

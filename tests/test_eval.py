@@ -157,3 +157,76 @@ def test_noise_removed_takes_half_the_floor_out():
     assert jeval.noise_removed(0.5, np.sqrt(2) * 0.3) == pytest.approx(0.4)
     assert jeval.noise_removed(0.1, 1.0) == 0.0
 
+
+
+def test_score_images_is_the_held_out_protocol():
+    """One definition of the held-out scores: RMSE over every valid pixel and channel of all images,
+    relative to the references' RMS, the 99.9th percentile of |error|, tonemapped PSNR / SSIM per
+    image averaged; SSIM None under its window; unknown names refused; a subset computes only it."""
+    from jprt import metrics
+
+    rng = np.random.default_rng(1)
+    refs = [rng.random((12, 12, 3)) for _ in range(2)]
+    preds = [r + 0.05 * rng.standard_normal(r.shape) for r in refs]
+    valid = [np.ones((12, 12), bool), rng.random((12, 12)) > 0.3]
+    direct = [rng.random((12, 12, 3)) for _ in range(2)]
+    s = jeval.score_images(preds, refs, valid, direct, scores=jeval.SCORES[:6] + ("ssim_full", "image_rmse_mean"))
+    assert s["indirect_rmse"] == pytest.approx(jeval.set_rmse(preds, refs, valid))
+    ref_rms = np.sqrt(sum(float(np.sum(r[m] ** 2)) for r, m in zip(refs, valid)) / (3 * sum(m.sum() for m in valid)))
+    assert s["indirect_rel_rmse"] == pytest.approx(s["indirect_rmse"] / ref_rms)
+    err = np.concatenate([np.abs(p - r)[m].ravel() for p, r, m in zip(preds, refs, valid)])
+    assert s["p999_abs_error"] == pytest.approx(np.percentile(err, 99.9))
+    assert s["psnr_indirect"] == pytest.approx(np.mean([metrics.tonemapped(metrics.psnr, p, r) for p, r in zip(preds, refs)]))
+    assert s["psnr_full"] == pytest.approx(np.mean([metrics.tonemapped(metrics.psnr, d + p, d + r)
+                                                    for p, r, d in zip(preds, refs, direct)]))
+    assert s["ssim_indirect"] is not None and s["ssim_full"] is not None
+    assert s["image_rmse_mean"] == pytest.approx(np.mean([metrics.rmse(p, r, m) for p, r, m in zip(preds, refs, valid)]),
+                                                 rel=1e-5)
+    small = jeval.score_images([p[:8, :8] for p in preds], [r[:8, :8] for r in refs],
+                               scores=("ssim_indirect", "psnr_full"))
+    assert small == {"ssim_indirect": None, "psnr_full": None}  # under SSIM's window; no direct images
+    masked = jeval.score_images(preds, refs, valid, scores=("psnr_indirect",), psnr_valid=True)["psnr_indirect"]
+    assert masked == pytest.approx(np.mean([metrics.tonemapped(metrics.psnr, p, r, valid=m)
+                                            for p, r, m in zip(preds, refs, valid)]))
+    held = jeval.HeldOut(preds, refs, valid, direct)
+    assert jeval.score_held_out(held, scores=("indirect_rmse",)) == {"indirect_rmse": s["indirect_rmse"]}
+    with pytest.raises(ValueError, match="unknown scores"):
+        jeval.score_images(preds, refs, scores=("psnr",))
+
+
+def test_equal_error_curve_measures_and_reads():
+    """The curve measures ascending spp until one reaches the target (each timed), reads a model's
+    error off it (the smallest spp at or under it; the largest spp's time as a lower bound when none
+    is), and a later, smaller error extends it with larger spp only."""
+    ref = [np.zeros((4, 4, 3))]
+    rendered, timed = [], []
+
+    def render_at(spp):
+        rendered.append(spp)
+        return [np.full((4, 4, 3), 1.0 / spp)]  # RMSE 1 / spp
+
+    def time_at(spp):
+        timed.append(spp)
+        return 10.0 * spp
+
+    tracer = jeval.PathTracer(render_at, time_at, "fake")
+    curve = jeval.EqualErrorCurve().measure(tracer, ref, None, [8, 1, 2, 4, 16], target=0.3)
+    assert rendered == timed == [1, 2, 4] and [p["ms"] for p in curve.points] == [10.0, 20.0, 40.0]
+    assert curve.read(0.3, frame_ms=2.0) == {"equal_error_spp": 4, "pathtrace_ms_equal_error": 40.0,
+                                             "speedup_equal_error": 20.0, "equal_error_reached": True}
+    assert curve.read(0.6)["equal_error_spp"] == 2  # read off the measured points, nothing rendered
+    assert curve.read(0.01) == {"equal_error_spp": None, "pathtrace_ms_equal_error": 40.0,
+                                "speedup_equal_error": None, "equal_error_reached": False}
+    curve.measure(tracer, ref, None, [1, 2, 4, 8, 16, 32], target=0.1)
+    assert rendered == [1, 2, 4, 8, 16] and curve.read(0.1)["equal_error_spp"] == 16
+    assert curve.tried == [{"spp": s, "rmse": pytest.approx(1.0 / s)} for s in (1, 2, 4, 8, 16)]
+    assert jeval.EqualErrorCurve().read(0.1)["equal_error_spp"] is None  # nothing measured: nothing to read
+
+
+def test_interleaved_times_time_every_pair():
+    calls = []
+    out = jeval.interleaved_times({"a": lambda x, l: calls.append(("a", l)), "b": lambda x, l: calls.append(("b", l))},
+                                  None, {1: 1, 4: 4}, repeats=2)
+    assert set(out) == {("a", 1), ("a", 4), ("b", 1), ("b", 4)}
+    assert calls[:4] == [("a", 1), ("a", 1), ("a", 4), ("a", 4)]  # one warm-up call each in the first round
+    assert all(v["min_ms"] <= v["median_ms"] for v in out.values())

@@ -110,14 +110,7 @@ def test_wavelet_prt_test_preset(mi, tmp_path, monkeypatch):
     # every variant's learned T_k is scored against Mitsuba's too; the default's is the stage's own
     assert e["generalisation"]["default"]["transport_rel_err_learned_by_k"] == e["transport_rel_err_learned_by_k"]
     assert set(e["generalisation"]["unbiased objective"]["transport_rel_err_learned_by_k"]) == {"8", "32"}
-    front = e["front"]  # two models (the default's training reused) x one K
-    assert [(r["width"], r["K"], r["default"]) for r in front] == [(16, 8, True), (8, 8, False)]
-    for r in front:
-        assert r["frame_ms"] > 0 and r["frame_flops"] > 0 and np.isfinite(r["psnr_indirect_far"])
-        assert r["speedup_equal_error"] == pytest.approx(r["pathtrace_ms_equal_error"] / r["frame_ms"])
-    assert front[0]["frame_flops"] > front[1]["frame_flops"]
-    for name in ("loss.png", "gt_transport_error_vs_k.png", "equal_error.png", "side_by_side_baseline.png",
-                 "front.png"):
+    for name in ("loss.png", "gt_transport_error_vs_k.png", "equal_error.png", "side_by_side_baseline.png"):
         assert os.path.isfile(os.path.join(folder, name)), name
 
 

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from jprt import sweep
 from jprt.cli import main as cli_main
-from jprt.config import ConfigError
+from jprt.config import ConfigError, parse_value
 from jprt.methods import REGISTRY
 
 
@@ -147,6 +147,12 @@ def test_sweep_files_are_valid_for_their_experiments(name):
     spec = sweep.load_sweep_file(os.path.join(root, "experiments", "sweeps", name))
     module = load_experiment(spec["experiment"])
     config = resolve_config(module, spec.get("set", []), spec.get("preset"))
+    for item in spec.get("set", []):  # every `set` item takes effect (an empty dict merged into one would not)
+        key, value = item.split("=", 1)
+        at = config
+        for part in key.split("."):
+            at = at[part]
+        assert at == parse_value(value), item
     points = sweep.grid_points(spec["grid"])
     assert len(points) >= 4
     for point in points:

@@ -9,5 +9,6 @@ SWEEP = {
     "experiment": "../wavelet_prt_cornell.py",
     "preset": "small",
     "grid": {"model.log2_table_size": [10, 12, 14], "model.reflection": ["sh4", "raw", "none"]},
-    "set": ["eval.ablations={}", "eval.ks=[]", "eval.timing_resolutions=[[256, 256]]"],
+    "set": ["eval.gt_check.ks=[]", "eval.ks=[]", "eval.generalisation=[]", "eval.ablation_steps=0",
+            "eval.timing_resolutions=[[256, 256]]"],
 }

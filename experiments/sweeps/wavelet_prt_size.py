@@ -9,5 +9,6 @@ SWEEP = {
     "experiment": "../wavelet_prt_cornell.py",
     "preset": "small",
     "grid": {"render.k": [16, 32, 64], "model.hidden": [64, 128]},
-    "set": ["eval.ablations={}", "eval.ks=[]", "eval.timing_resolutions=[[256, 256]]"],
+    "set": ["eval.gt_check.ks=[]", "eval.ks=[]", "eval.generalisation=[]", "eval.ablation_steps=0",
+            "eval.timing_resolutions=[[256, 256]]"],
 }
