@@ -57,6 +57,25 @@ def test_rrf_cornell_test_preset(mi, tmp_path, capsys):
     assert folder in capsys.readouterr().out  # says where the report is
 
 
+@pytest.mark.slow  # ~60 s: two RRF fits, two reference sets, figures and frame times
+def test_rrf_tail_takes_its_variants_from_set(mi, tmp_path, monkeypatch):
+    """rrf_tail is configured like any experiment (``--set tail.*``): a row of the references' own
+    noise, then one row per variant with its tail statistics, timing, figure and score against the
+    mean of two reference sets; every row also in tail.json."""
+    monkeypatch.setenv("JPRT_CACHE", str(tmp_path / "cache"))
+    out = str(tmp_path / "out")
+    assert cli_main(["run", "experiments/rrf_tail.py", "--preset", "test", "--set", f"output.dir={out}", "--set",
+                     'tail.variants={"small": {}, "short": {"train": {"max_iters": 1}}}']) == 0
+    (folder,) = os.listdir(out)
+    with open(os.path.join(out, folder, "tail.json")) as f:
+        rows = json.load(f)["rows"]
+    assert [r["name"] for r in rows] == ["reference noise (|A - B| / sqrt 2)", "small", "short"]
+    for r in rows[1:]:
+        assert r["p999_over_rmse"] >= 1 and sum(r["worst_0.1%_by_pair"]) == sum(r["worst_0.1%_by_surface"].values())
+        assert r["timing"]["frame_ms"] > 0 and r["timing"]["frame_flops_4lights"] > r["timing"]["frame_flops"]
+        assert os.path.isfile(r["figure"]["path"]) and r["against_mean_of_two_references"]["rmse"] > 0
+
+
 @pytest.mark.slow  # ~20 s (suite budget); the LM and material-edit paths are unit-tested in tests/methods
 def test_rrf_glossy_test_preset_with_material_edit(mi, tmp_path):
     s, folder = _run("rrf_glossy", tmp_path)
@@ -173,7 +192,7 @@ def test_real_scenes_references_follow_the_gbuffer_rays(mi):
     exactly 0 wherever those rays miss the scene, also at pixels whose footprint the box partly
     covers, and lit where they hit it; a rendered image (box-filtered over each pixel) has light
     at such pixels, which no per-pixel prediction can show."""
-    from jprt.render import cameras, images
+    from jprt.render import cameras, heldout, images
     from jprt.render.gbuffer import gbuffer
     from jprt.render.lights import PointLights
     from jprt.render.scenes import SceneHandle, cornell_box
@@ -184,7 +203,7 @@ def test_real_scenes_references_follow_the_gbuffer_rays(mi):
     valid = gbuffer(handle, camera).valid
     assert valid.any() and (~valid).any()
     e = {"reference_spp": 8, "reference_spp_max": 8, "reference_noise": 1 / 3, "target": 0.35, "seed": 1}
-    refs, refs2, spp = _real_scenes()._references(scene, handle, camera, [light], e)
+    refs, refs2, spp = heldout.references(scene, handle, camera, [light], e)
     assert spp == [8]
     for ref in refs + refs2:
         assert ref.shape == (16, 16, 3) and (ref[~valid] == 0.0).all()
@@ -226,7 +245,7 @@ def test_real_scenes_references_double_until_their_noise_is_small(mi):
     """Each reference set doubles its samples until the two sets' difference says its own noise is
     at most reference_noise x target on every judged object (or the cap): a strict bound takes
     more samples than a loose one, and the cap holds."""
-    from jprt.render import cameras
+    from jprt.render import cameras, heldout
     from jprt.render.gbuffer import gbuffer
     from jprt.render.lights import PointLights
     from jprt.render.scenes import SceneHandle, cornell_box
@@ -237,10 +256,10 @@ def test_real_scenes_references_double_until_their_noise_is_small(mi):
     g = gbuffer(handle, camera)
     scored = (g.object_id, handle.object_names(), None)
     base = {"reference_spp": 2, "target": 0.35, "seed": 3}
-    _, _, loose = _real_scenes()._references(scene, handle, camera, [light], {**base, "reference_spp_max": 64,
-                                                                              "reference_noise": 100.0}, scored)
-    refs, refs2, strict = _real_scenes()._references(scene, handle, camera, [light],
-                                                     {**base, "reference_spp_max": 16, "reference_noise": 1e-6}, scored)
+    _, _, loose = heldout.references(scene, handle, camera, [light], {**base, "reference_spp_max": 64,
+                                                                      "reference_noise": 100.0}, scored)
+    refs, refs2, strict = heldout.references(scene, handle, camera, [light],
+                                             {**base, "reference_spp_max": 16, "reference_noise": 1e-6}, scored)
     assert loose == [2] and strict == [16]
     assert refs[0].shape == refs2[0].shape == (8, 8, 3) and not np.array_equal(refs[0], refs2[0])
 
@@ -253,7 +272,7 @@ def test_real_scenes_one_method_failing_keeps_the_others(mi, tmp_path, monkeypat
     scene.write_text(_SMALL_ROOM)
     calls = []
 
-    def predict(name, s, cameras, config, regions, e):
+    def predict(name, s, cameras, cfg, e, peak_gflops, baked=False):
         calls.append(name)
         if name == "datadriven":
             raise RuntimeError("a method broke")
@@ -263,7 +282,7 @@ def test_real_scenes_one_method_failing_keeps_the_others(mi, tmp_path, monkeypat
                 "mean_rel_rmse_noise_removed": 1.0, "target_met": False, "self_check": None, "frame_ms": 1.0,
                 "dataset_s": 0.0, "fit_s": 0.0}, first
 
-    monkeypatch.setattr(module, "_predict", predict)
+    monkeypatch.setattr(module, "fit_and_score", predict)
     config = module.CONFIG | {"methods": ["datadriven", "rrf"],  # point lights: no asset needed
                               "eval": module.CONFIG["eval"] | {"resolution": 8, "n_lights": 1, "reference_spp": 2,
                                                                 "reference_spp_max": 2, "extra_views": 1}}
