@@ -1,4 +1,4 @@
-"""Each fit says when it is wrong (issue 45): the shared part of every method's self-check.
+"""Each fit says when it is wrong: the shared part of every method's self-check.
 
 A method's ``data.self_check(dataset, result, config)`` (``Method.self_check``) scores its fit on
 held-out lights or maps of its own training renders, with no path-traced camera view, and returns

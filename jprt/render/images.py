@@ -150,10 +150,8 @@ def centre_rays(handle: SceneHandle, camera: Camera, *, spp: int, seed: int = 0,
     ``render`` / ``direct_indirect`` is each pixel's average over its footprint (rays jittered
     over the pixel, box filter) instead: at every silhouette, and wherever a pixel spans several
     texels (a surface seen at grazing angles, an edge thinner than a pixel), it holds light that no
-    per-pixel prediction can show. Measured on veach-bidir's table at 64^2 under the file's
-    emitters (2026-12-01): a rendered pixel read 1.58 where the radiance at its centre's point,
-    path traced at 16384 spp, is 0.10 (a caustic elsewhere in the pixel), and the table's edge read
-    0.05 where its points have 0.02 (the table top inside the pixel).
+    per-pixel prediction can show (a caustic elsewhere in a pixel, the surface behind an edge;
+    CHANGELOG.md has the measured case).
     """
     origins, directions = camera_rays(camera)
     rad = indirect_rays(handle, origins.reshape(-1, 3), directions.reshape(-1, 3), spp=spp, seed=seed,

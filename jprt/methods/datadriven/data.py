@@ -188,7 +188,7 @@ def _unpack(arrays: dict, spec: dict, path: str) -> DDData:
 
 
 # --------------------------------------------------------------------------------------------
-# Self-check (issue 45; ``jprt.methods.selfcheck``)
+# Self-check (``jprt.methods.selfcheck``)
 
 #: Training configurations scored for the self-check's training error (evenly spaced, at most).
 CHECK_TRAIN = 32
