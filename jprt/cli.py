@@ -1,6 +1,8 @@
 """The ``jprt`` command: ``info``, ``render`` (a dataset from an experiment config), ``run`` (an
 experiment), ``sweep`` (a grid of overrides over an experiment, ``jprt.sweep``), ``atlas`` (every
-method against Mitsuba on a built-in task or a scene file, ``jprt.atlas``).
+method against Mitsuba on a built-in task or a scene file, ``jprt.atlas``), ``view`` (relight a
+run in the browser, ``jprt.view``), ``export`` (a run folder as glTF lightmaps or ONNX for engines,
+``jprt.export``).
 
     jprt info
     jprt render experiments/cornell_gt.py --set dataset.spp=16
@@ -9,6 +11,7 @@ method against Mitsuba on a built-in task or a scene file, ``jprt.atlas``).
     jprt sweep experiments/datadriven.py --grid basis.n=[4,16,64] --select "indirect_rmse<=0.02" \
         --minimize frame_ms
     jprt atlas path/to/scene.xml --lighting point --select "indirect_rel_rmse<=0.3" --minimize frame_ms
+    jprt export results/sh_prt/<hash> --out exports/sh_prt
 
 An experiment file defines ``CONFIG`` (a nested dict) and ``METHOD`` (run by ``jprt.runner``) or
 ``main(config)``. ``--set a.b=value``
@@ -169,6 +172,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--port", type=int, default=8080)
     p.add_argument("--size", type=int, default=128, help="resolution of the refined frame (square)")
     p.add_argument("--preview", type=int, default=48, help="resolution while the view or lighting changes")
+    p = sub.add_parser("export", help="a run folder as glTF lightmaps (lightmap methods) or ONNX (neural evaluators)")
+    p.add_argument("folder", help="a run folder written by `jprt run` or `jprt atlas` (config.json, summary.json, "
+                                  "model.npz)")
+    p.add_argument("--out", required=True, help="the export folder (created; export.json names every file in it)")
+    p.add_argument("--size", type=int, default=64,
+                   help="the square frame the ONNX model takes, at the run's default view (default 64)")
+    p.add_argument("--no-onnx", dest="onnx", action="store_false", help="skip the ONNX conversion")
     args = parser.parse_args(argv)
 
     from jprt.config import ConfigError
@@ -186,6 +196,15 @@ def main(argv: list[str] | None = None) -> int:
 
             check_run_folder(args.folder)  # one clear line before anything heavy is imported
             serve(args.folder, host=args.host, port=args.port, size=args.size, preview=args.preview)
+            return 0
+        if args.command == "export":
+            from jprt.export import export_run
+            from jprt.view import check_run_folder
+
+            check_run_folder(args.folder)
+            manifest = export_run(args.folder, args.out, size=args.size, onnx=args.onnx, progress=True)
+            print(f"{manifest['method']} exported to {os.path.abspath(args.out)} ({len(manifest['files']) + 1} files; "
+                  "export.json says what each holds)")
             return 0
         module = load_experiment(args.experiment)
         config = resolve_config(module, args.overrides, args.preset, args.config_file)

@@ -2,7 +2,8 @@
 
 An exported evaluator is a byte string that any JAX installation can load and run without jprt
 or the Python code that built it (StableHLO plus calling convention), e.g. an RRF renderer for a
-given image size and number of lights.
+given image size and number of lights. ``jprt.export`` re-exports both functions; it also ships a
+fitted model to engines (glTF lightmaps, ONNX), which needs the methods and sits above them.
 """
 
 from __future__ import annotations
