@@ -22,6 +22,8 @@ from jprt import eval as jeval
 from jprt.methods import REGISTRY
 from jprt.methods.sg_environment import data as adapter
 from jprt.methods.sg_environment import model as sem
+from jprt.methods.sg_lightfield.evaluation import HELD_OUT_VIEWS
+from jprt.methods.sg_lightfield.evaluation import cameras as held_out_cameras
 from jprt.runner import HeldOut, PathTracer
 
 METHOD = "sg_environment"
@@ -29,7 +31,7 @@ LABEL = "sg_environment"
 
 EVAL_DEFAULTS = {
     # held-out views on an arc in front of the box (as experiments/sg_lightfield.py)
-    "views": {"n": 3, "radius": 3.9, "arc_deg": 50.0, "start_deg": -25.0, "height": 0.0},
+    "views": dict(HELD_OUT_VIEWS),
     "resolution": 64,
     "reference_spp": 1024,
     "seed": 4000,
@@ -59,16 +61,12 @@ PRESETS = {
 
 
 def _cameras(config: dict, resolution: int | None = None) -> list:
-    from jprt.render import cameras as cams
-
-    v, res = config["eval"]["views"], int(resolution or config["eval"]["resolution"])
-    return cams.orbit((0.0, float(v["height"]), 0.0), float(v["radius"]), int(v["n"]), arc_deg=float(v["arc_deg"]),
-                      start_deg=float(v["start_deg"]), width=res, height=res)
+    return held_out_cameras(config["eval"]["views"], int(resolution or config["eval"]["resolution"]))
 
 
 def _lightings(run) -> list:
     """[(label, equirect radiance)] of the held-out set (``eval.rotations``, ``eval.synthetic_skies``)."""
-    from jprt.methods.wavelet_prt.model import render_equirect, rotate_equirect, synthetic_environments
+    from jprt.sphere.envmap import render_equirect, rotate_equirect, synthetic_environments
 
     if "lightings" not in run.state:
         e = run.config["eval"]
@@ -142,24 +140,16 @@ def pathtracer(run) -> PathTracer:
 
 def psnr_by_lighting(run) -> dict:
     """Tonemapped PSNR (as ``psnr_indirect``) and relative RMSE of the held-out images per lighting
-    (the bake's map, turned maps, unseen skies): what relighting with a map W_E was not computed
-    for costs."""
-    from jprt import metrics
-
+    (the bake's map, turned maps, unseen skies; ``jprt.eval.score_images``): what relighting with a
+    map W_E was not computed for costs."""
     held = run.state["held_out"]
-    exposure = float(run.config["eval"]["exposure"])
-    psnr: dict = {}
-    rel: dict = {}
-    for p, r, m, label in zip(held.predictions, held.references, held.valid, held.labels):
-        name = label.split(", view")[0]
-        psnr.setdefault(name, []).append(float(metrics.tonemapped(metrics.psnr, p, r, exposure)))
-        rel.setdefault(name, []).append((p, r, m))
-    out = {"psnr_by_lighting": {k: float(np.mean(v)) for k, v in psnr.items()},
-           "rel_rmse_by_lighting": {}}
-    for k, items in rel.items():
-        ps, rs, ms = zip(*items)
-        ref_rms = jeval.set_rmse([np.zeros_like(np.asarray(r)) for r in rs], rs, ms)
-        out["rel_rmse_by_lighting"][k] = float(jeval.set_rmse(ps, rs, ms) / max(ref_rms, 1e-30))
+    groups: dict = {}
+    for item in zip(held.predictions, held.references, held.valid, held.labels):
+        groups.setdefault(item[3].split(", view")[0], []).append(item[:3])
+    scores = {k: jeval.score_images(*zip(*items), exposure=float(run.config["eval"]["exposure"]),
+                                    scores=("psnr_indirect", "indirect_rel_rmse")) for k, items in groups.items()}
+    out = {"psnr_by_lighting": {k: s["psnr_indirect"] for k, s in scores.items()},
+           "rel_rmse_by_lighting": {k: s["indirect_rel_rmse"] for k, s in scores.items()}}
     run.say("by lighting: " + ", ".join(f"{k} {v:.2f} dB" for k, v in out["psnr_by_lighting"].items()))
     return out
 
