@@ -41,6 +41,17 @@ view-deps: setup
 	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium; }
 	$(PY) -m pip install -q -e ".[view-test]"
 
+# the export tests' tools: Node.js and npm (Debian's), the npm packages pinned in tests/js/package.json
+# (gltf-validator, three, @gltf-transform/core) into tests/js/node_modules, Chromium, and the
+# export extra (jax2onnx, onnxruntime, pygltflib)
+.PHONY: export-deps
+export-deps: setup
+	@command -v node >/dev/null 2>&1 && command -v npm >/dev/null 2>&1 && command -v chromium >/dev/null 2>&1 || { \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq nodejs npm chromium; }
+	cd tests/js && npm ci --no-audit --no-fund 2>/dev/null || npm install --no-audit --no-fund
+	$(PY) -m pip install -q -e ".[export,view-test]"
+
 # make view RUN=results/<experiment>/<config hash>
 view: setup
 	$(VENV)/bin/jprt view $(RUN)

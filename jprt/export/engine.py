@@ -22,7 +22,8 @@ The lightmap is irradiance E as three.js reads a ``lightMap`` (its diffuse shadi
 albedo / pi x E): E = pi L / albedo per texel and channel, L the indirect radiance the evaluator
 predicts at the texel under the run's default lighting (the viewer's), albedo the diffuse albedo
 there (0 where the albedo is below ``ALBEDO_FLOOR``: such a texel reflects no diffuse light, and
-its L, if any, is glossy). SG light-field textures store their texels' irradiance themselves.
+its L, if any, is glossy; 0 too where a fitted model predicts slightly negative light). SG
+light-field textures store their texels' irradiance themselves.
 """
 
 from __future__ import annotations
@@ -202,9 +203,14 @@ def scene_meshes(session) -> list:
             cell = np.floor((centre[:, 0] - origin) / size)
             inward = (origin + (cell + 0.5) * size) - centre[:, 0]  # towards the centre of the block holding it
             normal = np.where((np.sum(normal * inward, axis=1) < 0)[:, None], -normal, normal)
-            corners = tris[keep] + 1e-3 * (centre - tris[keep])  # inside the triangle: one block and face
+            # proxy_uv of points just inside the triangle (one block and face for all of them),
+            # extrapolated to the corners: the map is affine on a face
+            shrink = 1e-3
+            corners = tris[keep] + shrink * (centre - tris[keep])
             uv, ok = proxy_uv(corners, np.repeat(normal[:, None], 3, axis=1), layout, origin, size, t)
-            good = ok.all(axis=1)
+            uv_c, ok_c = proxy_uv(centre, normal[:, None], layout, origin, size, t)
+            uv = uv_c + (uv - uv_c) / (1.0 - shrink)
+            good = ok.all(axis=1) & ok_c[:, 0]
             if not good.any():
                 continue
             keep, normal, uv = keep[good], normal[good], uv[good]
@@ -245,10 +251,11 @@ def _texel_radiance(session, lighting, texel_index, materials) -> np.ndarray:
 
 
 def _irradiance(radiance, diffuse) -> np.ndarray:
-    """pi L / albedo where the albedo reflects, else 0 (three.js's lightMap quantity)."""
+    """pi L / albedo where the albedo reflects, else 0 (three.js's lightMap quantity); a slightly
+    negative prediction (a fitted model's error) becomes 0, as no engine lights with less than none."""
     d = np.asarray(diffuse, np.float64)
-    return np.where(d > ALBEDO_FLOOR, np.pi * np.asarray(radiance, np.float64) / np.maximum(d, ALBEDO_FLOOR),
-                    0.0).astype(np.float32)
+    e = np.where(d > ALBEDO_FLOOR, np.pi * np.asarray(radiance, np.float64) / np.maximum(d, ALBEDO_FLOOR), 0.0)
+    return np.maximum(e, 0.0).astype(np.float32)
 
 
 def _channels(prefix: str, n: int, suffixes=("R", "G", "B")) -> list:
@@ -408,7 +415,11 @@ def export_run(folder: str, out: str, *, size: int = 64, onnx: bool = True, prog
         res, texel_index, fill = lightmap_layout(session)
         materials = texel_materials(session, texel_index)
         radiance = _texel_radiance(session, lighting, texel_index, materials)
-        irradiance = _irradiance(radiance, materials["diffuse"])
+        if m.name == "sg_lightfield":  # the texels' own irradiance, under the light scale
+            scale = np.asarray(getattr(lighting, "scale", lighting), np.float32).reshape(3)
+            irradiance = np.maximum(np.asarray(session.params["irradiance"], np.float32) * scale, 0.0)
+        else:
+            irradiance = _irradiance(radiance, materials["diffuse"])
         e_image = _atlas_image(irradiance, fill)
         top = float(np.max(e_image, initial=0.0))
         value_range = float(2.0 ** np.ceil(np.log2(max(top, 1e-6))))

@@ -8,7 +8,8 @@ says which, and the manifest lists the ones a model needed):
 * nested ``jit`` and ``custom_jvp`` calls are inlined (only the primal program is exported);
 * ``lt_to`` / ``le_to`` / ``eq_to`` (XLA's total-order comparisons) become ``lt`` / ``le`` /
   ``eq``, equal except on NaN and the order of -0 and +0;
-* ``stack`` becomes a concatenation of expanded operands;
+* ``stack`` becomes a concatenation of expanded operands, and a concatenation drops its empty
+  operands (``jax2onnx`` converts an empty operand as one row);
 * a bitwise-OR ``reduce`` of integers (ONNX reduces only booleans with OR) is one boolean
   reduction per bit, packed back into the word;
 * every ``gather`` becomes a flat ``take``: the operand's linear index of every output element is
@@ -23,6 +24,7 @@ bodies are rewritten the same way.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from typing import Callable
 
@@ -39,6 +41,8 @@ HAND_WRITTEN = {
     "le_to": "total-order less-or-equal: written as le",
     "eq_to": "total-order equality: written as eq",
     "stack": "no jax2onnx rule: written as expand_dims + concatenate",
+    "concatenate_empty": "a concatenation with empty operands (jax2onnx gives an empty operand one row): the "
+                         "empty operands are dropped",
     "reduce_or_int": "bitwise-OR reduce of integers (ONNX's OR reductions are boolean): one boolean reduction "
                      "per bit, packed back",
     "gather": "jax2onnx lowers only some gather forms: written as a flat take at computed linear indices",
@@ -180,6 +184,12 @@ def _rewrite_eqn(eqn, ins: list, used: set):
     if name in _COMPARE:
         used.add(name)
         return _COMPARE[name](*ins)
+    if name == "concatenate" and any(0 in x.shape for x in ins):
+        used.add("concatenate_empty")
+        kept = [x for x in ins if 0 not in x.shape]
+        if not kept:
+            return jnp.zeros(eqn.outvars[0].aval.shape, eqn.outvars[0].aval.dtype)
+        return kept[0] if len(kept) == 1 else lax.concatenate(kept, eqn.params["dimension"])
     if name == "stack":
         used.add(name)
         axis = eqn.params["axis"]
@@ -255,9 +265,50 @@ def input_names(*args) -> list[str]:
     return out
 
 
-def to_onnx(fn: Callable, *args, opset: int = 21):
+@contextlib.contextmanager
+def _linear_output_check():
+    """``jax2onnx`` checks, after lowering each equation, that its outputs are produced by some
+    node, by scanning every node built so far: quadratic in the graph's size (most of a large
+    evaluator's conversion time). The same check looking at the newest nodes first (they made the
+    outputs) stops at once; the answer is the same."""
+    try:
+        from jax2onnx.converter import output_binding as ob
+    except ImportError:  # another layout of jax2onnx: its own check
+        yield
+        return
+    original = getattr(ob, "_value_is_graph_connected", None)
+    matches = getattr(ob, "_value_matches_reference", None)
+    if original is None or matches is None:
+        yield
+        return
+
+    def connected(ctx, value) -> bool:
+        if any(matches(v, value) for v in ctx.builder.inputs):
+            return True
+        producer = value.producer() if hasattr(value, "producer") else None
+        if producer is not None:  # made by a node: is that node (or one of its name) in the graph?
+            nodes = ctx.builder.nodes
+            try:
+                newest_first = reversed(nodes)
+            except TypeError:
+                newest_first = nodes
+            for node in newest_first:
+                if node is producer or any(matches(output, value) for output in node.outputs):
+                    return True
+        return any(matches(v, value) for v in ctx.builder.initializers) or original(ctx, value)
+
+    ob._value_is_graph_connected = connected
+    try:
+        yield
+    finally:
+        ob._value_is_graph_connected = original
+
+
+def to_onnx(fn: Callable, *args, opset: int = 21, double: bool = False):
     """``(onnx.ModelProto, hand-written operation names)`` of ``fn`` at ``args``'s shapes: inputs
-    named by ``input_names``, one output ``radiance``."""
+    named by ``input_names``, one output ``radiance``. ``double``: float64 tensors (trace ``fn``
+    under ``jax.enable_x64`` with float64 params and arguments): a check that the graph computes
+    the same function, free of float32 rounding."""
     from jax2onnx import to_onnx as j2o
 
     closed, used, _ = lowerable_jaxpr(fn, *args)
@@ -266,8 +317,10 @@ def to_onnx(fn: Callable, *args, opset: int = 21):
         return jax.core.eval_jaxpr(closed.jaxpr, closed.consts, *xs)[0]
 
     leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(args)]
-    model = j2o(run, [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves], model_name="jprt_evaluator",
-                opset=opset, input_names=input_names(*args), output_names=["radiance"])
+    with _linear_output_check():
+        model = j2o(run, [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves], model_name="jprt_evaluator",
+                    opset=opset, input_names=input_names(*args), output_names=["radiance"],
+                    enable_double_precision=bool(double))
     return model, used
 
 
