@@ -65,6 +65,16 @@ INTROS: dict[str, dict] = {
         "make": "python benchmarks/device_evaluators.py export RUN OUT.npz; "
                 "python benchmarks/device_evaluators.py measure OUT.npz out.json",
     },
+    "export": {
+        "title": "Exported evaluators in ONNX",
+        "intro": "The ONNX models `jprt export` writes for the neural evaluators (RRF, neural-wavelet PRT, SG "
+                 "environment visibility), each fitted at its `test` preset: onnxruntime's CPU frame time at "
+                 "the run's view beside the jitted JAX evaluator's on the same frame and lighting, in one "
+                 "process, with the largest difference between the two frames over the frame's peak and the "
+                 "operations written by hand for the conversion. See "
+                 "[Use a jprt model in an engine](../engines.md).",
+        "make": "python benchmarks/export.py",
+    },
     "lm": {
         "title": "Levenberg-Marquardt solver",
         "intro": "`jprt.solve.lm` against jaxopt's Levenberg-Marquardt on the same least-squares problem: time "

@@ -232,7 +232,8 @@ def test_relightable_parts_are_the_params(exported):
             for j in range(np.shape(p["sharpness"])[1]):
                 np.testing.assert_array_equal(channels[f"lobe{j:02d}.S"][row, col], np.asarray(p["sharpness"])[:, j])
                 for c, ch in enumerate("XYZ"):
-                    np.testing.assert_array_equal(channels[f"lobe{j:02d}.{ch}"][row, col], np.asarray(p["axes"])[:, j, c])
+                    np.testing.assert_array_equal(channels[f"lobe{j:02d}.{ch}"][row, col],
+                                                  np.asarray(p["axes"])[:, j, c])
                 for c, ch in enumerate("RGB"):
                     np.testing.assert_array_equal(channels[f"lobe{j:02d}.{ch}"][row, col],
                                                   np.asarray(p["amplitude"])[:, j, c])

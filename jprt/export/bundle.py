@@ -46,7 +46,8 @@ MANIFEST_KEYS: dict[str, str] = {
     "files": "{relative path: {holds, format, ...}} for every file of the export but this one",
     "params": "[{keys, file, dtype, shape}]: every array of the fitted params as a raw little-endian buffer",
     "lightmap": "lightmap methods: atlas resolution, quantity, lighting baked in, RGBM range (else absent)",
-    "camera": "the run's default view (origin, target, up, vertical fov in degrees), where it has one",
+    "camera": "the run's default view (origin, target, up, fov in degrees along the smaller image axis), where "
+              "it has one",
     "onnx": "neural evaluators: the ONNX model's inputs and outputs and the operations written by hand",
 }
 
@@ -159,7 +160,8 @@ def read_manifest(folder: str) -> dict:
     not one this jprt reads."""
     path = os.path.join(folder, MANIFEST)
     if not os.path.isfile(path):
-        raise NotAnExport(f"{folder} is not a jprt export (no {MANIFEST}; `jprt export RUN_FOLDER --out DIR` writes it)")
+        raise NotAnExport(f"{folder} is not a jprt export (no {MANIFEST}; `jprt export RUN_FOLDER --out DIR` "
+                          "writes it)")
     try:
         with open(path) as f:
             manifest = json.load(f)

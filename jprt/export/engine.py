@@ -56,7 +56,8 @@ _LIGHTING_FIELDS = {
     "CubeMap": {"radiance": ((6, -1, -1, 3), "float32", "environment radiance as a cube map: faces +X, -X, +Y, "
                              "-Y, +Z, -Z (jprt.sphere.cubemap), RGB (W m^-2 sr^-1)")},
     "PointRadiance": {"direct": ((-1, 3), "float32", "direct outgoing radiance (W m^-2 sr^-1) at the method's "
-                                 "measurement points (data-driven PRT) or texels (MRT), from the engine's direct pass")},
+                                 "measurement points (data-driven PRT) or texels (MRT), from the engine's direct "
+                                 "pass")},
     "SHLighting": {"coefficients": ((-1, 3), "float32", "real SH coefficients of the distant incident radiance, "
                                     "band by band (jprt.sphere.sh order), RGB")},
     "LightScale": {"scale": ((3,), "float32", "RGB factor on the baked emitters' power")},
@@ -408,7 +409,7 @@ def export_run(folder: str, out: str, *, size: int = 64, onnx: bool = True, prog
         s = session.state
         manifest["camera"] = {"origin": list(s["origin"]), "target": list(s["target"]), "up": list(s["up"]),
                               "fov_deg": float(s["fov"]), "aspect": float(s["aspect"]),
-                              "fov_axis": "vertical (jprt.render.cameras.look_at)"}
+                              "fov_axis": "the smaller image axis (Mitsuba's fov_axis='smaller', jprt.inputs.Camera)"}
     lighting = session.method_lighting()
     if m.name in LIGHTMAP_METHODS:
         _say(progress, f"{m.name}: lightmap, meshes, relightable parts")

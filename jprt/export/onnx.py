@@ -25,6 +25,7 @@ bodies are rewritten the same way.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 from typing import Callable
 
@@ -317,10 +318,16 @@ def to_onnx(fn: Callable, *args, opset: int = 21, double: bool = False):
         return jax.core.eval_jaxpr(closed.jaxpr, closed.consts, *xs)[0]
 
     leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(args)]
-    with _linear_output_check():
-        model = j2o(run, [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves], model_name="jprt_evaluator",
-                    opset=opset, input_names=input_names(*args), output_names=["radiance"],
-                    enable_double_precision=bool(double))
+    quiet = logging.getLogger("onnx_ir")  # one warning per untyped intermediate value, none of them errors
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    try:
+        with _linear_output_check():
+            model = j2o(run, [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves], model_name="jprt_evaluator",
+                        opset=opset, input_names=input_names(*args), output_names=["radiance"],
+                        enable_double_precision=bool(double))
+    finally:
+        quiet.setLevel(level)
     return model, used
 
 
