@@ -422,21 +422,34 @@ def _fit_texel(sizes: np.ndarray, res: int, start: float, n_charts: int) -> floa
 
 #: An atlas whose charts do not fit its resolution doubles up to this factor (then it raises).
 ATLAS_GROWTH = 8
-#: An object whose area gives it too few texels has its texel density raised, but its charts grow
-#: to at most this fraction of the atlas's side.
-MAX_RAISED_SIDE = 1.0 / 8.0
+#: An object whose area gives it too few texels has its texel density raised, but its layout grows
+#: to span at most this many times the side of a square of its texels (2 min_texels of them).
+RAISED_SPAN = 2.0
 
 
-def _fit_texel_growing(sizes: np.ndarray, res: int, start: float, n_charts: int, asked: int) -> tuple[float, int]:
+#: The asked resolution promises a texel density: an atlas whose packing (gutters of many small
+#: charts) leaves texels more than this factor larger than a gutter-free packing of the same area
+#: would have at the asked resolution doubles (up to ``ATLAS_GROWTH``).
+DENSITY_SLACK = 2.0
+
+
+def _fit_texel_growing(sizes: np.ndarray, res: int, start: float, n_charts: int, asked: int,
+                       ideal: float | None = None) -> tuple[float, int]:
     """(texel size, resolution): ``_fit_texel`` at ``res``, doubling the resolution while the
-    charts' gutters alone overfill it, up to ``ATLAS_GROWTH`` x the ``asked`` one."""
+    charts' gutters alone overfill it, or while the texel size exceeds ``DENSITY_SLACK`` x
+    ``ideal`` (the texel of a gutter-free packing at the asked resolution), up to
+    ``ATLAS_GROWTH`` x the ``asked`` one."""
     while True:
         try:
-            return _fit_texel(sizes, res, start, n_charts), res
+            texel = _fit_texel(sizes, res, start, n_charts)
         except ValueError:
             if 2 * res > ATLAS_GROWTH * int(asked):
                 raise
             res *= 2
+            continue
+        if ideal is None or texel <= DENSITY_SLACK * ideal or 2 * res > ATLAS_GROWTH * int(asked):
+            return texel, res
+        res *= 2
 
 
 def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None, *, resolution: int = 64,
@@ -497,18 +510,24 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     chart_object = np.array([c[0] for c in charts])
     unscaled = np.array([np.ptp(c[2].reshape(-1, 2), axis=0).max() for c in charts])
     object_extent = np.array([unscaled[chart_object == oi].max() for oi in range(len(ids))])
-    scale = np.ones(len(ids))
+    scale, texel0 = np.ones(len(ids)), None
     for _ in range(4):  # raise the density of objects below min_texels until every one has them
         coords = [c[2] * scale[c[0]] for c in charts]
         lo = np.array([c.reshape(-1, 2).min(0) for c in coords])
         sizes = np.array([c.reshape(-1, 2).max(0) for c in coords]) - lo
-        texel, res = _fit_texel_growing(sizes, res, guess * 0.4, len(charts), int(resolution))
+        texel, res = _fit_texel_growing(sizes, res, guess * 0.4, len(charts), int(resolution),
+                                        ideal=np.sqrt(total) / int(resolution))
         texels = object_area * scale ** 2 / texel ** 2
         short = texels < 2.0 * int(min_texels)  # rasterised texel centres fall short of the area's count
-        # a raised object's charts stay within MAX_RAISED_SIDE of the atlas's side: an object of
-        # almost no area spread over a wide layout (many tiny charts with gutters, slivers) would
-        # otherwise grow without bound, take the atlas over and leave every other object short
-        cap = np.maximum(MAX_RAISED_SIDE * res * texel / np.maximum(object_extent, 1e-300), 1.0)
+        # a raised object's layout spans at most the side of a square of 2 min_texels texels,
+        # twice over: an object of almost no area spread over a wide layout (many tiny charts with
+        # gutters, slivers) would otherwise grow without bound, take the atlas over and leave every
+        # other object short; spread that wide, its charts get texels of their own as they are
+        # (conservative rasterisation)
+        # (texels of the first packing: a bound that followed the texel size raised would feed back)
+        texel0 = texel if texel0 is None else texel0
+        span = RAISED_SPAN * np.sqrt(2.0 * int(min_texels))
+        cap = np.maximum(span * texel0 / np.maximum(object_extent, 1e-300), scale)
         raised = np.minimum(scale * np.sqrt(2.0 * int(min_texels) / np.maximum(texels, 1e-12)), cap)
         short &= raised > scale * (1.0 + 1e-9)
         if not short.any():
