@@ -114,7 +114,7 @@ INTROS: dict[str, dict] = {
                  "initialisations). See [RRF](../methods/rrf.md).",
         "make": "make bench-rrf",
         "figures": [("rrf_tail_small.png", "reference | RRF | error, the worst 0.1 % of pixel channels in red "
-                                           "(experiments/rrf_tail.py --figure)")],
+                                           "(experiments/rrf_tail.py, tail.figures)")],
     },
     "sg_lightfield": {
         "title": "SG light-field textures",
