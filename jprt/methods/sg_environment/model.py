@@ -26,6 +26,7 @@ paper adds it to the light-field texture's indirect light). This module imports 
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import jax
@@ -48,21 +49,9 @@ DEFAULT_CONFIG: dict[str, Any] = {
     # the environment W_E is weighted by, and the sizes of Eq. 6-7's quadrature
     # (jprt.methods.sg_lightfield.environment.ENV_DEFAULTS)
     "environment": dict(ENV_DEFAULTS),
-    "model": {
-        "n_lobes": 16,  # N, spherical Gaussians per texel
-        "channels": [32, 64, 128, 256],  # the encoder CNN's channels, one per stage (jprt.nn.cnn.sg_encoder)
-        "min_sharpness": 0.5,  # the bounds of a lobe's sharpness lambda (``constrain``)
-        "max_sharpness": 1.0e4,
-        "init_sharpness": 1.0,  # the sharpness of a lobe whose raw parameters are 0 (broad lobes at the start)
-    },
-    "train": {
-        "steps": 2000,  # Adam steps
-        "batch": 64,  # texels per step
-        "learning_rate": 1e-3,  # Adam's initial learning rate, decayed over the steps
-        "final_lr_fraction": 0.1,  # the last step's learning rate over the first's
-        "seed": 0,  # seed of the initial weights, the batches and the jitter
-        "jitter": True,  # evaluate P at a direction jittered uniformly inside each octahedral pixel (§4)
-    },
+    # the per-texel lobes and their training: SG light-field textures' (jprt.methods.sg_lightfield.model)
+    "model": copy.deepcopy(sgm.DEFAULT_CONFIG["model"]),
+    "train": copy.deepcopy(sgm.DEFAULT_CONFIG["train"]),
 }
 
 
