@@ -250,8 +250,9 @@ def _raster_triangles(corners: np.ndarray, res: int, eps: float = 1e-9):
 
 
 #: Version of ``build_atlas``'s layout: caches of data baked on an atlas (their spec names it)
-#: are rebuilt when it changes. 2: conservative rasterisation (charts thinner than a texel).
-ATLAS_FORMAT = 2
+#: are rebuilt when it changes. 2: conservative rasterisation (charts thinner than a texel);
+#: 3: raised objects bounded (RAISED_SPAN), growth to the asked density (DENSITY_SLACK).
+ATLAS_FORMAT = 3
 
 #: At most this many planar charts per object (a box has 6); an object with more face planes is unwrapped by xatlas.
 MAX_PLANAR_CHARTS = 16
