@@ -12,7 +12,9 @@ config, its dataset from the cache, the scene and its default view and lighting)
   embedded RGBM PNG referenced by the ``JPRT_lightmap`` material extension), ``lightmap.exr``
   (the same lightmap in float32), ``lightmap_radiance.exr`` (what the evaluator predicts at each
   texel), and the relightable parts (``relightable_parts``): the basis, transfer coefficients,
-  lobes or operators the method relights with, as textures and binary buffers.
+  lobes or operators the method relights with, as textures and binary buffers; SH PRT and
+  data-driven PRT also ship ``relight.js``, a three.js material that relights on the GPU from the
+  lighting the evaluator takes (``RELIGHT_JS_METHODS``).
 * **neural evaluators** (``ONNX_METHODS``: RRF, neural-wavelet PRT, SG environment visibility):
   ``evaluator.onnx``, the evaluator at the view's frame size (``jprt.export.onnx``), with a
   reference frame (``reference_inputs.npz``, ``reference_output.npy``) an engine can check
@@ -38,7 +40,7 @@ import numpy as np
 from jprt import io
 from jprt.export import bundle, gltf
 
-__all__ = ["LIGHTMAP_METHODS", "ONNX_METHODS", "ALBEDO_FLOOR", "export_run", "lightmap_layout",
+__all__ = ["LIGHTMAP_METHODS", "ONNX_METHODS", "RELIGHT_JS_METHODS", "ALBEDO_FLOOR", "export_run", "lightmap_layout",
            "texel_materials", "scene_meshes", "relightable_parts"]
 
 #: Methods whose prediction lives in a lightmap atlas (exported as glTF + textures).
@@ -46,6 +48,9 @@ LIGHTMAP_METHODS = ("datadriven", "sh_prt", "sg_lightfield", "mrt")
 
 #: Methods whose evaluator is a neural network over G-buffer attributes (exported as ONNX).
 ONNX_METHODS = ("rrf", "wavelet_prt", "sg_environment")
+
+#: Lightmap methods whose export ships ``relight.js`` (three.js relighting on the GPU).
+RELIGHT_JS_METHODS = ("sh_prt", "datadriven")
 
 #: Diffuse albedo below which a texel's lightmap irradiance is 0 (it reflects no diffuse light).
 ALBEDO_FLOOR = 1e-4
@@ -449,6 +454,13 @@ def export_run(folder: str, out: str, *, size: int = 64, onnx: bool = True, prog
             "lightmap_radiance.exr": {"format": "OpenEXR float32 RGB, atlas image", "holds": "the indirect radiance "
                                       "the evaluator predicts at each texel under the same lighting"}})
         files.update(relightable_parts(session, out, texel_index, fill))
+        if m.name in RELIGHT_JS_METHODS:
+            with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "relight.js"), "rb") as f:
+                io.atomic_write_bytes(os.path.join(out, "relight.js"), f.read())
+            files["relight.js"] = {"format": "ES module for three.js (imports 'three')",
+                                   "holds": "relightMaterial(url): a ShaderMaterial of the meshes of scene.glb that "
+                                            "relights on the GPU from the lighting the evaluator takes "
+                                            f"({m.lighting.__name__}), and outputs indirect radiance"}
     if m.name in ONNX_METHODS and onnx:
         from jprt.export import onnx as jonnx
 
