@@ -101,6 +101,7 @@ def measure(name: str, run: str | None, size: int, repeats: int, work: str) -> d
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Measure every method of ``--methods`` and write the JSON (module docstring); returns 0."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--repeats", type=int, default=10)
