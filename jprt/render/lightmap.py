@@ -537,7 +537,7 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     origin = _pack(sizes, res, texel)
     if res != int(resolution):
         warnings.warn(f"lightmap atlas: {len(charts)} charts (with {_GUTTER}-texel gutters) do not fit a "
-                      f"{resolution} x {resolution} atlas; the atlas is {res} x {res}", stacklevel=2)
+                      f"{resolution} x {resolution} atlas at the texel density it asks; the atlas is {res} x {res}", stacklevel=2)
 
     n_tri = [t.shape[0] for t in per_object]
     tri_offset = np.concatenate([[0], np.cumsum(n_tri)[:-1]]).astype(np.int32)

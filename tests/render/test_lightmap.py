@@ -256,7 +256,7 @@ def test_an_atlas_grows_when_its_charts_gutters_overfill_it(mi, tmp_path):
     from jprt.render.scenes import SceneHandle, xml
 
     handle = SceneHandle(xml(_many_quads_file(tmp_path, 40)))
-    with pytest.warns(UserWarning, match=r"do not fit a 8 x 8 atlas; the atlas is \d+ x \d+"):
+    with pytest.warns(UserWarning, match=r"do not fit a 8 x 8 atlas at the texel density it asks; the atlas is \d+ x \d+"):
         atlas = lightmap.build_atlas(handle, resolution=8)
     assert 8 < atlas.resolution <= 8 * lightmap.ATLAS_GROWTH
     assert set(np.unique(atlas.texel_object)) == set(range(40))
