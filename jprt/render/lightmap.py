@@ -431,7 +431,7 @@ RAISED_SPAN = 2.0
 #: The asked resolution promises a texel density: an atlas whose packing (gutters of many small
 #: charts) leaves texels more than this factor larger than a gutter-free packing of the same area
 #: would have at the asked resolution doubles (up to ``ATLAS_GROWTH``).
-DENSITY_SLACK = 2.0
+DENSITY_SLACK = 4.0
 
 
 def _fit_texel_growing(sizes: np.ndarray, res: int, start: float, n_charts: int, asked: int,
