@@ -216,6 +216,7 @@ def test_scene_task_views_and_lights(mi, assets):
     assert len(lights) == 3 and all(np.all((lo <= li.position[0]) & (li.position[0] <= hi)) for li in lights)
 
 
+@pytest.mark.slow  # an end-to-end run: every point-light method fitted and timed on a scene file
 @pytest.mark.mitsuba
 def test_atlas_on_a_scene_file(mi, assets, tmp_path):
     """``jprt atlas <scene.xml> --lighting point --select ... --minimize frame_ms --preset test``

@@ -54,13 +54,16 @@ def exported(tmp_path_factory):
 
 
 ALL = list(LIGHTMAP_METHODS + ONNX_METHODS)
+#: The parametrisations over every method: neural-wavelet PRT's fit and ONNX conversion are the
+#: slowest of the module, so its cases run with the slow tests (`make test-slow`).
+EVERY = [pytest.param(n, marks=pytest.mark.slow) if n == "wavelet_prt" else n for n in ALL]
 
 
 def test_every_registered_method_has_an_export():
     assert sorted(ALL) == sorted(REGISTRY)
 
 
-@pytest.mark.parametrize("name", ALL)
+@pytest.mark.parametrize("name", EVERY)
 def test_manifest_says_what_the_model_is_and_what_each_file_holds(exported, name):
     run, out, m, config, _, _ = exported(name)
     manifest = read_manifest(out)
@@ -83,7 +86,7 @@ def test_manifest_says_what_the_model_is_and_what_each_file_holds(exported, name
     assert ("onnx" in manifest) == (name in ONNX_METHODS)
 
 
-@pytest.mark.parametrize("name", ALL)
+@pytest.mark.parametrize("name", EVERY)
 def test_params_buffers_are_the_fitted_params_bit_for_bit(exported, name):
     run, out, *_ = exported(name)
     manifest = read_manifest(out)
@@ -95,7 +98,7 @@ def test_params_buffers_are_the_fitted_params_bit_for_bit(exported, name):
         np.testing.assert_array_equal(a, b)
 
 
-@pytest.mark.parametrize("name", ALL)
+@pytest.mark.parametrize("name", EVERY)
 def test_load_gives_an_evaluator_equal_to_the_original(exported, name):
     _, out, m, config, result, dataset = exported(name)
     back = load(out)
@@ -291,6 +294,7 @@ def test_onnx_equals_the_jax_evaluator(exported, name):
     assert set(manifest["onnx"]["hand_written"]) <= set(jonnx.HAND_WRITTEN)
 
 
+@pytest.mark.slow
 def test_onnx_of_neural_wavelet_prt_is_the_same_function(exported):
     """Neural-wavelet PRT's test-preset model predicts about 1e-3 as a sum of terms of order 1, so
     float32 rounding alone moves its output by about 1e-3 relative (JAX jitted against JAX
