@@ -22,7 +22,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-__all__ = ["atomic_path", "save_checkpoint", "load_checkpoint", "load_tree", "CorruptCheckpoint"]
+__all__ = ["atomic_path", "save_checkpoint", "load_checkpoint", "load_tree", "place", "as_lists", "CorruptCheckpoint"]
 
 
 @contextlib.contextmanager
@@ -94,20 +94,26 @@ def load_tree(path: str) -> tuple[Any, int | None, dict]:
                  for m in _KEY.finditer(path_str)]
         if not parts:
             return stored[key], header["step"], header["meta"]  # a single array
-        node = root
-        for part in parts[:-1]:
-            node = node.setdefault(part, {})
-        node[parts[-1]] = stored[key]
+        place(root, parts, stored[key])
+    return as_lists(root), header["step"], header["meta"]
 
-    def lists(node):
-        if not isinstance(node, dict):
-            return node
-        out = {k: lists(v) for k, v in node.items()}
-        if out and all(isinstance(k, int) for k in out):
-            return [out[i] for i in range(len(out))]
-        return out
 
-    return lists(root), header["step"], header["meta"]
+def place(root: dict, keys, value) -> None:
+    """Put ``value`` into the nested dict ``root`` at the path ``keys`` (str or int each)."""
+    node = root
+    for k in keys[:-1]:
+        node = node.setdefault(k, {})
+    node[keys[-1]] = value
+
+
+def as_lists(node):
+    """A nested dict built by ``place`` with the dicts whose keys are 0..n-1 turned into lists."""
+    if not isinstance(node, dict):
+        return node
+    out = {k: as_lists(v) for k, v in node.items()}
+    if out and all(isinstance(k, int) for k in out):
+        return [out[i] for i in range(len(out))]
+    return out
 
 
 class CorruptCheckpoint(ValueError):

@@ -54,9 +54,11 @@ def exported(tmp_path_factory):
 
 
 ALL = list(LIGHTMAP_METHODS + ONNX_METHODS)
-#: The parametrisations over every method: neural-wavelet PRT's fit and ONNX conversion are the
-#: slowest of the module, so its cases run with the slow tests (`make test-slow`).
-EVERY = [pytest.param(n, marks=pytest.mark.slow) if n == "wavelet_prt" else n for n in ALL]
+#: The parametrisations over every method: neural-wavelet PRT's and SG environment's fits and ONNX
+#: conversions are the slowest of the module, so their cases run with the slow tests (`make
+#: test-slow`); RRF keeps the ONNX check in the default suite.
+SLOW = ("wavelet_prt", "sg_environment")
+EVERY = [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n for n in ALL]
 
 
 def test_every_registered_method_has_an_export():
@@ -279,7 +281,7 @@ def _feeds(out):
         return {k: data[k] for k in data.files}
 
 
-@pytest.mark.parametrize("name", ["rrf", "sg_environment"])
+@pytest.mark.parametrize("name", ["rrf", pytest.param("sg_environment", marks=pytest.mark.slow)])
 def test_onnx_equals_the_jax_evaluator(exported, name):
     """onnxruntime on the exported model and the view's frame equals the JAX evaluator (the
     reference frame written beside it, and recomputed from the run) to relative 1e-5."""

@@ -9,7 +9,6 @@ shape), so the export alone rebuilds the evaluator bit for bit (``load``); the e
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
@@ -18,6 +17,8 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from jprt import io
+from jprt.cache import sha256
+from jprt.checkpoint import as_lists, place
 
 __all__ = ["MANIFEST", "FORMAT", "FORMAT_VERSION", "MANIFEST_KEYS", "NotAnExport", "Exported", "write_params",
            "read_params", "read_manifest", "write_manifest", "load", "file_sha256"]
@@ -56,13 +57,8 @@ class NotAnExport(ValueError):
     """A folder given to ``jprt.export.load`` that is not an export (no or unreadable manifest)."""
 
 
-def file_sha256(path: str) -> str:
-    """Hex SHA-256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+#: Hex SHA-256 of a file's bytes (the dataset cache's checksum).
+file_sha256 = sha256
 
 
 def _leaf_name(keys: list) -> str:
@@ -124,20 +120,8 @@ def read_params(folder: str, entries: list[dict]):
         keys = e["keys"]
         if not keys:
             return value
-        node = root
-        for k in keys[:-1]:
-            node = node.setdefault(k, {})
-        node[keys[-1]] = value
-
-    def lists(node):
-        if not isinstance(node, dict):
-            return node
-        out = {k: lists(v) for k, v in node.items()}
-        if out and all(isinstance(k, int) for k in out):
-            return [out[i] for i in range(len(out))]
-        return out
-
-    return lists(root)
+        place(root, keys, value)
+    return as_lists(root)
 
 
 def write_manifest(out: str, manifest: dict) -> str:

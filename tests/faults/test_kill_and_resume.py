@@ -168,6 +168,7 @@ def test_training_on_a_1e5_sun_and_a_near_black_map_stays_finite():
     assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in jax.tree_util.tree_leaves(result.params))
 
 
+@pytest.mark.slow  # resuming a finished sweep is also checked in the default suite (tests/test_sweep.py)
 def test_a_killed_sweep_resumes_without_redoing_finished_points(tmp_path, monkeypatch):
     """A sweep killed after its first point: the rerun reads the finished points, runs the rest
     (the point that was running when killed has no summary and is run again), and its table
