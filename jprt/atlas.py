@@ -62,6 +62,7 @@ from jprt import eval as jeval
 from jprt import io
 from jprt.config import apply_overrides, merge, stable_hash
 from jprt.methods import REGISTRY
+from jprt.render.heldout import views_about
 from jprt.runner import HeldOut
 
 __all__ = ["TASKS", "EVAL", "PRESETS", "LIGHTINGS", "dotted", "scene_task", "atlas_config", "task_cameras",
@@ -347,28 +348,6 @@ def task_cameras(task: dict, resolution: int | None = None) -> list:
         origins = np.asarray(v["target"]) + np.stack([r * np.sin(az) * np.cos(el), r * np.sin(el),
                                                       r * np.cos(az) * np.cos(el)], axis=-1)
     return [cams.look_at(o, v["target"], fov=float(v["fov"]), width=res, height=res) for o in origins]
-
-
-def views_about(camera, n: int, seed: int, yaw_deg=(10.0, 25.0), pitch_deg: float = 5.0) -> list:
-    """``n`` views from ``camera``'s origin (free space wherever the camera is), turned by a yaw of
-    ``yaw_deg[0]``-``yaw_deg[1]`` degrees either way about its up axis and a pitch of up to
-    ``pitch_deg`` degrees (drawn with ``seed``); same field of view and film size."""
-    from jprt.render.cameras import look_at
-
-    def turn(v, axis, angle):  # Rodrigues' rotation of v about the unit axis
-        k = axis / np.linalg.norm(axis)
-        return v * np.cos(angle) + np.cross(k, v) * np.sin(angle) + k * np.dot(k, v) * (1.0 - np.cos(angle))
-
-    rng = np.random.default_rng([int(seed), 17])
-    origin, up = np.asarray(camera.origin, np.float64), np.asarray(camera.up, np.float64)
-    forward = np.asarray(camera.target, np.float64) - origin
-    views = []
-    for _ in range(int(n)):
-        yaw = np.radians(rng.uniform(*yaw_deg)) * rng.choice([-1.0, 1.0])
-        pitch = np.radians(rng.uniform(-pitch_deg, pitch_deg))
-        d = turn(turn(forward, up, yaw), np.cross(forward, up), pitch)
-        views.append(look_at(origin, origin + d, up, fov=camera.fov, width=camera.width, height=camera.height))
-    return views
 
 
 def task_lightings(task: dict) -> list:

@@ -24,7 +24,7 @@ import numpy as np
 
 from jprt import eval as jeval
 
-__all__ = ["turned_views", "held_out_lights", "specular_objects", "reference_batch", "references",
+__all__ = ["turned_views", "views_about", "held_out_lights", "specular_objects", "reference_batch", "references",
            "reference_noise", "pathtrace_ms", "face_counts", "lighting_setup"]
 
 
@@ -34,19 +34,26 @@ def turned_views(handle, e: dict) -> list:
     10-25 degrees either way about the camera's up axis and a pitch of up to 5 degrees. The
     methods' training views are drawn in a box about the camera with other seeds, so neither is
     a training view."""
-    from jprt.render.cameras import look_at
-
     res = int(e["resolution"])
     first = handle.default_camera(res, res)
-    views = [first]
-    rng = np.random.default_rng([int(e["seed"]), 17])
-    origin, up = np.asarray(first.origin, np.float64), np.asarray(first.up, np.float64)
-    forward = np.asarray(first.target, np.float64) - origin
-    for _ in range(int(e["extra_views"])):
-        yaw = np.radians(rng.uniform(10.0, 25.0)) * rng.choice([-1.0, 1.0])
-        pitch = np.radians(rng.uniform(-5.0, 5.0))
+    return [first] + views_about(first, int(e["extra_views"]), int(e["seed"]))
+
+
+def views_about(camera, n: int, seed: int, yaw_deg=(10.0, 25.0), pitch_deg: float = 5.0) -> list:
+    """``n`` views from ``camera``'s origin (free space wherever the camera is), turned by a yaw of
+    ``yaw_deg[0]``-``yaw_deg[1]`` degrees either way about its up axis and a pitch of up to
+    ``pitch_deg`` degrees (drawn with ``seed``); same field of view and film size."""
+    from jprt.render.cameras import look_at
+
+    rng = np.random.default_rng([int(seed), 17])
+    origin, up = np.asarray(camera.origin, np.float64), np.asarray(camera.up, np.float64)
+    forward = np.asarray(camera.target, np.float64) - origin
+    views = []
+    for _ in range(int(n)):
+        yaw = np.radians(rng.uniform(*yaw_deg)) * rng.choice([-1.0, 1.0])
+        pitch = np.radians(rng.uniform(-pitch_deg, pitch_deg))
         d = _rotate(_rotate(forward, up, yaw), np.cross(forward, up), pitch)
-        views.append(look_at(origin, origin + d, up, fov=first.fov, width=res, height=res))
+        views.append(look_at(origin, origin + d, up, fov=camera.fov, width=camera.width, height=camera.height))
     return views
 
 
