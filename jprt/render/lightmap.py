@@ -467,9 +467,11 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     pixels point at their nearest covered texel (``fill_index``) so a bilinear lookup never reads
     an empty texel.
     Zero-area triangles are left out of the charts, with a warning that counts them, and so are
-    objects without area. Where the charts' gutters alone overfill ``resolution`` (a file of many
-    small meshes), the atlas doubles its resolution (up to ``ATLAS_GROWTH`` x, with a warning
-    naming the size; ``Atlas.resolution`` is the one used).
+    objects without area. An object raised to ``min_texels`` grows to a few texels at most
+    (``RAISED_SPAN``). Where the charts' gutters overfill ``resolution`` or leave its texels more
+    than ``DENSITY_SLACK`` x coarser than a gutter-free packing would (a file of many small
+    meshes), the atlas doubles its resolution (up to ``ATLAS_GROWTH`` x, with a warning naming the
+    size; ``Atlas.resolution`` is the one used).
     """
     import warnings
 
@@ -520,12 +522,11 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
                                         ideal=np.sqrt(total) / int(resolution))
         texels = object_area * scale ** 2 / texel ** 2
         short = texels < 2.0 * int(min_texels)  # rasterised texel centres fall short of the area's count
-        # a raised object's layout spans at most the side of a square of 2 min_texels texels,
-        # twice over: an object of almost no area spread over a wide layout (many tiny charts with
-        # gutters, slivers) would otherwise grow without bound, take the atlas over and leave every
-        # other object short; spread that wide, its charts get texels of their own as they are
-        # (conservative rasterisation)
-        # (texels of the first packing: a bound that followed the texel size raised would feed back)
+        # a raised object's layout spans at most RAISED_SPAN x the side of a square of 2 min_texels
+        # texels of the first packing (a bound that followed the texel size would feed back): an
+        # object of almost no area over a wide layout (many tiny charts with gutters, slivers) would
+        # otherwise grow without bound, take the atlas over and leave every other object short;
+        # spread that wide, its charts get texels of their own as they are (conservative rasterisation)
         texel0 = texel if texel0 is None else texel0
         span = RAISED_SPAN * np.sqrt(2.0 * int(min_texels))
         cap = np.maximum(span * texel0 / np.maximum(object_extent, 1e-300), scale)
@@ -537,7 +538,8 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     origin = _pack(sizes, res, texel)
     if res != int(resolution):
         warnings.warn(f"lightmap atlas: {len(charts)} charts (with {_GUTTER}-texel gutters) do not fit a "
-                      f"{resolution} x {resolution} atlas at the texel density it asks; the atlas is {res} x {res}", stacklevel=2)
+                      f"{resolution} x {resolution} atlas at the texel density it asks; the atlas is "
+                      f"{res} x {res}", stacklevel=2)
 
     n_tri = [t.shape[0] for t in per_object]
     tri_offset = np.concatenate([[0], np.cumsum(n_tri)[:-1]]).astype(np.int32)
