@@ -464,14 +464,8 @@ def mitsuba_curve(task: dict, e: dict, say=print) -> list[dict]:
 def equal_error(curve: list[dict], rmse: float | None, frame_ms: float | None) -> dict:
     """A point's equal-error numbers read off Mitsuba's curve: the smallest spp whose RMSE is at
     most ``rmse``, its frame time and the speedup; when no spp reaches it, spp None and the time
-    of the largest spp (a lower bound, ``reached`` False)."""
-    if rmse is None or not curve:
-        return {"equal_error_spp": None, "pathtrace_ms_equal_error": None, "speedup_equal_error": None,
-                "equal_error_reached": None}
-    hit = next((c for c in sorted(curve, key=lambda c: c["spp"]) if c["rmse"] <= rmse), None)
-    ms = (hit or max(curve, key=lambda c: c["spp"]))["ms"]
-    return {"equal_error_spp": hit["spp"] if hit else None, "pathtrace_ms_equal_error": ms,
-            "speedup_equal_error": ms / frame_ms if frame_ms else None, "equal_error_reached": hit is not None}
+    of the largest spp (a lower bound, ``reached`` False): ``jprt.eval.EqualErrorCurve.read``."""
+    return jeval.EqualErrorCurve(curve).read(rmse, frame_ms)
 
 
 # --------------------------------------------------------------------------------------------
