@@ -157,7 +157,7 @@ def main() -> int:
                     recorded=(f"the test presets run at commit {args.against} in the same run" if earlier else
                               "benchmarks/results/pre_contract/*.json (commit a2cefc4, test presets)"),
                     notes=("absent keys: wavelet_prt_cornell's hand-rolled front became a sweep file "
-                           "(experiments/sweeps/wavelet_front.py, run by jprt sweep)" if earlier else
+                           "(experiments/sweeps/wavelet_prt_front.py, run by jprt sweep)" if earlier else
                            "absent keys: test_resolution / timing_resolution are config inputs (in config.json); "
                            "rrf_glossy's rmse_augmented was a copy of indirect_rmse written with ablations off"))
     return 0 if result["all_equal"] else 1
