@@ -35,7 +35,7 @@ def set_rmse(predictions: Sequence, references: Sequence, valids: Sequence | Non
     Anything but (H, W, C) images (with (H, W) masks) is refused: a (T, 3) lightmap read as an
     image would be a T x 3 image of one channel, and its RMSE over a mask would be wrong without a
     word (lightmaps are compared with ``jprt.methods.datadriven.model.lightmap_rmse``, or as atlas
-    images through ``jprt.methods.atlas``)."""
+    images through ``jprt.methods.lightmap_lookup``)."""
     if len(predictions) != len(references) or not len(predictions):
         raise ValueError(f"need equally many (>0) predictions and references, got {len(predictions)} and "
                          f"{len(references)}")
@@ -158,11 +158,12 @@ class HeldOut(NamedTuple):
 
 
 #: The scores of a held-out set that every run's summary carries (``score_images``' default).
-SUMMARY_SCORES = ("indirect_rmse", "indirect_rel_rmse", "p999_abs_error", "psnr_indirect", "ssim_indirect",
-                  "psnr_full", "flip_indirect", "lpips_indirect")
-#: Every score ``score_images`` computes: the summary's, SSIM of direct + indirect, and the mean over
-#: images of each image's RMSE (the per-image convention of some papers' tables).
-SCORES = SUMMARY_SCORES + ("ssim_full", "image_rmse_mean")
+SUMMARY_SCORES = ("indirect_rmse", "indirect_rel_rmse", "indirect_rel_rmse_worst_image", "p999_abs_error",
+                  "psnr_indirect", "ssim_indirect", "psnr_full", "flip_indirect", "lpips_indirect")
+#: Every score ``score_images`` computes: the summary's, SSIM of direct + indirect, the mean over
+#: images of each image's RMSE (the per-image convention of some papers' tables) and each image's
+#: relative RMSE.
+SCORES = SUMMARY_SCORES + ("ssim_full", "image_rmse_mean", "indirect_rel_rmse_by_image")
 
 
 def score_images(predictions: Sequence, references: Sequence, valid: Sequence | None = None,
@@ -176,6 +177,9 @@ def score_images(predictions: Sequence, references: Sequence, valid: Sequence | 
 
     * ``indirect_rmse``: ``set_rmse`` over every valid pixel and channel of all images (HDR);
     * ``indirect_rel_rmse``: that over the RMS of the references on the same pixels;
+    * ``indirect_rel_rmse_by_image``: each image's own relative RMSE (its RMSE over its
+      reference's RMS, on its valid pixels; inf for a black reference with any error), a list;
+      ``indirect_rel_rmse_worst_image``: the largest of them (a set's score can hide one bad image);
     * ``p999_abs_error``: 99.9th percentile of |prediction - reference| over the same entries;
     * ``psnr_indirect``, ``ssim_indirect``, ``psnr_full``, ``ssim_full``: of the sRGB-tonemapped
       images at ``exposure`` (clipped, peak 1), mean over images; over the whole image (pixels that
@@ -200,6 +204,14 @@ def score_images(predictions: Sequence, references: Sequence, valid: Sequence | 
         out["indirect_rmse"] = set_rmse(preds, refs, valid)
         ref_rms = set_rmse([np.zeros_like(np.asarray(r)) for r in refs], refs, valid)
         out["indirect_rel_rmse"] = out["indirect_rmse"] / max(ref_rms, 1e-30)
+    if {"indirect_rel_rmse_by_image", "indirect_rel_rmse_worst_image"} & set(scores):
+        per = []
+        for p, r, m in zip(preds, refs, masks):
+            err = set_rmse([p], [r], [m])
+            rms = set_rmse([np.zeros_like(np.asarray(r))], [r], [m])
+            per.append(err / rms if rms > 0 else (0.0 if err == 0 else math.inf))
+        out["indirect_rel_rmse_by_image"] = per
+        out["indirect_rel_rmse_worst_image"] = max(per) if per else None
     if "p999_abs_error" in scores:
         errors = np.concatenate([np.abs(np.asarray(p, np.float64) - np.asarray(r, np.float64))[m].ravel()
                                  for p, r, m in zip(preds, refs, masks)])

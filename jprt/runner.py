@@ -55,6 +55,9 @@ SUMMARY_SCHEMA: dict[str, str] = {
     "indirect_rmse": "RMSE of the indirect prediction over every valid pixel and channel of all held-out images "
                      "together (jprt.eval.set_rmse; HDR, linear)",
     "indirect_rel_rmse": "indirect_rmse / RMS of the reference indirect over the same pixels",
+    "indirect_rel_rmse_worst_image": "the largest relative RMSE of one held-out image (its RMSE over its "
+                                     "reference's RMS): the worst (view, lighting) pair, which the set's score "
+                                     "can hide",
     "p999_abs_error": "99.9th percentile of |prediction - reference| over every valid pixel and channel of the "
                       "held-out images (linear HDR): seams and blotches that the RMSE averages away",
     "psnr_indirect": "PSNR (dB, sRGB-tonemapped, clipped, peak 1) of the indirect images, mean over images",
@@ -133,17 +136,21 @@ def method_config(method: Method, config: dict) -> dict:
 
 def common_summary(held: HeldOut, exposure: float = 0.0) -> dict:
     """The accuracy keys of ``SUMMARY_SCHEMA`` for a held-out set (``jprt.eval.score_held_out``):
-    indirect_rmse, indirect_rel_rmse, p999_abs_error, psnr_indirect, ssim_indirect, psnr_full,
-    flip_indirect, lpips_indirect (None where a metric does not apply: images too small for its
+    indirect_rmse, indirect_rel_rmse, indirect_rel_rmse_worst_image, p999_abs_error, psnr_indirect,
+    ssim_indirect, psnr_full, flip_indirect, lpips_indirect (None where a metric does not apply: images too small for its
     window, no direct images, its package not installed)."""
     return jeval.score_held_out(held, exposure)
 
 
 def _figures(run: Run, held: HeldOut, n: int, exposure: float) -> None:
     rows = []
-    for k in range(min(int(n), len(held.predictions))):
+    count = min(int(n), len(held.predictions))
+    rel = jeval.score_images(held.predictions[:count], held.references[:count],
+                             None if held.valid is None else held.valid[:count],
+                             scores=("indirect_rel_rmse_by_image",))["indirect_rel_rmse_by_image"] if count else []
+    for k in range(count):
         label = held.labels[k] if held.labels else f"held-out {k}"
-        rows.append((label, held.references[k], held.predictions[k]))
+        rows.append((f"{label} (rel. RMSE {rel[k]:.3f})", held.references[k], held.predictions[k]))
         io.write_exr(os.path.join(run.out, f"heldout{k:02d}_reference.exr"), held.references[k])
         io.write_exr(os.path.join(run.out, f"heldout{k:02d}_{run.method.name}.exr"), held.predictions[k])
     if rows:
@@ -233,7 +240,8 @@ def run(experiment: ModuleType, config: dict) -> dict:
     r.state["held_out"] = held
     s.update(common_summary(held, float(e.get("exposure", 0.0))))
     r.say(f"{len(held.predictions)} held-out images: indirect RMSE {s['indirect_rmse']:.5f} "
-          f"(relative {s['indirect_rel_rmse']:.3f}), PSNR {s['psnr_indirect']:.2f} dB")
+          f"(relative {s['indirect_rel_rmse']:.3f}, worst image {s['indirect_rel_rmse_worst_image']:.3f}), "
+          f"PSNR {s['psnr_indirect']:.2f} dB")
     _figures(r, held, int(e.get("images", 4)), float(e.get("exposure", 0.0)))
     _timing(r, experiment, int(e.get("timing_repeats", 10)))
     _equal_error(r, experiment, held)

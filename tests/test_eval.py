@@ -170,7 +170,7 @@ def test_score_images_is_the_held_out_protocol():
     preds = [r + 0.05 * rng.standard_normal(r.shape) for r in refs]
     valid = [np.ones((12, 12), bool), rng.random((12, 12)) > 0.3]
     direct = [rng.random((12, 12, 3)) for _ in range(2)]
-    s = jeval.score_images(preds, refs, valid, direct, scores=jeval.SCORES[:6] + ("ssim_full", "image_rmse_mean"))
+    s = jeval.score_images(preds, refs, valid, direct, scores=jeval.SCORES[:7] + ("ssim_full", "image_rmse_mean"))
     assert s["indirect_rmse"] == pytest.approx(jeval.set_rmse(preds, refs, valid))
     ref_rms = np.sqrt(sum(float(np.sum(r[m] ** 2)) for r, m in zip(refs, valid)) / (3 * sum(m.sum() for m in valid)))
     assert s["indirect_rel_rmse"] == pytest.approx(s["indirect_rmse"] / ref_rms)
@@ -192,6 +192,26 @@ def test_score_images_is_the_held_out_protocol():
     assert jeval.score_held_out(held, scores=("indirect_rmse",)) == {"indirect_rmse": s["indirect_rmse"]}
     with pytest.raises(ValueError, match="unknown scores"):
         jeval.score_images(preds, refs, scores=("psnr",))
+
+
+def test_per_image_relative_rmse_finds_the_pair_a_set_hides():
+    """Each image's relative RMSE is its own error over its own reference's RMS on its own valid
+    pixels; the worst of them is reported beside the set's score, which a bright, well-predicted
+    image can pull under a dark, badly predicted one's; a black reference scores 0 when matched
+    and inf when not (never a division by zero)."""
+    rng = np.random.default_rng(2)
+    bright = 10 * rng.random((12, 12, 3)) + 1
+    dark = 0.1 * rng.random((12, 12, 3)) + 0.01
+    valid = [np.ones((12, 12), bool), rng.random((12, 12)) > 0.3]
+    preds = [1.01 * bright, 0 * dark]  # 1 % off, and black
+    s = jeval.score_images(preds, [bright, dark], valid,
+                           scores=("indirect_rel_rmse", "indirect_rel_rmse_by_image", "indirect_rel_rmse_worst_image"))
+    assert s["indirect_rel_rmse_by_image"] == pytest.approx([0.01, 1.0])
+    assert s["indirect_rel_rmse_worst_image"] == pytest.approx(1.0)
+    assert s["indirect_rel_rmse"] < 0.02  # the set's score hides the black image
+    black = np.zeros((4, 4, 3))
+    per = jeval.score_images([black, black + 1], [black, black], scores=("indirect_rel_rmse_by_image",))
+    assert per["indirect_rel_rmse_by_image"] == [0.0, float("inf")]
 
 
 def test_equal_error_curve_measures_and_reads():
