@@ -143,11 +143,11 @@ def _environments(env: dict, face_size: int) -> tuple[list, list]:
     held-out maps ``env["maps"]`` at cube face size ``face_size``."""
     from jprt.inputs import CubeMap
     from jprt.methods.wavelet_prt import data as wp_data
-    from jprt.methods.wavelet_prt import model as wp
     from jprt.render.lights import EnvMap
+    from jprt.sphere.envmap import render_equirect
 
     cubes, _ = wp_data.load_environments(list(env["maps"]), [0.0], int(face_size))
-    return [CubeMap(c) for c in cubes], [EnvMap.create(wp.render_equirect(c)) for c in cubes]
+    return [CubeMap(c) for c in cubes], [EnvMap.create(render_equirect(c)) for c in cubes]
 
 
 def run_scene(path: str, config: dict, out: str) -> dict:

@@ -369,27 +369,27 @@ def task_lightings(task: dict) -> list:
     if task["lighting"] != "environment":
         raise ValueError(f"task lighting {task['lighting']!r}: one of {', '.join(LIGHTINGS)}")
     from jprt.methods.wavelet_prt import data as wp_data
-    from jprt.methods.wavelet_prt import model as wp
+    from jprt.sphere.envmap import synthetic_environments
 
     e = task["envmaps"]
     n = int(e["face_size"])
     if int(e["synthetic"]) > 0:
-        return [CubeMap(c) for c in wp.synthetic_environments(int(e["synthetic"]), n, int(e["seed"]))]
+        return [CubeMap(c) for c in synthetic_environments(int(e["synthetic"]), n, int(e["seed"]))]
     cubes, _ = wp_data.load_environments(e["names"], e["rotations_deg"], n, normalise=bool(e["normalise"]))
     return [CubeMap(c) for c in cubes]
 
 
 def mitsuba_lighting(lighting):
     """What Mitsuba renders for a task lighting: point lights as they are, a cube map as the
-    equirect map of its texels (``wavelet_prt.model.render_equirect``), a ``LightScale`` as the
+    equirect map of its texels (``jprt.sphere.envmap.render_equirect``), a ``LightScale`` as the
     file's own emitters (None)."""
     from jprt.inputs import CubeMap, LightScale
-    from jprt.methods.wavelet_prt import model as wp
     from jprt.render.lights import EnvMap
+    from jprt.sphere.envmap import render_equirect
 
     if isinstance(lighting, LightScale):
         return None
-    return EnvMap.create(wp.render_equirect(lighting.radiance)) if isinstance(lighting, CubeMap) else lighting
+    return EnvMap.create(render_equirect(lighting.radiance)) if isinstance(lighting, CubeMap) else lighting
 
 
 class TaskData(types.SimpleNamespace):

@@ -21,6 +21,8 @@ from typing import NamedTuple, Union
 
 import numpy as np
 
+from jprt.sphere.envmap import check_equirect
+
 __all__ = ["GBuffer", "Camera", "PointLights", "SpotLights", "DirectionalLights", "EnvMap", "CubeMap",
            "SHLighting", "PointRadiance", "LightScale", "PreconvolvedEnvironment", "Lighting", "validate_envmap",
            "validate_lighting",
@@ -372,14 +374,9 @@ LIGHTING_TYPES = (PointLights, SpotLights, DirectionalLights, EnvMap, CubeMap, S
 
 def validate_envmap(radiance, *, signed: bool = False) -> np.ndarray:
     """Return ``radiance`` as a float32 (H, W, 3) array, or raise a one-line ValueError (shape,
-    finite values, >= 0 unless ``signed``)."""
-    radiance = np.asarray(radiance, dtype=np.float32)
-    if radiance.ndim != 3 or radiance.shape[2] != 3 or radiance.shape[0] < 2 or radiance.shape[1] < 2:
-        raise ValueError(f"environment map radiance must have shape (H, W, 3) with H, W >= 2, got shape "
-                         f"{radiance.shape}")
-    _nonfinite("environment map radiance", radiance)
-    _nonnegative("environment map radiance", radiance, signed)
-    return radiance
+    finite values, >= 0 unless ``signed``): ``jprt.sphere.envmap.check_equirect``, the one check
+    of an equirect map."""
+    return check_equirect(radiance, signed=signed)
 
 
 def validate_lighting(lighting, *, signed: bool = False, expected: type | None = None):

@@ -198,8 +198,8 @@ class Session:
         per lighting state (the map's rotation resamples it; data-driven PRT and MRT measure
         direct light with Mitsuba in their task adapter)."""
         from jprt.inputs import CubeMap, LightScale, PointLights
-        from jprt.methods.wavelet_prt.model import prepare_environment, render_equirect, rotate_equirect
         from jprt.render.lights import EnvMap
+        from jprt.sphere.envmap import prepare_environment, render_equirect, rotate_equirect
 
         s = self.state
         key = {"point": ("light", "colour", "power"), "environment": ("env", "env_rotation"),

@@ -34,7 +34,8 @@ def check_equirect(radiance, *, signed: bool = False) -> np.ndarray:
     e = np.asarray(radiance, dtype=np.float32)
     if e.ndim != 3 or e.shape[2] != 3 or min(e.shape[:2]) < 2:
         raise ValueError(f"environment map radiance must have shape (H, W, 3) with H, W >= 2, got shape {e.shape}")
-    checks = [(~np.isfinite(e), "be finite", "NaN/inf")] + ([] if signed else [(e < 0, "be >= 0", "negative")])
+    checks = [(~np.isfinite(e), "be finite", "NaN/inf")] + (
+        [] if signed else [(e < 0, "be >= 0 (pass signed=True for signed lighting)", "negative")])
     for bad, rule, what in checks:
         if bad.any():
             where = tuple(int(i) for i in np.argwhere(bad)[0])

@@ -41,8 +41,9 @@ def scene_handle(scene, cube, handle=None):
     """A Mitsuba scene lit by the cube map ``cube`` (6, n, n, 3): ``handle`` relit, or a new one."""
     from jprt.render.lights import EnvMap
     from jprt.render.scenes import SceneHandle
+    from jprt.sphere.envmap import render_equirect
 
-    lighting = EnvMap.create(wp.render_equirect(cube))
+    lighting = EnvMap.create(render_equirect(cube))
     if handle is None:
         return SceneHandle(scene, lighting)
     handle.set_lighting(lighting)

@@ -69,10 +69,6 @@ from jprt.nn.factor import factor_field
 from jprt.nn.mlp import mlp
 from jprt.solve import losses
 from jprt.sphere import haar
-# environment-map utilities live in jprt.sphere.envmap; these names stay importable from here for
-# the callers (the atlas, the viewer, experiments) that take them from this module
-from jprt.sphere.envmap import (prepare_environment, render_equirect, rotate_equirect,  # noqa: F401
-                                synthetic_environments)
 
 __all__ = [
     "DEFAULT_CONFIG",
