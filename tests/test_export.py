@@ -326,3 +326,94 @@ def test_onnx_of_neural_wavelet_prt_is_the_same_function(exported):
         eager = np.asarray(back.evaluate(s.inputs(ONNX_SIZE), s.method_lighting()))
     floor = max(np.abs(eager - want32).max(), 1e-5 * np.abs(want32).max())
     assert np.abs(got32 - want32).max() <= 2.0 * floor
+
+
+def _glsl_program(source: str) -> tuple[dict, dict, dict]:
+    """The constants a generated RRF shader declares: ints, int arrays, bools."""
+    import re
+
+    ints = {k: int(v) for k, v in re.findall(r"const int (RRF_\w+) = (-?\d+);", source)}
+    arrays = {k: [int(v) for v in body.split(",")]
+              for k, body in re.findall(r"const int (RRF_\w+)\[\d+\] = int\[\]\(([^)]*)\);", source)}
+    flags = {k: v == "true" for k, v in re.findall(r"const bool (RRF_\w+) = (true|false);", source)}
+    return ints, arrays, flags
+
+
+def _run_glsl(source: str, data: np.ndarray, inputs: list, gb, lights) -> np.ndarray:
+    """rrf.glsl's functions, statement by statement, in NumPy float32 over the data texture: what a
+    fragment shader computes per pixel (rrfInputs, rrfLeaf, rrfNetwork, rrfIndirect)."""
+    c, arrays, flags = _glsl_program(source)
+    at = data.ravel().astype(np.float32)
+    fields = {"position": np.asarray(gb.position), "view": np.asarray(gb.view), "normal": np.asarray(gb.normal),
+              "brdf": np.concatenate([np.asarray(gb.diffuse_albedo), np.asarray(gb.specular_albedo),
+                                      np.asarray(gb.roughness)[..., None]], axis=-1)}
+    h, w = np.shape(gb.object_id)
+    out = np.zeros((h, w, 3), np.float32)
+    lo, hi = at[c["RRF_LIGHT_LO"]:c["RRF_LIGHT_LO"] + 3], at[c["RRF_LIGHT_HI"]:c["RRF_LIGHT_HI"] + 3]
+    d = c["RRF_D"]
+    for y in range(h):
+        for x_ in range(w):
+            obj = int(gb.object_id[y, x_]) if bool(gb.valid[y, x_]) else -1
+            if obj < 0 or obj >= c["RRF_OBJECTS"]:
+                continue
+            x = np.zeros(d, np.float32)
+            for name, first, end in inputs:
+                if name != "light":
+                    x[first:end] = fields[name][y, x_]
+            for p, rgb in zip(np.asarray(lights.position, np.float32), np.asarray(lights.intensity, np.float32)):
+                x[c["RRF_LIGHT"]:c["RRF_LIGHT"] + 3] = np.clip(p, lo, hi) if flags["RRF_CLAMP_LIGHTS"] else p
+                node = int(at[c["RRF_ROOTS"] + obj])
+                if node < 0:
+                    continue
+                for _ in range(c["RRF_DEPTH"]):
+                    axis = int(at[c["RRF_AXIS"] + node])
+                    if axis < 0:
+                        break
+                    side = "RRF_RIGHT" if x[axis] >= at[c["RRF_THRESHOLD"] + node] else "RRF_LEFT"
+                    node = int(at[c[side] + node])
+                leaf = int(at[c["RRF_LEAF"] + node])
+                row = slice(leaf * d, (leaf + 1) * d)
+                v = x
+                if flags["RRF_CLAMP_INPUTS"]:
+                    v = np.clip(v, at[c["RRF_IN_MIN"]:][row], at[c["RRF_IN_MAX"]:][row])
+                a = (v - at[c["RRF_IN_CENTER"]:][row]) / at[c["RRF_IN_HALF"]:][row]
+                sizes = arrays["RRF_SIZES"]
+                for li in range(c["RRF_LAYERS"]):
+                    n_in, n_out = sizes[li], sizes[li + 1]
+                    wts = at[arrays["RRF_W"][li] + leaf * n_in * n_out:][:n_in * n_out].reshape(n_in, n_out)
+                    a = a @ wts + at[arrays["RRF_B"][li] + leaf * n_out:][:n_out]
+                    a = np.tanh(np.clip(a, -9.0, 9.0)) if li < c["RRF_LAYERS"] - 1 else a  # rrfTanh
+                yv = a * at[c["RRF_OUT_HALF"] + 3 * leaf:][:3] + at[c["RRF_OUT_CENTER"] + 3 * leaf:][:3]
+                out[y, x_] += (np.maximum(yv, 0) if flags["RRF_NONNEGATIVE"] else yv) * rgb
+    return out
+
+
+def test_rrf_glsl_computes_the_evaluator(exported):
+    """rrf.glsl with rrf_data.bin, executed as written (``_run_glsl``: its constants parsed from
+    the source, every number read from the data texture by its offsets), equals the JAX evaluator
+    at the view's frame under one light and under two lights, the second moved and tinted (and
+    outside the trained box when it lands there: a shader cannot refuse it, so it evaluates as
+    ``render.extrapolation`` "allow" does unless the config clamps). The browser test runs the
+    same source in WebGL2."""
+    from jprt.inputs import PointLights
+    from jprt.view import Session
+
+    run, out, m, config, result, _ = exported("rrf")
+    manifest = read_manifest(out)
+    g = manifest["glsl"]
+    with open(os.path.join(out, g["source"])) as f:
+        source = f.read()
+    data = np.fromfile(os.path.join(out, g["data"]), "<f4").reshape(g["data_height"], g["data_width"])
+    assert "uniform highp sampler2D rrfData;" in source and g["max_lights"] >= 2
+    s = Session(run)
+    gb = s.inputs(12)
+    one = s.method_lighting()
+    p0 = np.asarray(one.position, np.float32)[0]
+    two = PointLights.create(np.stack([p0, p0 + [0.3, -0.2, 0.1]]), [[1.0, 0.8, 0.6], [0.5, 0.5, 1.0]])
+    clamps = config["render"]["extrapolation"] == "clamp"
+    cfg = {**config, "render": {**config["render"], "extrapolation": "clamp" if clamps else "allow"}}
+    for lights in (one, two):
+        want = np.asarray(m.evaluator(result.params, cfg)(gb, lights))
+        got = _run_glsl(source, data, g["inputs"], gb, lights)
+        assert np.abs(want).max() > 0
+        assert np.abs(got - want).max() <= 1e-5 * np.abs(want).max(), np.abs(got - want).max()

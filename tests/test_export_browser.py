@@ -1,7 +1,8 @@
 """The browser side of ``jprt export``: each relightable export's ``scene.glb`` drawn by a pinned
 three.js in headless Chromium (Playwright) with its ``relight.js`` material, at the run's camera
 under a lighting that was not in training, read back from a float render target and compared with
-jprt's evaluator on the same view and lighting (slow: ``make export-deps`` installs Chromium,
+jprt's evaluator on the same view and lighting; RRF's GLSL (``rrf.glsl`` through ``rrf_pass.js``)
+evaluated over the run camera's G-buffer the same way (slow: ``make export-deps`` installs Chromium,
 Playwright and the npm packages; ``make test-slow`` runs it)."""
 
 import http.server
@@ -52,6 +53,12 @@ def _serve(root: str):
     return server
 
 
+def _launch(p):
+    return p.chromium.launch(executable_path=shutil.which("chromium") or shutil.which("chromium-browser"),
+                             args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                                   "--ignore-gpu-blocklist"])
+
+
 def _browser_frame(export: str, lighting: dict, camera: dict, size: int, tmp_path):
     """((size, size, 4) radiance and coverage (alpha 1 where a mesh is drawn), (size, size, 2) the
     atlas UV the browser drew at each pixel), float32."""
@@ -65,9 +72,7 @@ def _browser_frame(export: str, lighting: dict, camera: dict, size: int, tmp_pat
     server = _serve(str(root))
     try:
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=shutil.which("chromium") or shutil.which("chromium-browser"),
-                                        args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                                              "--ignore-gpu-blocklist"])
+            browser = _launch(p)
             page = browser.new_page(viewport={"width": size, "height": size})
             page.goto(f"http://127.0.0.1:{server.server_address[1]}/index.html")
             page.wait_for_function("window.ready !== undefined", timeout=60_000)
@@ -121,5 +126,72 @@ def test_browser_relighting_equals_the_evaluator(name, tmp_path):
     exposure = float(np.log2(0.7 / max(np.percentile(np.abs(want[valid]), 99), 1e-6)))
     io.write_png(os.path.join(SCREENSHOTS or str(tmp_path), f"export_{name}.png"),
                  np.concatenate([both, np.where(covered[..., None], want, 0.0), 10.0 * np.abs(both - want)], axis=1),
+                 exposure=exposure)
+    assert rel <= 0.01
+
+
+def _rgba(a) -> np.ndarray:
+    """(H, W, c <= 4) -> (H, W, 4) float32 (missing channels 0)."""
+    a = np.asarray(a, np.float32)
+    a = a[..., None] if a.ndim == 2 else a
+    return np.concatenate([a, np.zeros(a.shape[:2] + (4 - a.shape[-1],), np.float32)], axis=-1)
+
+
+def test_browser_rrf_glsl_equals_the_evaluator(tmp_path):
+    """RRF's exported GLSL in WebGL2 over the run camera's G-buffer, under a light moved and
+    tinted from the view's default (not a training light): relative RMSE <= 0.01 over the valid
+    pixels, the browser rendering to a float target."""
+    why = _browser_ready()
+    if why:
+        pytest.skip(why)
+    from playwright.sync_api import sync_playwright
+
+    from jprt.view import Session
+
+    m = REGISTRY["rrf"]
+    config = m.resolve(m.presets["test"])
+    result = m.fit(m.make_dataset(config["scene"], config), config)
+    run = save_fit(str(tmp_path / "run"), "rrf", config, result.params)
+    out = str(tmp_path / "export")
+    assert main(["export", run, "--out", out, "--no-onnx"]) == 0
+    s = Session(run)
+    s.set(light=tuple(np.asarray(s.state["light"]) + [0.2, -0.15, 0.1]), colour=(1.0, 0.8, 0.6), power=2.0,
+          mode="indirect")
+    want = s.prediction(SIZE)
+    gb = s.inputs(SIZE)
+    valid = np.asarray(gb.valid, bool)
+    root = tmp_path / "site"
+    (root / "gbuffer").mkdir(parents=True)
+    fields = {"position": gb.position, "normal": gb.normal, "view": gb.view, "diffuse": gb.diffuse_albedo,
+              "specular": np.concatenate([np.asarray(gb.specular_albedo), np.asarray(gb.roughness)[..., None]], -1),
+              "object": np.where(valid, np.asarray(gb.object_id), -1)}
+    for name, values in fields.items():
+        _rgba(values).astype("<f4").tofile(str(root / "gbuffer" / f"{name}.bin"))
+    os.symlink(os.path.join(JS, "node_modules", "three"), root / "three")
+    os.symlink(out, root / "export")
+    shutil.copy(os.path.join(JS, "rrf.html"), root / "index.html")
+    lighting = {k: np.asarray(v, np.float64).tolist() for k, v in s.method_lighting()._asdict().items()}
+    server = _serve(str(root))
+    try:
+        with sync_playwright() as p:
+            browser = _launch(p)
+            page = browser.new_page(viewport={"width": SIZE, "height": SIZE})
+            page.goto(f"http://127.0.0.1:{server.server_address[1]}/index.html")
+            page.wait_for_function("window.ready !== undefined", timeout=60_000)
+            assert page.evaluate("window.ready") == "ok", page.evaluate("window.ready")
+            pixels = page.evaluate("([l, w, h]) => window.render(l, w, h)", [lighting, SIZE, SIZE])
+            browser.close()
+    finally:
+        server.shutdown()
+        server.server_close()
+    frame = np.asarray(pixels, np.float32).reshape(SIZE, SIZE, 4)
+    assert (frame[..., 3][valid] > 0.5).all() and (frame[..., 3][~valid] == 0).all()
+    got, ref = frame[..., :3][valid], want[valid]
+    assert np.abs(ref).max() > 0
+    rel = float(np.sqrt(np.mean((got - ref) ** 2) / np.mean(ref ** 2)))
+    print(f"rrf GLSL: relative RMSE {rel:.2e} over {valid.sum()} valid pixels (float target)")
+    exposure = float(np.log2(0.7 / max(np.percentile(np.abs(want[valid]), 99), 1e-6)))
+    io.write_png(os.path.join(SCREENSHOTS or str(tmp_path), "export_rrf_glsl.png"),
+                 np.concatenate([frame[..., :3], want, 10.0 * np.abs(frame[..., :3] - want)], axis=1),
                  exposure=exposure)
     assert rel <= 0.01

@@ -4,7 +4,7 @@
   (StableHLO bytes any JAX loads; ``jprt.serialize``, re-exported here).
 * ``export_run(RUN_FOLDER, OUT)`` (``jprt export``): the model in the formats engines and browsers
   read: glTF lightmaps and the relightable parts for the lightmap methods, ONNX for the neural
-  evaluators, with a manifest (``jprt.export.engine``).
+  evaluators, GLSL for RRF (``jprt.export.glsl``), with a manifest (``jprt.export.engine``).
 * ``load(OUT)``: an export folder back in Python, its evaluator rebuilt from the exported buffers
   (``jprt.export.bundle``).
 

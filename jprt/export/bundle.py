@@ -50,6 +50,8 @@ MANIFEST_KEYS: dict[str, str] = {
     "camera": "the run's default view (origin, target, up, fov in degrees along the smaller image axis), where "
               "it has one",
     "onnx": "neural evaluators: the ONNX model's inputs and outputs and the operations written by hand",
+    "glsl": "RRF: its GLSL (source and data files, the data texture's width and height, the most lights one "
+            "call sums, x's columns by attribute)",
 }
 
 
@@ -130,7 +132,7 @@ def write_manifest(out: str, manifest: dict) -> str:
     unknown = sorted(set(manifest) - set(MANIFEST_KEYS))
     if unknown:
         raise KeyError(f"manifest keys {unknown} are not in MANIFEST_KEYS")
-    required = set(MANIFEST_KEYS) - {"lightmap", "camera", "onnx"}
+    required = set(MANIFEST_KEYS) - {"lightmap", "camera", "onnx", "glsl"}
     missing = sorted(required - set(manifest))
     if missing:
         raise KeyError(f"manifest lacks {missing}")

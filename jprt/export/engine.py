@@ -18,7 +18,9 @@ config, its dataset from the cache, the scene and its default view and lighting)
 * **neural evaluators** (``ONNX_METHODS``: RRF, neural-wavelet PRT, SG environment visibility):
   ``evaluator.onnx``, the evaluator at the view's frame size (``jprt.export.onnx``), with a
   reference frame (``reference_inputs.npz``, ``reference_output.npy``) an engine can check
-  itself against.
+  itself against. RRF also ships as GLSL (``jprt.export.glsl``): ``rrf.glsl`` (Eq. 9 as GLSL ES
+  3.00 functions), ``rrf_data.bin`` (its numbers, an R32F texture) and ``rrf_pass.js`` (a three.js
+  full-screen pass over a G-buffer that calls them).
 
 The lightmap is irradiance E as three.js reads a ``lightMap`` (its diffuse shading is
 albedo / pi x E): E = pi L / albedo per texel and channel, L the indirect radiance the evaluator
@@ -387,6 +389,31 @@ def _lighting_json(lighting) -> dict:
         else {"value": np.asarray(lighting).tolist()}
 
 
+def _rrf_glsl(session, out: str) -> tuple[dict, dict]:
+    """RRF's GLSL (``jprt.export.glsl.rrf_shader``) written to ``out``: (the manifest's ``glsl``
+    entry, the files' descriptions)."""
+    from jprt.export import glsl
+
+    shader = glsl.rrf_shader(session.params, session.method_config)
+    io.atomic_write_bytes(os.path.join(out, "rrf.glsl"), shader.source.encode())
+    io.atomic_write_bytes(os.path.join(out, "rrf_data.bin"), shader.data.astype("<f4").tobytes())
+    with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "rrf_pass.js"), "rb") as f:
+        io.atomic_write_bytes(os.path.join(out, "rrf_pass.js"), f.read())
+    height, width = shader.data.shape
+    entry = {"source": "rrf.glsl", "data": "rrf_data.bin", "data_width": int(width), "data_height": int(height),
+             "max_lights": shader.max_lights, "inputs": shader.inputs}
+    files = {
+        "rrf.glsl": {"format": "GLSL ES 3.00 (WebGL2) source", "holds": "Eq. 9 as functions: rrfInputs (G-buffer "
+                     "attributes -> x), rrfLeaf (kd-tree), rrfNetwork (a leaf's tanh network, Eq. 8), rrfIndirect "
+                     "(the sum over point lights); reads the uniform rrfData"},
+        "rrf_data.bin": {"format": f"float32 little-endian, {height} x {width} (an R32F texture, row 0 first)",
+                         "holds": "the trees, scalings, weights and biases rrf.glsl reads (offsets in its constants)"},
+        "rrf_pass.js": {"format": "ES module for three.js (imports 'three')",
+                        "holds": "rrfPass(url): a ShaderMaterial that evaluates rrf.glsl per pixel of a G-buffer "
+                                 "(deferred shading) under point lights"}}
+    return entry, files
+
+
 def export_run(folder: str, out: str, *, size: int = 64, onnx: bool = True, progress: bool | None = None) -> dict:
     """Export the run folder ``folder`` to ``out`` (module docstring); returns the manifest.
 
@@ -461,6 +488,9 @@ def export_run(folder: str, out: str, *, size: int = 64, onnx: bool = True, prog
                                    "holds": "relightMaterial(url): a ShaderMaterial of the meshes of scene.glb that "
                                             "relights on the GPU from the lighting the evaluator takes "
                                             f"({m.lighting.__name__}), and outputs indirect radiance"}
+    if m.name == "rrf":
+        manifest["glsl"], glsl_files = _rrf_glsl(session, out)
+        files.update(glsl_files)
     if m.name in ONNX_METHODS and onnx:
         from jprt.export import onnx as jonnx
 
