@@ -5,8 +5,10 @@ folder given with ``--run NAME=FOLDER``), exported with ``jprt.export.export_run
 ``size`` x ``size`` frame of the run's default view (256^2 by default), then on the same frame
 and lighting: the jitted JAX evaluator and onnxruntime's CPU provider on ``evaluator.onnx``, each
 timed as the median of ``repeats`` calls after warm-up, in one process on one machine, with the
-largest difference between their frames relative to the frame's peak. The device (CPU model,
-thread counts, versions) is recorded with the numbers.
+largest difference between their frames relative to the frame's peak, and the JAX frame against
+its roofline (``jprt.eval.roofline``: matmul rate and triad bandwidth measured in the same
+process, XLA's FLOP and byte counts). The device (CPU model, thread counts, versions) is recorded
+with the numbers.
 
     python benchmarks/export.py                          # -> benchmarks/results/export.json
     python benchmarks/export.py --size 128 --repeats 5
@@ -57,6 +59,7 @@ def measure(name: str, run: str | None, size: int, repeats: int, work: str) -> d
     import jax
     import numpy as np
 
+    from jprt import eval as jeval
     from jprt.export import export_run, load, read_manifest
     from jprt.export import onnx as jonnx
     from jprt.methods import REGISTRY
@@ -81,6 +84,8 @@ def measure(name: str, run: str | None, size: int, repeats: int, work: str) -> d
     fast = jax.jit(back.evaluate)
     want = np.asarray(fast(inputs, lighting))
     jax_ms = _median_ms(lambda: jax.block_until_ready(fast(inputs, lighting)), repeats)
+    roof = jeval.roofline(fast, inputs, lighting, frame_ms=jax_ms,
+                          flops=m.frame_flops(back.params, back.config, inputs, lighting) if m.frame_flops else None)
 
     import onnxruntime as ort
 
@@ -93,6 +98,7 @@ def measure(name: str, run: str | None, size: int, repeats: int, work: str) -> d
     return {"frame_resolution": [size, size], "jax_frame_ms": jax_ms, "onnx_frame_ms": onnx_ms,
             "onnx_over_jax": onnx_ms / jax_ms, "max_abs_difference_over_peak": float(np.abs(got - want).max()) / peak,
             "frame_peak": peak, "export_s": export_s,
+            "roofline": roof["roofline"],  # the JAX frame's (jprt.eval.roofline), measured in this process
             "onnx_bytes": os.path.getsize(os.path.join(out, "evaluator.onnx")),
             "hand_written": sorted(manifest["onnx"]["hand_written"]), "onnx_opset": manifest["onnx"]["opset"],
             "inputs": {i["name"]: i["shape"] for i in manifest["onnx"]["inputs"]},

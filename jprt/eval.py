@@ -12,6 +12,7 @@ number of valid pixels.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import statistics
@@ -25,8 +26,8 @@ from jprt.metrics import error_map, tonemap
 
 __all__ = ["set_rmse", "object_scores", "noise_removed", "DARK_OBJECT_SCALE", "HeldOut", "SCORES", "SUMMARY_SCORES",
            "score_images", "score_held_out", "optional_metric", "time_call", "interleaved_times", "xla_flops",
-           "matmul_peak_gflops", "roofline", "PathTracer", "EqualErrorCurve", "equal_error_spp", "side_by_side",
-           "plot_series"]
+           "xla_cost", "matmul_peak_gflops", "stream_bandwidth_gbs", "roofline", "PathTracer", "EqualErrorCurve",
+           "equal_error_spp", "side_by_side", "plot_series"]
 
 
 def set_rmse(predictions: Sequence, references: Sequence, valids: Sequence | None = None) -> float:
@@ -287,17 +288,42 @@ def time_call(fn: Callable, *args, repeats: int = 10, warmup: int = 2) -> dict:
     return {"median_ms": statistics.median(times), "min_ms": min(times), "times_ms": times}
 
 
-def xla_flops(jitted: Callable, *args) -> float | None:
-    """FLOPs of one call of ``jitted`` (a ``jax.jit`` function) on ``args``, as XLA's cost analysis
-    of the compiled program counts them (multiply-adds count 2; gathers, sorts and scatters count
-    nothing); None when the backend reports no count."""
+def xla_cost(jitted: Callable, *args) -> dict:
+    """XLA's cost analysis of one call of ``jitted`` (a ``jax.jit`` function) on ``args``, compiled
+    once: {"flops": multiply-adds count 2, gathers, sorts and scatters nothing; "bytes": the bytes
+    its fused operations read and write ("bytes accessed": each fusion's operands and results,
+    not what stays in registers or cache inside it)}, each None when the backend reports none."""
     try:
         cost = jitted.lower(*args).compile().cost_analysis()
     except Exception:  # noqa: BLE001 - a backend without cost analysis
-        return None
+        return {"flops": None, "bytes": None}
     cost = cost[0] if isinstance(cost, (list, tuple)) and cost else cost
-    flops = cost.get("flops") if cost else None
-    return float(flops) if flops is not None and flops > 0 else None
+    out = {}
+    for key, name in (("flops", "flops"), ("bytes", "bytes accessed")):
+        value = cost.get(name) if cost else None
+        out[key] = float(value) if value is not None and value > 0 else None
+    return out
+
+
+def xla_flops(jitted: Callable, *args) -> float | None:
+    """FLOPs of one call of ``jitted`` on ``args`` as XLA counts them (``xla_cost``)."""
+    return xla_cost(jitted, *args)["flops"]
+
+
+@functools.lru_cache(maxsize=None)
+def stream_bandwidth_gbs(n_bytes: int = 256 << 20, repeats: int = 5) -> float:
+    """The memory bandwidth of this process (GB/s): the STREAM triad a = b + 3 c in JAX over
+    float32 arrays of ``n_bytes`` each (default 256 MiB, far larger than CPU caches), counted as
+    3 x ``n_bytes`` moved per call, the fastest of ``repeats`` timed calls after warm-up.
+    Measured once per process and argument set (about a second on a CPU)."""
+    import jax
+    import jax.numpy as jnp
+
+    n = max(int(n_bytes) // 4, 1)
+    b = jax.device_put(jnp.ones((n,), jnp.float32))
+    c = jax.device_put(jnp.full((n,), 0.5, jnp.float32))
+    ms = time_call(jax.jit(lambda b, c: b + 3.0 * c), b, c, repeats=repeats, warmup=2)["min_ms"]
+    return 3.0 * 4 * n / (ms * 1e-3) / 1e9
 
 
 def matmul_peak_gflops(n: int = 1024, repeats: int = 10, dtype: str = "float32",
@@ -315,15 +341,32 @@ def matmul_peak_gflops(n: int = 1024, repeats: int = 10, dtype: str = "float32",
 
 
 def roofline(jitted: Callable, *args, frame_ms: float, peak_gflops: float | None = None,
-             flops: float | None = None) -> dict:
-    """A frame time judged against the machine: ``frame_flops`` (``flops`` when given, else
-    ``xla_flops``), the achieved ``frame_gflops_per_s``, ``matmul_peak_gflops`` (measured now
-    unless given) and ``flops_fraction_of_peak`` = achieved / peak (None where nothing counts)."""
-    flops = xla_flops(jitted, *args) if flops is None else float(flops)
+             flops: float | None = None, bandwidth_gbs: float | None = None,
+             frame_bytes: float | None = None) -> dict:
+    """A frame time judged against the machine.
+
+    Returns ``frame_flops`` (``flops`` when given, else XLA's count), the achieved
+    ``frame_gflops_per_s``, ``matmul_peak_gflops`` (measured now unless given),
+    ``flops_fraction_of_peak`` = achieved / peak, and ``roofline``: {``matmul_gflops``,
+    ``bandwidth_gbs`` (``stream_bandwidth_gbs``, measured now unless given), ``frame_flops``,
+    ``frame_bytes`` (``frame_bytes`` when given, else XLA's bytes accessed), ``intensity``
+    (FLOP per byte), ``attainable_gflops`` = min(peak, intensity x bandwidth), ``bound``
+    ("compute" or "memory": which of the two is the smaller), ``fraction_of_roofline`` =
+    achieved / attainable}. None where nothing counts (no FLOP or byte count)."""
+    cost = xla_cost(jitted, *args)
+    flops = cost["flops"] if flops is None else float(flops)
+    moved = cost["bytes"] if frame_bytes is None else float(frame_bytes)
     peak = matmul_peak_gflops() if peak_gflops is None else float(peak_gflops)
+    bandwidth = stream_bandwidth_gbs() if bandwidth_gbs is None else float(bandwidth_gbs)
     rate = None if flops is None else flops / (frame_ms * 1e-3) / 1e9
+    intensity = None if flops is None or not moved else flops / moved
+    attainable = None if intensity is None else min(peak, intensity * bandwidth)
     return {"frame_flops": flops, "frame_gflops_per_s": rate, "matmul_peak_gflops": peak,
-            "flops_fraction_of_peak": None if rate is None else rate / peak}
+            "flops_fraction_of_peak": None if rate is None else rate / peak,
+            "roofline": {"matmul_gflops": peak, "bandwidth_gbs": bandwidth, "frame_flops": flops, "frame_bytes": moved,
+                         "intensity": intensity, "attainable_gflops": attainable,
+                         "bound": None if attainable is None else ("compute" if attainable >= peak else "memory"),
+                         "fraction_of_roofline": None if attainable is None else rate / attainable}}
 
 
 def _leaves(out):

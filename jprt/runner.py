@@ -81,6 +81,10 @@ SUMMARY_SCHEMA: dict[str, str] = {
     "matmul_peak_gflops": "f32 JAX matmul rate (GFLOP/s, 1024^3, fastest of 10) measured in the same run",
     "flops_fraction_of_peak": "frame_flops / frame_ms against matmul_peak_gflops: the evaluator judged against the "
                               "machine",
+    "roofline": "the timed frame against its roofline (jprt.eval.roofline): matmul_gflops, bandwidth_gbs (a STREAM "
+                "triad in JAX over 256 MiB arrays, measured in the same process), frame_flops, frame_bytes (XLA's "
+                "bytes accessed), intensity, attainable_gflops = min(matmul, intensity x bandwidth), bound, "
+                "fraction_of_roofline = achieved / attainable",
     "model_bytes": "bytes of the arrays the evaluator needs at run time (FitResult.info['model_bytes'] when the "
                    "method states it, else every array of the params)",
     "train_s": "seconds of the fit",
@@ -170,11 +174,15 @@ def _timing(run: Run, experiment: ModuleType, repeats: int) -> None:
     own = run.method.frame_flops
     flops = own(run.result.params, run.method_config, inputs, lighting) if own else None
     roof = jeval.roofline(fast, inputs, lighting, frame_ms=s["frame_ms"], flops=flops)
-    s.update({k: roof[k] for k in ("frame_flops", "matmul_peak_gflops", "flops_fraction_of_peak")})
+    s.update({k: roof[k] for k in ("frame_flops", "matmul_peak_gflops", "flops_fraction_of_peak", "roofline")})
     s["extra"]["frame_flops_source"] = "method" if own else "xla"
+    r = roof["roofline"]
     frac = "" if roof["flops_fraction_of_peak"] is None else (
         f", {roof['frame_flops'] / 1e6:.1f} MFLOP = {100 * roof['flops_fraction_of_peak']:.1f} % of the "
         f"{roof['matmul_peak_gflops']:.0f} GFLOP/s matmul peak")
+    if r["fraction_of_roofline"] is not None:
+        frac += (f"; {r['frame_bytes'] / 1e6:.1f} MB moved at {r['bandwidth_gbs']:.1f} GB/s: {r['bound']}-bound, "
+                 f"{100 * r['fraction_of_roofline']:.1f} % of its roofline ({r['attainable_gflops']:.1f} GFLOP/s)")
     run.say(f"frame {s['frame_resolution'][0]}x{s['frame_resolution'][1]}: {s['frame_ms']:.2f} ms{frac}")
 
 

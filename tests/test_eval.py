@@ -94,12 +94,40 @@ def test_roofline_counts_a_matmul_and_judges_it_against_the_peak():
     f = jax.jit(lambda a, b: a @ b)
     a, b = jnp.ones((64, 32), jnp.float32), jnp.ones((32, 48), jnp.float32)
     assert jeval.xla_flops(f, a, b) == pytest.approx(2 * 64 * 32 * 48, rel=0.01)
-    roof = jeval.roofline(f, a, b, frame_ms=0.5, peak_gflops=10.0)
+    roof = jeval.roofline(f, a, b, frame_ms=0.5, peak_gflops=10.0, bandwidth_gbs=5.0)
     assert roof["frame_gflops_per_s"] == pytest.approx(2 * 64 * 32 * 48 / 0.5e-3 / 1e9, rel=0.01)
     assert roof["flops_fraction_of_peak"] == pytest.approx(roof["frame_gflops_per_s"] / 10.0)
     # nothing to count (a copy): no fraction rather than a zero
-    assert jeval.roofline(jax.jit(lambda x: x[::-1]), a, frame_ms=1.0, peak_gflops=10.0)["flops_fraction_of_peak"] is None
+    copy = jeval.roofline(jax.jit(lambda x: x[::-1]), a, frame_ms=1.0, peak_gflops=10.0, bandwidth_gbs=5.0)
+    assert copy["flops_fraction_of_peak"] is None and copy["roofline"]["fraction_of_roofline"] is None
     assert jeval.matmul_peak_gflops(n=64, repeats=2) > 0
+
+
+def test_roofline_is_the_lower_of_the_peak_and_intensity_times_bandwidth():
+    """attainable = min(peak, FLOP/byte x bandwidth); the bound names the smaller; the fraction is
+    the achieved rate over it. XLA's bytes of a matmul are at least its operands and result."""
+    import jax
+    import jax.numpy as jnp
+
+    f = jax.jit(lambda a, b: a @ b)
+    a, b = jnp.ones((64, 32), jnp.float32), jnp.ones((32, 48), jnp.float32)
+    assert jeval.xla_cost(f, a, b)["bytes"] >= 4 * (64 * 32 + 32 * 48 + 64 * 48)
+    # memory-bound: 1 FLOP per byte at 5 GB/s attains 5 of a 100 GFLOP/s peak
+    r = jeval.roofline(f, a, b, frame_ms=1.0, peak_gflops=100.0, bandwidth_gbs=5.0, flops=2e6, frame_bytes=2e6)["roofline"]
+    assert r["intensity"] == 1.0 and r["attainable_gflops"] == 5.0 and r["bound"] == "memory"
+    assert r["fraction_of_roofline"] == pytest.approx(2.0 / 5.0)  # 2e6 FLOP in 1 ms = 2 GFLOP/s
+    # compute-bound: 100 FLOP per byte would attain 500, more than the peak
+    r = jeval.roofline(f, a, b, frame_ms=1.0, peak_gflops=100.0, bandwidth_gbs=5.0, flops=2e6, frame_bytes=2e4)["roofline"]
+    assert r["attainable_gflops"] == 100.0 and r["bound"] == "compute"
+    assert r["fraction_of_roofline"] == pytest.approx(0.02)
+    assert set(r) >= {"matmul_gflops", "bandwidth_gbs", "frame_flops", "frame_bytes", "attainable_gflops",
+                      "fraction_of_roofline"}
+
+
+def test_stream_bandwidth_moves_three_arrays():
+    """The triad's rate is finite and positive, and measured once per argument set."""
+    first = jeval.stream_bandwidth_gbs(n_bytes=1 << 20, repeats=2)
+    assert 0 < first < 1e5 and jeval.stream_bandwidth_gbs(n_bytes=1 << 20, repeats=2) == first
 
 
 def test_object_scores_relative_rmse_on_lit_objects():
