@@ -19,9 +19,15 @@ import pytest  # noqa: E402
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 # Trainers build a fresh jitted step per call (resume tests call them three times with identical
-# shapes): a per-session persistent compilation cache compiles each program once.
-_COMPILE_CACHE = tempfile.mkdtemp(prefix="jprt_xla_cache_")
-atexit.register(shutil.rmtree, _COMPILE_CACHE, ignore_errors=True)
+# shapes), and test files on different xdist workers compile the same evaluators: one persistent
+# compilation cache per session compiles each program once. The process that loads this file
+# first (pytest itself, before it starts its workers) makes the folder; the workers inherit its
+# name through the environment.
+_COMPILE_CACHE = os.environ.get("JPRT_TEST_COMPILE_CACHE")
+if not _COMPILE_CACHE or not os.path.isdir(_COMPILE_CACHE):
+    _COMPILE_CACHE = tempfile.mkdtemp(prefix="jprt_xla_cache_")
+    os.environ["JPRT_TEST_COMPILE_CACHE"] = _COMPILE_CACHE
+    atexit.register(shutil.rmtree, _COMPILE_CACHE, ignore_errors=True)
 jax.config.update("jax_compilation_cache_dir", _COMPILE_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
