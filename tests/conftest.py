@@ -1,9 +1,12 @@
 """Shared test set-up: an isolated dataset cache, Mitsuba configured once, asset paths."""
 
 import atexit
+import fcntl
 import os
+import pickle
 import shutil
 import tempfile
+import warnings
 
 # The suite's programs are tiny and each compiles once, so compiling (mostly LLVM's optimisation
 # passes) is most of its time: the tests compile without them (tests/numerics: 65 -> 46 s). The
@@ -23,11 +26,21 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 # compilation cache per session compiles each program once. The process that loads this file
 # first (pytest itself, before it starts its workers) makes the folder; the workers inherit its
 # name through the environment.
-_COMPILE_CACHE = os.environ.get("JPRT_TEST_COMPILE_CACHE")
-if not _COMPILE_CACHE or not os.path.isdir(_COMPILE_CACHE):
-    _COMPILE_CACHE = tempfile.mkdtemp(prefix="jprt_xla_cache_")
-    os.environ["JPRT_TEST_COMPILE_CACHE"] = _COMPILE_CACHE
-    atexit.register(shutil.rmtree, _COMPILE_CACHE, ignore_errors=True)
+def _session_folder(variable: str, prefix: str) -> str:
+    """A temporary folder for the whole test session: made by the first process that loads this
+    file (pytest itself, before it starts its xdist workers), removed when that process exits;
+    the workers inherit its name through ``variable`` in the environment."""
+    folder = os.environ.get(variable)
+    if not folder or not os.path.isdir(folder):
+        folder = tempfile.mkdtemp(prefix=prefix)
+        os.environ[variable] = folder
+        atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    return folder
+
+
+_COMPILE_CACHE = _session_folder("JPRT_TEST_COMPILE_CACHE", "jprt_xla_cache_")
+#: Fits of the methods' test presets, shared by the workers (``fitted_preset``).
+_SHARED_FITS = _session_folder("JPRT_TEST_SHARED_FITS", "jprt_test_fits_")
 jax.config.update("jax_compilation_cache_dir", _COMPILE_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
@@ -48,6 +61,43 @@ def _isolated_cache(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def fitted_preset():
+    """``get(name) -> (method, config, dataset, FitResult)`` on the method's ``test`` preset. The
+    dataset comes from the worker's own cache; the fit is made once for the whole session: the
+    first worker to ask fits it and pickles the ``FitResult`` into a folder the workers share
+    (under a file lock), the others load it (test_contract, test_self_check and test_export fit
+    the same presets, often on different workers). Its fit warnings (a test preset's systems are
+    ill-conditioned) are not shown."""
+    from jprt.hashing import config_hash
+    from jprt.methods import REGISTRY
+
+    done = {}
+
+    def get(name):
+        if name not in done:
+            m = REGISTRY[name]
+            config = m.resolve(m.presets["test"])
+            dataset = m.make_dataset(config["scene"], config, progress=False)
+            path = os.path.join(_SHARED_FITS, f"{name}_{config_hash(config)}.pkl")
+            with open(path + ".lock", "w") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)
+                if os.path.exists(path):
+                    with open(path, "rb") as f:
+                        result = pickle.load(f)
+                else:
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        result = m.fit(dataset, config)
+                    with open(path + ".tmp", "wb") as f:
+                        pickle.dump(result, f)
+                    os.replace(path + ".tmp", path)
+            done[name] = (m, config, dataset, result)
+        return done[name]
+
+    return get
+
+
+@pytest.fixture(scope="session")
 def mi():
     """Mitsuba with the jprt variant (fails, not skips, when libLLVM is missing: make test installs it)."""
     from jprt.render.setup import mitsuba
@@ -61,3 +111,17 @@ def assets():
     if not os.path.isdir(ASSETS):
         pytest.skip(f"shared test assets not found at {ASSETS} (they live beside the project checkout)")
     return ASSETS
+
+
+#: The test files that take longest (pytest --durations=0 on the 2-core VM: 75-105 s of worker
+#: time each, a tenth of the suite's total or less), handed to the xdist workers first: with
+#: --dist loadfile a long file started last is the suite's tail, and longest-first is the usual
+#: cure for that (the order of tests inside a file is kept).
+LONGEST_FILES = ("methods/test_wavelet_prt.py", "numerics/test_numerics.py", "methods/test_contract.py",
+                 "methods/test_rrf.py", "sphere/test_sg.py", "faults/test_kill_and_resume.py", "test_export.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    here = os.path.dirname(os.path.abspath(__file__))
+    rank = {os.path.join(here, name): i for i, name in enumerate(LONGEST_FILES)}
+    items.sort(key=lambda item: rank.get(os.path.abspath(str(item.path)), len(rank)))

@@ -34,16 +34,13 @@ ONNX_SIZE = 8
 
 
 @pytest.fixture(scope="module")
-def exported(tmp_path_factory):
-    """``get(name) -> (run folder, export folder, method, config, FitResult)``, fitted and exported
-    once per method for the whole module."""
+def exported(tmp_path_factory, fitted_preset):
+    """``get(name) -> (run folder, export folder, method, config, FitResult, dataset)``, fitted
+    (``conftest.fitted_preset``) and exported once per method for the whole module."""
 
     def get(name):
         if name not in _CACHE:
-            m = REGISTRY[name]
-            config = m.resolve(m.presets["test"])
-            dataset = m.make_dataset(config["scene"], config)
-            result = m.fit(dataset, config)
+            m, config, dataset, result = fitted_preset(name)
             run = save_fit(str(tmp_path_factory.mktemp(f"run_{name}")), name, config, result.params)
             out = str(tmp_path_factory.mktemp(f"export_{name}"))
             assert main(["export", run, "--out", out, "--size", str(ONNX_SIZE)]) == 0

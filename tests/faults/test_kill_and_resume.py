@@ -86,6 +86,9 @@ def _checkpoint(path):
     return arrays, json.loads(bytes(arrays.pop("__jprt_checkpoint__")).decode())
 
 
+# slow (30 s of the default suite's budget): the LM fit's and the dataset render's kill tests stay in
+# the default suite, and tests/solve/test_adam_losses.py resumes Adam bit-identically in-process
+@pytest.mark.slow
 def test_a_killed_adam_training_resumes_bit_identically(tmp_path):
     from tests.faults import worker as fault_worker
 

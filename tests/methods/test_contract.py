@@ -19,15 +19,9 @@ NAMES = sorted(REGISTRY)
 
 
 @pytest.fixture(scope="module")
-def fitted():
-    """{name: (method, config, dataset, FitResult)} on each test preset (the session's cache)."""
-    out = {}
-    for name in NAMES:
-        m = REGISTRY[name]
-        config = m.resolve(m.presets["test"])
-        dataset = m.make_dataset(config["scene"], config)
-        out[name] = (m, config, dataset, m.fit(dataset, config))
-    return out
+def fitted(fitted_preset):
+    """{name: (method, config, dataset, FitResult)} on each test preset (``conftest.fitted_preset``)."""
+    return {name: fitted_preset(name) for name in NAMES}
 
 
 @pytest.mark.mitsuba

@@ -385,8 +385,8 @@ def test_render_layout_by_backend_and_config():
 
 def test_split_on_names_the_attribute_axes():
     """``tree.split_on``: None leaves every axis to the tree (the paper's); a list of attribute
-    names gives exactly their columns of ``features``' layout (view is 2 wide in material mode), and
-    the fit splits those columns only."""
+    names gives exactly their columns of ``features``' layout (view is 2 wide in material mode)
+    (the fit splits those columns only: ``test_the_fit_splits_only_the_axes_split_on_names``)."""
     cfg = lambda split_on, mode="view", attributes="augmented": {  # noqa: E731
         "tree": {"split_on": split_on}, "model": {"attributes": attributes}, "data": {"mode": mode}}
     assert rrf.split_dims(cfg(None)) is None
@@ -397,8 +397,12 @@ def test_split_on_names_the_attribute_axes():
     for bad in (["normal"], [], "light"):
         with pytest.raises(ValueError, match="split_on"):
             rrf.split_dims(cfg(bad, attributes="basic"))
-    # the fit follows it: free, this tiny fit's root splits a non-light axis (5 when written);
-    # barred from all but the light, it splits a light column
+
+
+@pytest.mark.slow  # 16 s of LM fits over every candidate axis
+def test_the_fit_splits_only_the_axes_split_on_names():
+    """Free, this tiny fit's root splits a non-light axis (5 when written); barred from all but
+    the light, it splits a light column."""
     rng = np.random.default_rng(3)
     n = 600
     x = np.concatenate([rng.uniform(-1, 1, (n, 6)), rng.uniform(-1, 1, (n, 3)), rng.normal(size=(n, 3)),

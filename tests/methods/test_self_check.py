@@ -91,22 +91,10 @@ def test_registered_methods_have_self_check():
 
 
 @pytest.fixture(scope="module")
-def fitted():
-    """``get(name) -> (method, config, dataset, FitResult)`` on the method's test preset, each
-    built once per module (the session's cache)."""
-    done = {}
-
-    def get(name):
-        if name not in done:
-            m = REGISTRY[name]
-            config = m.resolve(m.presets["test"])
-            dataset = m.make_dataset(config["scene"], config, progress=False)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # a test preset's fit is ill-conditioned
-                done[name] = (m, config, dataset, m.fit(dataset, config))
-        return done[name]
-
-    return get
+def fitted(fitted_preset):
+    """``get(name) -> (method, config, dataset, FitResult)`` on the method's test preset
+    (``conftest.fitted_preset``: fitted once for the session)."""
+    return fitted_preset
 
 
 def _params(name):

@@ -139,10 +139,10 @@ def test_auto_chunk_by_backend():
     assert wp.auto_chunk(16) == wp.auto_chunk(16, jax.default_backend())
 
 
-@pytest.mark.parametrize("overrides", [{}, {"model": {"null_transport": "free"}},
+@pytest.mark.parametrize("overrides", [{}, pytest.param({"model": {"null_transport": "free"}}, marks=pytest.mark.slow),
                                        pytest.param({"model": {"layers": 3, "hidden": 64},
                                                      "render": {"k": 32}},
-                                                    marks=pytest.mark.slow)])  # the last for the suite's budget
+                                                    marks=pytest.mark.slow)])  # the last two for the suite's budget
 def test_frame_flops_is_xla_count_of_one_chunk(overrides):
     """The method's own FLOP count (XLA counts a loop body once) against XLA's cost analysis of
     a render done in one chunk: within 1 % (XLA also counts the encodings and the Haar transform)."""
@@ -567,7 +567,8 @@ def test_turned_maps_follow_the_rotation():
 
 
 @pytest.mark.mitsuba
-@pytest.mark.parametrize("fraction, tilt", [(0.0, 0.0), (0.5, 0.0), (0.0, 1.0)])
+# the plain file maps (0.0, 0.0) with the slow tests: the per-image and tilted cases hold them too
+@pytest.mark.parametrize("fraction, tilt", [pytest.param(0.0, 0.0, marks=pytest.mark.slow), (0.5, 0.0), (0.0, 1.0)])
 def test_per_image_lightings_never_use_a_held_out_map(mi, assets, fraction, tilt):
     from jprt.methods.wavelet_prt import data as wp_data
 
