@@ -53,36 +53,48 @@ def _serve(root: str):
     return server
 
 
-def _launch(p):
-    return p.chromium.launch(executable_path=shutil.which("chromium") or shutil.which("chromium-browser"),
-                             args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                                   "--ignore-gpu-blocklist"])
+def _in_page(root, size: int, calls: list) -> list:
+    """Serve the folder ``root`` (its ``index.html`` a test page), open it in headless Chromium
+    (SwiftShader WebGL2) at ``size`` x ``size``, wait for ``window.ready``, and return what each
+    ``(script, argument)`` of ``calls`` evaluates to, in order."""
+    from playwright.sync_api import sync_playwright
+
+    server = _serve(str(root))
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=shutil.which("chromium") or shutil.which("chromium-browser"),
+                                        args=["--use-gl=angle", "--use-angle=swiftshader",
+                                              "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"])
+            page = browser.new_page(viewport={"width": size, "height": size})
+            page.goto(f"http://127.0.0.1:{server.server_address[1]}/index.html")
+            page.wait_for_function("window.ready !== undefined", timeout=60_000)
+            assert page.evaluate("window.ready") == "ok", page.evaluate("window.ready")
+            results = [page.evaluate(script, argument) for script, argument in calls]
+            browser.close()
+    finally:
+        server.shutdown()
+        server.server_close()
+    return results
+
+
+def _site(tmp_path, export: str, page: str):
+    """A folder to serve: /three (the npm package), /export (``export``), index.html (``page`` of
+    tests/js) and the pages' readback module."""
+    root = tmp_path / "site"
+    root.mkdir(exist_ok=True)
+    os.symlink(os.path.join(JS, "node_modules", "three"), root / "three")
+    os.symlink(export, root / "export")
+    shutil.copy(os.path.join(JS, page), root / "index.html")
+    shutil.copy(os.path.join(JS, "float_target.js"), root / "float_target.js")
+    return root
 
 
 def _browser_frame(export: str, lighting: dict, camera: dict, size: int, tmp_path):
     """((size, size, 4) radiance and coverage (alpha 1 where a mesh is drawn), (size, size, 2) the
     atlas UV the browser drew at each pixel), float32."""
-    from playwright.sync_api import sync_playwright
-
-    root = tmp_path / "site"
-    root.mkdir()
-    os.symlink(os.path.join(JS, "node_modules", "three"), root / "three")
-    os.symlink(export, root / "export")
-    shutil.copy(os.path.join(JS, "relight.html"), root / "index.html")
-    server = _serve(str(root))
-    try:
-        with sync_playwright() as p:
-            browser = _launch(p)
-            page = browser.new_page(viewport={"width": size, "height": size})
-            page.goto(f"http://127.0.0.1:{server.server_address[1]}/index.html")
-            page.wait_for_function("window.ready !== undefined", timeout=60_000)
-            assert page.evaluate("window.ready") == "ok", page.evaluate("window.ready")
-            rows = page.evaluate("([l, c, s]) => window.render(l, c, s)", [lighting, camera, size])
-            uv = page.evaluate("([c, s]) => window.renderUv(c, s)", [camera, size])
-            browser.close()
-    finally:
-        server.shutdown()
-        server.server_close()
+    rows, uv = _in_page(_site(tmp_path, export, "relight.html"), size,
+                        [("([l, c, s]) => window.render(l, c, s)", [lighting, camera, size]),
+                         ("([c, s]) => window.renderUv(c, s)", [camera, size])])
     return np.asarray(rows, np.float32).reshape(size, size, 4), np.asarray(uv, np.float32).reshape(size, size, 4)[..., :2]
 
 
@@ -144,8 +156,6 @@ def test_browser_rrf_glsl_equals_the_evaluator(tmp_path):
     why = _browser_ready()
     if why:
         pytest.skip(why)
-    from playwright.sync_api import sync_playwright
-
     from jprt.view import Session
 
     m = REGISTRY["rrf"]
@@ -160,30 +170,15 @@ def test_browser_rrf_glsl_equals_the_evaluator(tmp_path):
     want = s.prediction(SIZE)
     gb = s.inputs(SIZE)
     valid = np.asarray(gb.valid, bool)
-    root = tmp_path / "site"
-    (root / "gbuffer").mkdir(parents=True)
+    root = _site(tmp_path, out, "rrf.html")
+    (root / "gbuffer").mkdir()
     fields = {"position": gb.position, "normal": gb.normal, "view": gb.view, "diffuse": gb.diffuse_albedo,
               "specular": np.concatenate([np.asarray(gb.specular_albedo), np.asarray(gb.roughness)[..., None]], -1),
               "object": np.where(valid, np.asarray(gb.object_id), -1)}
     for name, values in fields.items():
         _rgba(values).astype("<f4").tofile(str(root / "gbuffer" / f"{name}.bin"))
-    os.symlink(os.path.join(JS, "node_modules", "three"), root / "three")
-    os.symlink(out, root / "export")
-    shutil.copy(os.path.join(JS, "rrf.html"), root / "index.html")
     lighting = {k: np.asarray(v, np.float64).tolist() for k, v in s.method_lighting()._asdict().items()}
-    server = _serve(str(root))
-    try:
-        with sync_playwright() as p:
-            browser = _launch(p)
-            page = browser.new_page(viewport={"width": SIZE, "height": SIZE})
-            page.goto(f"http://127.0.0.1:{server.server_address[1]}/index.html")
-            page.wait_for_function("window.ready !== undefined", timeout=60_000)
-            assert page.evaluate("window.ready") == "ok", page.evaluate("window.ready")
-            pixels = page.evaluate("([l, w, h]) => window.render(l, w, h)", [lighting, SIZE, SIZE])
-            browser.close()
-    finally:
-        server.shutdown()
-        server.server_close()
+    pixels, = _in_page(root, SIZE, [("([l, w, h]) => window.render(l, w, h)", [lighting, SIZE, SIZE])])
     frame = np.asarray(pixels, np.float32).reshape(SIZE, SIZE, 4)
     assert (frame[..., 3][valid] > 0.5).all() and (frame[..., 3][~valid] == 0).all()
     got, ref = frame[..., :3][valid], want[valid]
