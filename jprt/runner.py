@@ -138,21 +138,21 @@ def method_config(method: Method, config: dict) -> dict:
     return method.resolve({k: config[k] for k in method.default_config})
 
 
-def common_summary(held: HeldOut, exposure: float = 0.0) -> dict:
+def common_summary(held: HeldOut, exposure: float = 0.0, per_image: bool = False) -> dict:
     """The accuracy keys of ``SUMMARY_SCHEMA`` for a held-out set (``jprt.eval.score_held_out``):
-    indirect_rmse, indirect_rel_rmse, indirect_rel_rmse_worst_image, p999_abs_error, psnr_indirect,
-    ssim_indirect, psnr_full, flip_indirect, lpips_indirect (None where a metric does not apply: images too small for its
-    window, no direct images, its package not installed)."""
-    return jeval.score_held_out(held, exposure)
+    indirect_rmse, indirect_rel_rmse, indirect_rel_rmse_worst_image, p999_abs_error,
+    psnr_indirect, ssim_indirect, psnr_full, flip_indirect, lpips_indirect (None where a metric
+    does not apply: images too small for its window, no direct images, its package not
+    installed); with ``per_image`` also indirect_rel_rmse_by_image, each image's own."""
+    return jeval.score_held_out(held, exposure, jeval.SUMMARY_SCORES + (("indirect_rel_rmse_by_image",)
+                                                                        if per_image else ()))
 
 
-def _figures(run: Run, held: HeldOut, n: int, exposure: float) -> None:
+def _figures(run: Run, held: HeldOut, n: int, exposure: float, rel: Sequence[float]) -> None:
+    """The side-by-side of the first ``n`` held-out images (each labelled with its relative RMSE,
+    ``rel``) and their EXRs."""
     rows = []
-    count = min(int(n), len(held.predictions))
-    rel = jeval.score_images(held.predictions[:count], held.references[:count],
-                             None if held.valid is None else held.valid[:count],
-                             scores=("indirect_rel_rmse_by_image",))["indirect_rel_rmse_by_image"] if count else []
-    for k in range(count):
+    for k in range(min(int(n), len(held.predictions))):
         label = held.labels[k] if held.labels else f"held-out {k}"
         rows.append((f"{label} (rel. RMSE {rel[k]:.3f})", held.references[k], held.predictions[k]))
         io.write_exr(os.path.join(run.out, f"heldout{k:02d}_reference.exr"), held.references[k])
@@ -246,11 +246,14 @@ def run(experiment: ModuleType, config: dict) -> dict:
 
     held = experiment.held_out(r)
     r.state["held_out"] = held
-    s.update(common_summary(held, float(e.get("exposure", 0.0))))
+    scores = common_summary(held, float(e.get("exposure", 0.0)), per_image=True)
+    s["extra"]["indirect_rel_rmse_by_image"] = scores.pop("indirect_rel_rmse_by_image")
+    s.update(scores)
     r.say(f"{len(held.predictions)} held-out images: indirect RMSE {s['indirect_rmse']:.5f} "
           f"(relative {s['indirect_rel_rmse']:.3f}, worst image {s['indirect_rel_rmse_worst_image']:.3f}), "
           f"PSNR {s['psnr_indirect']:.2f} dB")
-    _figures(r, held, int(e.get("images", 4)), float(e.get("exposure", 0.0)))
+    _figures(r, held, int(e.get("images", 4)), float(e.get("exposure", 0.0)),
+             s["extra"]["indirect_rel_rmse_by_image"])
     _timing(r, experiment, int(e.get("timing_repeats", 10)))
     _equal_error(r, experiment, held)
     for stage in getattr(experiment, "STAGES", []):

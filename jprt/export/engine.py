@@ -389,6 +389,12 @@ def _lighting_json(lighting) -> dict:
         else {"value": np.asarray(lighting).tolist()}
 
 
+def _ship(name: str, out: str) -> None:
+    """Copy the module ``name`` that ships with this package (``jprt/export/*.js``) into ``out``."""
+    with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), name), "rb") as f:
+        io.atomic_write_bytes(os.path.join(out, name), f.read())
+
+
 def _rrf_glsl(session, out: str) -> tuple[dict, dict]:
     """RRF's GLSL (``jprt.export.glsl.rrf_shader``) written to ``out``: (the manifest's ``glsl``
     entry, the files' descriptions)."""
@@ -397,8 +403,7 @@ def _rrf_glsl(session, out: str) -> tuple[dict, dict]:
     shader = glsl.rrf_shader(session.params, session.method_config)
     io.atomic_write_bytes(os.path.join(out, "rrf.glsl"), shader.source.encode())
     io.atomic_write_bytes(os.path.join(out, "rrf_data.bin"), shader.data.astype("<f4").tobytes())
-    with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "rrf_pass.js"), "rb") as f:
-        io.atomic_write_bytes(os.path.join(out, "rrf_pass.js"), f.read())
+    _ship("rrf_pass.js", out)
     height, width = shader.data.shape
     entry = {"source": "rrf.glsl", "data": "rrf_data.bin", "data_width": int(width), "data_height": int(height),
              "max_lights": shader.max_lights, "inputs": shader.inputs}
@@ -482,8 +487,7 @@ def export_run(folder: str, out: str, *, size: int = 64, onnx: bool = True, prog
                                       "the evaluator predicts at each texel under the same lighting"}})
         files.update(relightable_parts(session, out, texel_index, fill))
         if m.name in RELIGHT_JS_METHODS:
-            with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "relight.js"), "rb") as f:
-                io.atomic_write_bytes(os.path.join(out, "relight.js"), f.read())
+            _ship("relight.js", out)
             files["relight.js"] = {"format": "ES module for three.js (imports 'three')",
                                    "holds": "relightMaterial(url): a ShaderMaterial of the meshes of scene.glb that "
                                             "relights on the GPU from the lighting the evaluator takes "

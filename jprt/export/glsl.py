@@ -138,6 +138,10 @@ float rrfAt(int i) {{
   return texelFetch(rrfData, ivec2(i % RRF_DATA_WIDTH, i / RRF_DATA_WIDTH), 0).r;
 }}
 
+vec3 rrfAt3(int i) {{
+  return vec3(rrfAt(i), rrfAt(i + 1), rrfAt(i + 2));
+}}
+
 // tanh with its argument clipped to +-9 (tanh(9) is 1 in float32): GLSL implementations may form
 // tanh from exp(2x), which overflows to inf / inf = NaN for |x| > 44 (SwiftShader does)
 float rrfTanh(float s) {{
@@ -182,18 +186,14 @@ vec3 rrfNetwork(int leaf, float x[RRF_D]) {{
     }}
     for (int o = 0; o < nOut; o++) a[o] = b[o];
   }}
-  vec3 y = vec3(a[0], a[1], a[2]);
-  vec3 half_ = vec3(rrfAt(RRF_OUT_HALF + 3 * leaf), rrfAt(RRF_OUT_HALF + 3 * leaf + 1), rrfAt(RRF_OUT_HALF + 3 * leaf + 2));
-  vec3 centre = vec3(rrfAt(RRF_OUT_CENTER + 3 * leaf), rrfAt(RRF_OUT_CENTER + 3 * leaf + 1),
-                     rrfAt(RRF_OUT_CENTER + 3 * leaf + 2));
-  return y * half_ + centre;
+  return vec3(a[0], a[1], a[2]) * rrfAt3(RRF_OUT_HALF + 3 * leaf) + rrfAt3(RRF_OUT_CENTER + 3 * leaf);
 }}
 
 vec3 rrfIndirect(float x[RRF_D], int object, int count, vec3 lightPos[RRF_MAX_LIGHTS],
                  vec3 lightRGB[RRF_MAX_LIGHTS]) {{
   vec3 sum = vec3(0.0);
-  vec3 lo = vec3(rrfAt(RRF_LIGHT_LO), rrfAt(RRF_LIGHT_LO + 1), rrfAt(RRF_LIGHT_LO + 2));
-  vec3 hi = vec3(rrfAt(RRF_LIGHT_HI), rrfAt(RRF_LIGHT_HI + 1), rrfAt(RRF_LIGHT_HI + 2));
+  vec3 lo = rrfAt3(RRF_LIGHT_LO);
+  vec3 hi = rrfAt3(RRF_LIGHT_HI);
   for (int k = 0; k < RRF_MAX_LIGHTS; k++) {{
     if (k >= count) break;
     vec3 p = RRF_CLAMP_LIGHTS ? clamp(lightPos[k], lo, hi) : lightPos[k];
