@@ -41,19 +41,6 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
-def _median_ms(fn, repeats: int) -> float:
-    import numpy as np
-
-    fn()
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(1e3 * (time.perf_counter() - t0))
-    return float(np.median(times))
-
-
 def measure(name: str, run: str | None, size: int, repeats: int, work: str) -> dict:
     """One method's ONNX and JAX frame times at ``size``^2 (module docstring)."""
     import jax
@@ -83,7 +70,7 @@ def measure(name: str, run: str | None, size: int, repeats: int, work: str) -> d
                      [np.asarray(x) for x in jax.tree_util.tree_leaves((inputs, lighting))]))
     fast = jax.jit(back.evaluate)
     want = np.asarray(fast(inputs, lighting))
-    jax_ms = _median_ms(lambda: jax.block_until_ready(fast(inputs, lighting)), repeats)
+    jax_ms = jeval.time_call(fast, inputs, lighting, repeats=repeats)["median_ms"]
     roof = jeval.roofline(fast, inputs, lighting, frame_ms=jax_ms,
                           flops=m.frame_flops(back.params, back.config, inputs, lighting) if m.frame_flops else None)
 
@@ -93,7 +80,7 @@ def measure(name: str, run: str | None, size: int, repeats: int, work: str) -> d
     options.log_severity_level = 3
     session = ort.InferenceSession(os.path.join(out, "evaluator.onnx"), options, providers=["CPUExecutionProvider"])
     got = session.run(None, feeds)[0]
-    onnx_ms = _median_ms(lambda: session.run(None, feeds), repeats)
+    onnx_ms = jeval.time_call(session.run, None, feeds, repeats=repeats)["median_ms"]
     peak = float(np.abs(want).max())
     return {"frame_resolution": [size, size], "jax_frame_ms": jax_ms, "onnx_frame_ms": onnx_ms,
             "onnx_over_jax": onnx_ms / jax_ms, "max_abs_difference_over_peak": float(np.abs(got - want).max()) / peak,
