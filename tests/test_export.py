@@ -83,6 +83,7 @@ def test_manifest_says_what_the_model_is_and_what_each_file_holds(exported, name
         assert entry["holds"] and entry["format"], rel
     assert ("lightmap" in manifest) == (name in LIGHTMAP_METHODS)
     assert ("onnx" in manifest) == (name in ONNX_METHODS)
+    assert ("relight.js" in manifest["files"]) == (name in LIGHTMAP_METHODS)  # every lightmap method relights
 
 
 @pytest.mark.parametrize("name", EVERY)
@@ -208,8 +209,11 @@ def test_lightmap_radiance_is_the_evaluator_at_the_texels(exported, name):
 
 def test_relightable_parts_are_the_params(exported):
     """Each method's textures and buffers hold its params at the atlas's texels."""
+    from jprt.export.engine import texel_materials
+    from jprt.view import Session
+
     for name in LIGHTMAP_METHODS:
-        _, out, m, config, result, dataset = exported(name)
+        run, out, m, config, result, dataset = exported(name)
         p = result.params
         res = int(round(np.sqrt(np.asarray(p["fill_index"]).size)))
         texels = np.asarray(p["texel_index"] if "texel_index" in p else dataset.atlas["texel_index"])
@@ -239,6 +243,11 @@ def test_relightable_parts_are_the_params(exported):
                 for c, ch in enumerate("RGB"):
                     np.testing.assert_array_equal(channels[f"lobe{j:02d}.{ch}"][row, col],
                                                   np.asarray(p["amplitude"])[:, j, c])
+            # the shading's material at each texel: what the G-buffer reads there (diffuse, specular, roughness)
+            mats = np.fromfile(os.path.join(out, "sg_materials.bin"), "<f4").reshape(-1, 7)
+            want = texel_materials(Session(run), texels)
+            np.testing.assert_array_equal(mats, np.concatenate([want["diffuse"], want["specular"],
+                                                                want["roughness"][:, None]], axis=1))
         else:  # MRT: the operators are the params buffers themselves
             files = read_manifest(out)["files"]
             assert {"params/T_db.bin", "params/U_b.bin", "params/rec_T.bin"} <= set(files)

@@ -98,12 +98,14 @@ def _browser_frame(export: str, lighting: dict, camera: dict, size: int, tmp_pat
     return np.asarray(rows, np.float32).reshape(size, size, 4), np.asarray(uv, np.float32).reshape(size, size, 4)[..., :2]
 
 
-@pytest.mark.parametrize("name", ["sh_prt", "datadriven"])
+@pytest.mark.parametrize("name", ["sh_prt", "datadriven", "mrt", "sg_lightfield"])
 def test_browser_relighting_equals_the_evaluator(name, tmp_path):
     """Relative RMSE <= 0.01 over the pixels both cover, the browser rendering to a float target."""
     why = _browser_ready()
     if why:
         pytest.skip(why)
+    from jprt.inputs import LightScale
+    from jprt.render import lightmap
     from jprt.view import Session
 
     m = REGISTRY[name]
@@ -115,19 +117,25 @@ def test_browser_relighting_equals_the_evaluator(name, tmp_path):
     with open(os.path.join(out, "export.json")) as f:
         manifest = json.load(f)
     s = Session(run)
-    # a light the model never saw: the view's default light moved and tinted
-    s.set(light=tuple(np.asarray(s.state["light"]) + [0.25, -0.2, 0.15]), colour=(1.0, 0.8, 0.6), power=2.0,
-          mode="indirect")
-    want = s.prediction(SIZE)
-    valid = np.asarray(s.inputs(SIZE).valid, bool)
-    lighting = {k: np.asarray(v, np.float64).tolist() for k, v in s.method_lighting()._asdict().items()}
+    if s.kind == "scale":  # SG light-field textures: the bake's emitters, tinted and brighter (a light scale)
+        gb = lightmap.atlas_gbuffer(s.handle, lightmap.Atlas(**s.dataset.atlas), s.camera(SIZE))
+        light = LightScale(np.asarray([1.6, 0.9, 0.5], np.float32))
+        want = np.asarray(s.evaluator()(gb, light))
+    else:  # a light the model never saw: the view's default light moved and tinted
+        s.set(light=tuple(np.asarray(s.state["light"]) + [0.25, -0.2, 0.15]), colour=(1.0, 0.8, 0.6), power=2.0,
+              mode="indirect")
+        gb, light = s.inputs(SIZE), s.method_lighting()
+        want = s.prediction(SIZE)
+    valid = np.asarray(gb.valid, bool)
+    assert np.abs(want[valid]).max() > 0
+    lighting = {k: np.asarray(v, np.float64).tolist() for k, v in light._asdict().items()}
     frame, uv = _browser_frame(out, lighting, manifest["camera"], SIZE, tmp_path)
     # the pixels where both see the same surface point: drawn by the browser, valid in jprt's
     # G-buffer, and the browser's atlas UV within a tenth of a texel of jprt's (a rasteriser's
     # sub-pixel precision moves a pixel's point by about 1 / 256 pixel; at an object's edge the
     # two may see different objects)
     res = manifest["lightmap"]["resolution"]
-    same = np.abs(uv - np.asarray(s.inputs(SIZE).uv)).max(axis=-1) * res < 0.1
+    same = np.abs(uv - np.asarray(gb.uv)).max(axis=-1) * res < 0.1
     covered = valid & (frame[..., 3] > 0.5) & same
     assert covered.sum() >= 0.9 * valid.sum(), (covered.sum(), valid.sum())
     got, ref = frame[..., :3][covered], want[covered]

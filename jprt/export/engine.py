@@ -12,9 +12,10 @@ config, its dataset from the cache, the scene and its default view and lighting)
   embedded RGBM PNG referenced by the ``JPRT_lightmap`` material extension), ``lightmap.exr``
   (the same lightmap in float32), ``lightmap_radiance.exr`` (what the evaluator predicts at each
   texel), and the relightable parts (``relightable_parts``): the basis, transfer coefficients,
-  lobes or operators the method relights with, as textures and binary buffers; SH PRT and
-  data-driven PRT also ship ``relight.js``, a three.js material that relights on the GPU from the
-  lighting the evaluator takes (``RELIGHT_JS_METHODS``).
+  lobes or operators the method relights with, as textures and binary buffers; and
+  ``relight.js``, a three.js material that relights from the lighting the evaluator takes
+  (``RELIGHT_JS_METHODS``: on the GPU, after a small CPU product for data-driven PRT's transfer
+  and MRT's reduced-space operators).
 * **neural evaluators** (``ONNX_METHODS``: RRF, neural-wavelet PRT, SG environment visibility):
   ``evaluator.onnx``, the evaluator at the view's frame size (``jprt.export.onnx``), with a
   reference frame (``reference_inputs.npz``, ``reference_output.npy``) an engine can check
@@ -52,7 +53,7 @@ LIGHTMAP_METHODS = ("datadriven", "sh_prt", "sg_lightfield", "mrt")
 ONNX_METHODS = ("rrf", "wavelet_prt", "sg_environment")
 
 #: Lightmap methods whose export ships ``relight.js`` (three.js relighting on the GPU).
-RELIGHT_JS_METHODS = ("sh_prt", "datadriven")
+RELIGHT_JS_METHODS = ("sh_prt", "datadriven", "sg_lightfield", "mrt")
 
 #: Diffuse albedo below which a texel's lightmap irradiance is 0 (it reflects no diffuse light).
 ALBEDO_FLOOR = 1e-4
@@ -270,8 +271,9 @@ def _channels(prefix: str, n: int, suffixes=("R", "G", "B")) -> list:
     return [f"{prefix}{i:02d}.{s}" for i in range(n) for s in suffixes]
 
 
-def relightable_parts(session, out: str, texel_index, fill) -> dict:
+def relightable_parts(session, out: str, texel_index, fill, materials: dict | None = None) -> dict:
     """Write the method's relightable parts beside the glTF; returns their ``files`` entries.
+    ``materials``: ``texel_materials`` of the texels (read again when None).
 
     * data-driven PRT: ``basis.exr`` (the basis lightmaps, one channel per basis vector and colour
       where the basis has colour), ``measurement_points.bin`` (the fine points where direct light
@@ -280,7 +282,9 @@ def relightable_parts(session, out: str, texel_index, fill) -> dict:
     * SH PRT: ``sh_transfer.exr`` (each texel's transfer vector: channel ``cII.R/G/B`` = the
       indirect radiance under the unit SH light II).
     * SG light-field textures: ``sg_lobes.exr`` (float16: per lobe J ``lobeJJ.X/Y/Z`` axis,
-      ``lobeJJ.S`` sharpness, ``lobeJJ.R/G/B`` amplitude; ``irradiance.R/G/B``).
+      ``lobeJJ.S`` sharpness, ``lobeJJ.R/G/B`` amplitude; ``irradiance.R/G/B``) and
+      ``sg_materials.bin`` (the shading's material at every texel: (T, 7) float32 diffuse albedo
+      RGB, specular reflectance RGB, GGX roughness).
     * MRT: the per-block operators are the params buffers (described in the manifest).
     """
     name, params, ds = session.method.name, session.params, session.dataset
@@ -338,6 +342,13 @@ def relightable_parts(session, out: str, texel_index, fill) -> dict:
                                           "lobeJJ.X/Y/Z axis (renormalise after filtering), lobeJJ.S sharpness, "
                                           "lobeJJ.R/G/B amplitude; irradiance.R/G/B the texel's irradiance "
                                           "(diffuse = albedo / pi x irradiance)"}
+        mat = texel_materials(session, texel_index) if materials is None else materials
+        table = np.concatenate([mat["diffuse"], mat["specular"], np.asarray(mat["roughness"])[:, None]], axis=1)
+        io.atomic_write_bytes(os.path.join(out, "sg_materials.bin"),
+                              np.ascontiguousarray(table, "<f4").tobytes())
+        files["sg_materials.bin"] = {"format": f"raw little-endian float32, shape [{table.shape[0]}, 7]",
+                                     "holds": "each texel's material as the G-buffer reads it: diffuse albedo RGB, "
+                                              "specular reflectance at normal incidence RGB, GGX roughness (alpha)"}
     return files
 
 
@@ -442,7 +453,7 @@ def export_run(folder: str, out: str, *, size: int = 64, onnx: bool = True, prog
         "lighting_type": m.lighting.__name__, "lighting": _lighting_description(session), "predicts": m.predicts,
         "units": dict(_UNITS), "jprt_version": __version__, "config_hash": session.summary.get("config_hash"),
         "config": cfg, "source": os.path.abspath(folder), "params": entries}
-    if session.kind != "scale":
+    if session.kind != "scale" or m.name in LIGHTMAP_METHODS:  # SG light-field textures: the scene's camera
         s = session.state
         manifest["camera"] = {"origin": list(s["origin"]), "target": list(s["target"]), "up": list(s["up"]),
                               "fov_deg": float(s["fov"]), "aspect": float(s["aspect"]),
@@ -485,13 +496,15 @@ def export_run(folder: str, out: str, *, size: int = 64, onnx: bool = True, prog
                                   "holds": "lightmap.exr, RGBM-encoded (also embedded in scene.glb)"},
             "lightmap_radiance.exr": {"format": "OpenEXR float32 RGB, atlas image", "holds": "the indirect radiance "
                                       "the evaluator predicts at each texel under the same lighting"}})
-        files.update(relightable_parts(session, out, texel_index, fill))
+        files.update(relightable_parts(session, out, texel_index, fill, materials))
         if m.name in RELIGHT_JS_METHODS:
             _ship("relight.js", out)
             files["relight.js"] = {"format": "ES module for three.js (imports 'three')",
                                    "holds": "relightMaterial(url): a ShaderMaterial of the meshes of scene.glb that "
-                                            "relights on the GPU from the lighting the evaluator takes "
-                                            f"({m.lighting.__name__}), and outputs indirect radiance"}
+                                            "relights from the lighting the evaluator takes "
+                                            f"({m.lighting.__name__}) and outputs indirect radiance"
+                                            + (" (the reduced-space product in JavaScript, the texels on the GPU)"
+                                               if m.name in ("datadriven", "mrt") else " (on the GPU)")}
     if m.name == "rrf":
         manifest["glsl"], glsl_files = _rrf_glsl(session, out)
         files.update(glsl_files)

@@ -3,7 +3,8 @@
 //   import { relightMaterial } from "./relight.js";
 //   const relight = await relightMaterial("exports/sh_prt/");    // the export folder's URL
 //   relight.setLighting({ coefficients: [[r, g, b], ...] });     // SH PRT: an SHLighting
-//   relight.setLighting({ direct: [[r, g, b], ...] });           // data-driven PRT: a PointRadiance
+//   relight.setLighting({ direct: [[r, g, b], ...] });           // data-driven PRT, MRT: a PointRadiance
+//   relight.setLighting({ scale: [r, g, b] });                   // SG light-field textures: a LightScale
 //   mesh.material = relight.material;                            // meshes of scene.glb (uv1 = TEXCOORD_1)
 //
 // The material outputs the indirect radiance (W m^-2 sr^-1, linear RGB) that jprt's evaluator
@@ -14,6 +15,15 @@
 //     radiance at the fine measurement points is averaged per coarse point (params/group.bin,
 //     params/counts.bin) into x, u = M x per channel (params/transfer.bin) on the CPU (a small
 //     matrix-vector product), and the shader sums mean |x| + sum_i b_i u_i over the basis layers.
+//   * SG light-field textures (Currius et al. 2020 Appendix B, Eq. 15-24): the shader fetches the
+//     texel's lobes (params/axes, sharpness, amplitude: float16), its irradiance and its material
+//     (sg_materials.bin), warps the GGX NDF to an ASG about the reflected view direction, convolves
+//     it with each lobe (Xu et al. 2013 Eq. 12), applies Smith G, Schlick's Fresnel and n.l, adds
+//     albedo / pi x irradiance, and scales by the LightScale; view = the camera's direction.
+//   * MRT (Loos et al. 2011 §7.3): b = T_d->b x per block, the interface records r = T_b->r b, the
+//     feedback bounces in the reduced spaces (W, V), then the incident light U_b b + U_r r at every
+//     texel: on the CPU (operators of a few hundred numbers per block); the shader multiplies the
+//     texel albedo by the bilinear incident-light lightmap.
 // Textures are filled through the atlas's fill_index (gutters repeat their nearest texel) and read
 // with bilinear filtering, texel centres at (i + 0.5) / R, as jprt's atlas lookup reads them.
 import * as THREE from "three";
@@ -30,19 +40,39 @@ async function buffer(base, manifest, key) {
   const response = await fetch(base + entry.file);
   if (!response.ok) throw new Error(`cannot fetch ${entry.file}: ${response.status}`);
   const bytes = await response.arrayBuffer();
-  const Type = { float32: Float32Array, int32: Int32Array, uint32: Uint32Array }[entry.dtype];
-  if (!Type) throw new Error(`params/${key}.bin is ${entry.dtype}; relight.js reads float32 and int32`);
+  if (entry.dtype === "float16") return { data: halfToFloat(new Uint16Array(bytes)), shape: entry.shape };
+  const Type = { float32: Float32Array, int32: Int32Array, uint32: Uint32Array, bool: Uint8Array }[entry.dtype];
+  if (!Type) throw new Error(`params/${key}.bin is ${entry.dtype}; relight.js reads float16, float32, int32 and bool`);
   return { data: new Type(bytes), shape: entry.shape };
 }
 
-// layers[k](texel) -> [r, g, b] for every texel; returns an RGBA float texture array (R, R, K).
+// IEEE half-precision bit patterns -> Float32Array (exact: every float16 is a float32)
+function halfToFloat(bits) {
+  const out = new Float32Array(bits.length);
+  for (let i = 0; i < bits.length; i++) {
+    const h = bits[i], sign = h & 0x8000 ? -1 : 1, exp = (h >> 10) & 0x1f, frac = h & 0x3ff;
+    out[i] = exp === 0 ? sign * frac * 2 ** -24
+      : exp === 31 ? (frac ? NaN : sign * Infinity)
+      : sign * (1 + frac / 1024) * 2 ** (exp - 15);
+  }
+  return out;
+}
+
+async function rawFloats(base, manifest, file) {
+  if (!manifest.files[file]) throw new Error(`the export has no ${file}`);
+  const response = await fetch(base + file);
+  if (!response.ok) throw new Error(`cannot fetch ${file}: ${response.status}`);
+  return new Float32Array(await response.arrayBuffer());
+}
+
+// layers[k](texel) -> [r, g, b(, a)] for every texel; returns an RGBA float texture array (R, R, K).
 function layerTexture(fill, resolution, count, texelValue) {
   const data = new Float32Array(resolution * resolution * count * 4);
   for (let k = 0; k < count; k++) {
     for (let p = 0; p < resolution * resolution; p++) {
       const v = texelValue(k, fill[p]);
       const o = (k * resolution * resolution + p) * 4;
-      data[o] = v[0]; data[o + 1] = v[1]; data[o + 2] = v[2]; data[o + 3] = 1.0;
+      data[o] = v[0]; data[o + 1] = v[1]; data[o + 2] = v[2]; data[o + 3] = v.length > 3 ? v[3] : 1.0;
     }
   }
   const texture = new THREE.DataArrayTexture(data, resolution, resolution, count);
@@ -142,10 +172,226 @@ async function dataDriven(base, manifest) {
   };
 }
 
+const VERTEX_WORLD = `
+  in vec2 uv1;
+  out vec2 vLightmapUv;
+  out vec3 vWorld;
+  out vec3 vNormal;
+  void main() {
+    vLightmapUv = uv1;
+    vec4 world = modelMatrix * vec4(position, 1.0);
+    vWorld = world.xyz;
+    vNormal = normalize(mat3(modelMatrix) * normal);
+    gl_Position = projectionMatrix * viewMatrix * world;
+  }`;
+
+async function sgLightfield(base, manifest) {
+  const axes = (await buffer(base, manifest, "axes")).data;  // (T, N, 3)
+  const sharpness = await buffer(base, manifest, "sharpness");  // (T, N)
+  const amplitude = (await buffer(base, manifest, "amplitude")).data;  // (T, N, 3)
+  const irradiance = (await buffer(base, manifest, "irradiance")).data;  // (T, 3)
+  const fill = (await buffer(base, manifest, "fill_index")).data;
+  const materials = await rawFloats(base, manifest, "sg_materials.bin");  // (T, 7)
+  const [, n] = sharpness.shape;
+  const res = manifest.lightmap.resolution;
+  const sh = sharpness.data;
+  // layers 2j: lobe j's axis and sharpness, 2j + 1: its amplitude; 2N: irradiance;
+  // 2N + 1: diffuse albedo and roughness; 2N + 2: specular reflectance at normal incidence
+  const texture = layerTexture(fill, res, 2 * n + 3, (k, t) => {
+    if (k < 2 * n) {
+      const j = k >> 1, o = (t * n + j) * 3;
+      return k % 2 === 0 ? [axes[o], axes[o + 1], axes[o + 2], sh[t * n + j]]
+                         : [amplitude[o], amplitude[o + 1], amplitude[o + 2], 0];
+    }
+    if (k === 2 * n) return [irradiance[t * 3], irradiance[t * 3 + 1], irradiance[t * 3 + 2], 0];
+    const m = t * 7;
+    return k === 2 * n + 1 ? [materials[m], materials[m + 1], materials[m + 2], materials[m + 6]]
+                           : [materials[m + 3], materials[m + 4], materials[m + 5], 0];
+  });
+  const material = new THREE.ShaderMaterial({
+    glslVersion: THREE.GLSL3,
+    side: THREE.DoubleSide,
+    defines: { LOBES: n },
+    uniforms: { lobes: { value: texture }, scale: { value: new THREE.Vector3(1, 1, 1) } },
+    vertexShader: VERTEX_WORLD,
+    fragmentShader: `
+      precision highp float;
+      precision highp sampler2DArray;
+      uniform sampler2DArray lobes;
+      uniform vec3 scale;
+      in vec2 vLightmapUv;
+      in vec3 vWorld;
+      in vec3 vNormal;
+      out vec4 radiance;
+      vec4 at(int k) { return texture(lobes, vec3(vLightmapUv, float(k))); }
+      // 1 / (n.x + sqrt(m2 + (1 - m2) n.x^2)) and n.x times it (the V = G / (4 n.l n.v) form)
+      float ggxV1(float m2, float c) { return 1.0 / (c + sqrt(m2 + (1.0 - m2) * c * c)); }
+      float ggxV1Cos(float m2, float c) { return c > 0.0 ? 1.0 / (1.0 + sqrt(1.0 - m2 + m2 / (c * c))) : 0.0; }
+      void main() {
+        vec3 v = normalize(cameraPosition - vWorld);
+        vec3 nrm = normalize(vNormal);
+        if (dot(nrm, v) < 0.0) nrm = -nrm;  // the G-buffer's normal faces the camera
+        vec4 mat = at(2 * LOBES + 1);
+        vec3 diffuse = mat.rgb, f0 = at(2 * LOBES + 2).rgb;
+        float r = max(mat.a, 1e-3), r2 = r * r;
+        float ndotv = dot(nrm, v), cosV = max(ndotv, 1e-4);
+        // Eq. 18: the NDF warped to an ASG about z = reflect(-v, n); x across the plane of incidence
+        vec3 z = 2.0 * ndotv * nrm - v;
+        vec3 c = cross(nrm, z);
+        vec3 x;
+        if (dot(c, c) > 1e-6) x = c * inversesqrt(dot(c, c));
+        else {  // normal incidence: the lobe is isotropic, any frame about z (Duff et al. 2017)
+          float s = z.z >= 0.0 ? 1.0 : -1.0, a = -1.0 / (s + z.z), b = z.x * z.y * a;
+          x = vec3(1.0 + s * z.x * z.x * a, s * b, -s * z.x);
+        }
+        vec3 y = cross(z, x);
+        vec3 conv = vec3(0.0);
+        for (int j = 0; j < LOBES; j++) {
+          vec4 lobe = at(2 * j);
+          vec3 axis = lobe.xyz * inversesqrt(max(dot(lobe.xyz, lobe.xyz), 1e-20));
+          // Xu et al. 2013 Eq. 12 with the roughness cancelled (jprt's _warped_convolution)
+          float nu = 0.5 * lobe.w, qx = 4.0 * nu * cosV * cosV * r2, qy = 4.0 * nu * r2;
+          float sc = 4.0 * cosV * inversesqrt((1.0 + qx) * (1.0 + qy));
+          float vx = dot(axis, x), vy = dot(axis, y), vz = dot(axis, z);
+          float w = sc * max(vz, 0.0) * exp(-nu / (1.0 + qx) * vx * vx - nu / (1.0 + qy) * vy * vy);
+          conv += w * at(2 * j + 1).rgb;
+        }
+        vec3 h = z + v;
+        h *= inversesqrt(max(dot(h, h), 1e-20));
+        float visCos = ggxV1Cos(r2, dot(nrm, z)) * ggxV1(r2, cosV);
+        vec3 fresnel = f0 + (1.0 - f0) * pow(1.0 - clamp(dot(z, h), 0.0, 1.0), 5.0);
+        vec3 glossy = conv * visCos * fresnel;
+        radiance = vec4((glossy + diffuse / 3.14159265358979 * at(2 * LOBES).rgb) * scale, 1.0);
+      }`,
+  });
+  return {
+    material,
+    setLighting({ scale }) {
+      if (scale.length !== 3) throw new Error(`a LightScale has 3 channels, got ${scale.length}`);
+      material.uniforms.scale.value.fromArray(scale);
+    },
+  };
+}
+
+async function mrt(base, manifest) {
+  const get = async (key) => buffer(base, manifest, key);
+  const tdb = await get("T_db");  // (B, kb, n)
+  const ub = (await get("U_b")).data;  // (B, n, kb)
+  const mask = (await get("mask")).data;  // (B, n)
+  const recT = await get("rec_T");  // (E, kr, kb)
+  const recSrc = (await get("rec_src")).data, recDst = (await get("rec_dst")).data;
+  const recSide = (await get("rec_side")).data;
+  const urt = await get("U_r_turned");  // (4, n, kr)
+  const W = (await get("W")).data;  // (B, 3, kb, kb)
+  const V = (await get("V")).data;  // (B, 4, 3, kb, kr)
+  const albedo = (await get("albedo")).data;  // (B, n, 3)
+  const fill = (await get("fill_index")).data;
+  const [nb, kb, n] = tdb.shape;
+  const kr = urt.shape[2];
+  const edges = recT.shape[0];
+  const feedback = manifest.config.runtime.feedback;
+  const useR = manifest.config.interfaces.enabled && edges > 0;
+  const res = manifest.lightmap.resolution;
+  const T = tdb.data, R = recT.data, U = urt.data;
+  const incident = new Float32Array(nb * n * 3);  // albedo-free incident light / pi at every texel
+  // layer 0: the incident light (set per lighting), layer 1: the texel albedo
+  const texture = layerTexture(fill, res, 2, (k, t) => (k === 0 ? [0, 0, 0]
+    : [albedo[t * 3], albedo[t * 3 + 1], albedo[t * 3 + 2]]));
+  const material = new THREE.ShaderMaterial({
+    glslVersion: THREE.GLSL3,
+    side: THREE.DoubleSide,
+    uniforms: { layers: { value: texture } },
+    vertexShader: `
+      in vec2 uv1;
+      out vec2 vLightmapUv;
+      void main() {
+        vLightmapUv = uv1;
+        gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
+      }`,
+    fragmentShader: `
+      precision highp float;
+      precision highp sampler2DArray;
+      uniform sampler2DArray layers;
+      in vec2 vLightmapUv;
+      out vec4 radiance;
+      void main() {
+        vec3 e = texture(layers, vec3(vLightmapUv, 0.0)).rgb;
+        vec3 a = texture(layers, vec3(vLightmapUv, 1.0)).rgb;
+        radiance = vec4(a * e, 1.0);
+      }`,
+  });
+  // r = T_b->r b summed per receiving (block, side): (B * 4, kr, 3)
+  const records = (b) => {
+    const r = new Float64Array(nb * 4 * kr * 3);
+    for (let e = 0; e < edges; e++) {
+      const src = recSrc[e], slot = recDst[e] * 4 + recSide[e];
+      for (let j = 0; j < kr; j++)
+        for (let k = 0; k < kb; k++) {
+          const t = R[(e * kr + j) * kb + k];
+          for (let ch = 0; ch < 3; ch++) r[(slot * kr + j) * 3 + ch] += t * b[(src * kb + k) * 3 + ch];
+        }
+    }
+    return r;
+  };
+  return {
+    material,
+    setLighting({ direct }) {
+      if (direct.length !== nb * n) throw new Error(`direct radiance at ${direct.length} texels, the layout has ${nb * n}`);
+      // b = T_d->b (direct x mask) per block and channel
+      let b = new Float64Array(nb * kb * 3);
+      for (let i = 0; i < nb; i++)
+        for (let k = 0; k < kb; k++)
+          for (let t = 0; t < n; t++) {
+            const w = T[(i * kb + k) * n + t] * mask[i * n + t];
+            for (let ch = 0; ch < 3; ch++) b[(i * kb + k) * 3 + ch] += w * direct[i * n + t][ch];
+          }
+      const bTotal = Float64Array.from(b);
+      const rTotal = new Float64Array(nb * 4 * kr * 3);
+      for (let step = 0; step <= feedback; step++) {
+        const r = useR ? records(b) : null;
+        if (r) for (let q = 0; q < r.length; q++) rTotal[q] += r[q];
+        if (step === feedback) break;
+        // the next bounce in the reduced spaces: b' = W b + sum_s V_s r_s (per channel)
+        const next = new Float64Array(nb * kb * 3);
+        for (let i = 0; i < nb; i++)
+          for (let ch = 0; ch < 3; ch++)
+            for (let k = 0; k < kb; k++) {
+              let acc = 0;
+              for (let j = 0; j < kb; j++) acc += W[((i * 3 + ch) * kb + k) * kb + j] * b[(i * kb + j) * 3 + ch];
+              if (r)
+                for (let s = 0; s < 4; s++)
+                  for (let j = 0; j < kr; j++)
+                    acc += V[(((i * 4 + s) * 3 + ch) * kb + k) * kr + j] * r[((i * 4 + s) * kr + j) * 3 + ch];
+              next[(i * kb + k) * 3 + ch] = acc;
+            }
+        b = next;
+        for (let q = 0; q < b.length; q++) bTotal[q] += b[q];
+      }
+      // incident light at every texel: (U_b b + sum_s U_r,s r_s) x mask
+      for (let i = 0; i < nb; i++)
+        for (let t = 0; t < n; t++)
+          for (let ch = 0; ch < 3; ch++) {
+            let acc = 0;
+            for (let k = 0; k < kb; k++) acc += ub[(i * n + t) * kb + k] * bTotal[(i * kb + k) * 3 + ch];
+            for (let s = 0; s < 4; s++)
+              for (let j = 0; j < kr; j++) acc += U[(s * n + t) * kr + j] * rTotal[((i * 4 + s) * kr + j) * 3 + ch];
+            incident[(i * n + t) * 3 + ch] = acc * mask[i * n + t];
+          }
+      const data = texture.image.data;
+      for (let p = 0; p < res * res; p++) {
+        const t = fill[p];
+        for (let ch = 0; ch < 3; ch++) data[p * 4 + ch] = incident[t * 3 + ch];
+      }
+      texture.needsUpdate = true;
+    },
+  };
+}
+
 // The relighting material of the export at `base` (its URL, ending in "/"): {material, setLighting}.
 export async function relightMaterial(base) {
   const manifest = await json(base + "export.json");
-  if (manifest.method === "sh_prt") return shPrt(base, manifest);
-  if (manifest.method === "datadriven") return dataDriven(base, manifest);
-  throw new Error(`relight.js relights SH PRT and data-driven PRT exports, not ${manifest.method}`);
+  const make = { sh_prt: shPrt, datadriven: dataDriven, sg_lightfield: sgLightfield, mrt }[manifest.method];
+  if (!make) throw new Error(`relight.js relights SH PRT, data-driven PRT, SG light-field texture and MRT exports, ` +
+                             `not ${manifest.method}`);
+  return make(base, manifest);
 }
