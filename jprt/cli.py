@@ -2,7 +2,8 @@
 experiment), ``sweep`` (a grid of overrides over an experiment, ``jprt.sweep``), ``atlas`` (every
 method against Mitsuba on a built-in task or a scene file, ``jprt.atlas``), ``view`` (relight a
 run in the browser, ``jprt.view``), ``export`` (a run folder as glTF lightmaps or ONNX for engines,
-``jprt.export``).
+``jprt.export``), ``design`` (the lighting that meets an objective, found through a run's model and
+checked with Mitsuba, ``jprt.design``).
 
     jprt info
     jprt render experiments/cornell_gt.py --set dataset.spp=16
@@ -12,6 +13,7 @@ run in the browser, ``jprt.view``), ``export`` (a run folder as glTF lightmaps o
         --minimize frame_ms
     jprt atlas path/to/scene.xml --lighting point --select "indirect_rel_rmse<=0.3" --minimize frame_ms
     jprt export results/sh_prt/<hash> --out exports/sh_prt
+    jprt design results/rrf_cornell/<hash> --objective objective.json --lights 2 --out design.json
 
 An experiment file defines ``CONFIG`` (a nested dict) and ``METHOD`` (run by ``jprt.runner``) or
 ``main(config)``. ``--set a.b=value``
@@ -179,6 +181,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--size", type=int, default=64,
                    help="the square frame the ONNX model takes, at the run's default view (default 64)")
     p.add_argument("--no-onnx", dest="onnx", action="store_false", help="skip the ONNX conversion")
+    p = sub.add_parser("design", help="the lighting that meets an objective file, found through a run's model and "
+                                      "rendered by Mitsuba to check it")
+    p.add_argument("folder", help="a run folder of a point-light model (RRF)")
+    p.add_argument("--objective", required=True, help="the objective file (JSON; jprt.design says what it holds)")
+    p.add_argument("--lights", type=int, default=1, help="point lights to place (default 1)")
+    p.add_argument("--size", type=int, default=64, help="the square frame at the run's camera (default 64; a "
+                                                        "target image sets it)")
+    p.add_argument("--steps", type=int, default=200, help="Adam steps (default 200)")
+    p.add_argument("--lr", type=float, default=0.05, help="Adam's learning rate on the unconstrained "
+                                                          "parameters (default 0.05)")
+    p.add_argument("--optimise", default="position,power", help="what moves: position, power, colour "
+                                                                "(comma-separated; default position,power)")
+    p.add_argument("--verify-spp", type=int, default=256, help="Mitsuba's spp for the verification render")
+    p.add_argument("--out", default=None, help="write the report here (JSON)")
     args = parser.parse_args(argv)
 
     from jprt.config import ConfigError
@@ -206,6 +222,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{manifest['method']} exported to {os.path.abspath(args.out)} ({len(manifest['files']) + 1} files; "
                   "export.json says what each holds)")
             return 0
+        if args.command == "design":
+            return _design(args)
         module = load_experiment(args.experiment)
         config = resolve_config(module, args.overrides, args.preset, args.config_file)
         if args.command == "render":
@@ -230,6 +248,27 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("jprt: interrupted", file=sys.stderr)
         return 130
+
+
+def _design(args) -> int:
+    import json
+
+    from jprt.design import design_run
+    from jprt.view import check_run_folder
+
+    check_run_folder(args.folder)
+    report = design_run(args.folder, args.objective, lights=args.lights, size=args.size, steps=args.steps,
+                        learning_rate=args.lr, optimise=[s.strip() for s in args.optimise.split(",") if s.strip()],
+                        verify_spp=args.verify_spp, progress=True)
+    for k, (p, i) in enumerate(zip(report["found"]["position"], report["found"]["intensity"])):
+        print(f"light {k}: position {', '.join(f'{v:.4g}' for v in p)}; intensity {', '.join(f'{v:.4g}' for v in i)}")
+    print(f"objective: model {report['model_objective']:.4g}, Mitsuba at {report['verify_spp']} spp "
+          f"{report['verified_objective']:.4g} (design {report['design_s']:.1f} s, verification {report['verify_s']:.1f} s)")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(report, f, indent=1)
+        print(f"report: {os.path.abspath(args.out)}")
+    return 0
 
 
 if __name__ == "__main__":

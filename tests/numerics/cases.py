@@ -386,3 +386,68 @@ def wavelet_render(draw, spec):
         return m.render_pixels(m.exact_transport_fn(transport), {"pixel": pixel}, light, 8, chunk=3)
 
     return Problem(fn, args, ["transport", "light"])
+
+
+# jprt.design ---------------------------------------------------------------------------------
+
+def design_lights(draw, spec):
+    from jprt import design
+
+    args = _draw(draw, u="(4, 3) in [-20, 20]", log_intensity="(4, 3) in [-20, 20]")
+
+    def fn(u, log_intensity):
+        return design.from_params(design.LightParams(u, log_intensity), [-1.0, 0.5, -2.0], [2.0, 3.0, 1.0])
+
+    return Problem(fn, args, ["u", "log_intensity"])
+
+
+def design_direct(draw, spec):
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jprt import design
+    from jprt.inputs import GBuffer
+
+    args = _draw(draw, points="(8, 3) in [-1, 1]", normal="(8, 3) unit", view="(8, 3) unit within 89.9 of normal",
+                 diffuse="(8, 3) in [0, 1]", specular="(8, 3) in [0, 1]", roughness="(8,) in [0.1, 1]",
+                 position="(2, 3) in [2, 3]", intensity="(2, 3) in [0, 1e3]")
+    vis = np.asarray(draw(_bits((8, 2))), np.float32)
+
+    def fn(points, normal, view, diffuse, specular, roughness, position, intensity):
+        zeros = jnp.zeros(points.shape[:-1] + (2,), points.dtype)
+        gb = GBuffer(points, normal, view, view, zeros, diffuse, specular, roughness,
+                     jnp.zeros(points.shape[:-1], jnp.int32), jnp.ones(points.shape[:-1], bool))
+        return design.point_direct(gb, position, intensity, vis)
+
+    return Problem(fn, args, ["position", "intensity", "diffuse", "specular", "roughness"])
+
+
+def _bits(shape):
+    from hypothesis import strategies as st
+    import numpy as np
+
+    n = int(np.prod(shape))
+    return st.lists(st.integers(0, 1), min_size=n, max_size=n).map(lambda v: np.asarray(v).reshape(shape))
+
+
+def design_objective(draw, spec):
+    import numpy as np
+
+    from jprt import design
+
+    args = _draw(draw, target="(8, 8, 3) in [0, 1e3]", full="(8, 8, 3) in [0, 1e3]", indirect="(8, 8, 3) in [0, 1e3]",
+                 irradiance="(8, 8, 3) in [0, 1e3]", intensity="(2, 3) in [0, 1e3]", bounds="(4,) in [1e-2, 1e3]")
+    target = np.asarray(args.pop("target"), np.float64)
+    b = np.sort(np.asarray(args.pop("bounds"), np.float64))
+    mask = np.zeros((8, 8), bool)
+    mask[2:6] = True
+    obj = design.Objective(design.ImageTarget(target.astype(np.float32) + 1.0, mask, "full", 1.0),
+                           (design.ObjectTarget("a", "irradiance", float(b[0]), float(b[1]), 1.0),
+                            design.ObjectTarget("b", "radiance", None, float(b[3]), 2.0)), 0.5, "case")
+    masks = np.stack([mask, ~mask]).astype(np.float32)
+
+    def fn(full, indirect, irradiance, intensity):
+        terms = design.objective_terms(obj, masks, full, indirect, irradiance, intensity, 10.0)
+        return tuple(terms[k] for k in sorted(terms))
+
+    return Problem(fn, args, ["full", "irradiance", "intensity"])

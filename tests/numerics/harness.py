@@ -59,7 +59,7 @@ MODULES = [
     "jprt.solve.losses",
 ] + [f"jprt.methods.{m}.model" for m in ("datadriven", "mrt", "rrf", "sg_lightfield", "sh_prt", "wavelet_prt")] + [
     "jprt.methods.rrf.features", "jprt.methods.rrf.fitting", "jprt.methods.rrf.renderer",
-    "jprt.methods.wavelet_prt.views", "jprt.methods.mrt.block_atlas",
+    "jprt.methods.wavelet_prt.views", "jprt.methods.mrt.block_atlas", "jprt.design",
 ]
 
 MAX_RTOL = 1e-3  # issue 20: float32 within 1e-3 relative (or a stated absolute tolerance near 0)

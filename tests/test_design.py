@@ -1,0 +1,176 @@
+"""Lighting design (``jprt.design``): the objective file's validation, the analytic direct term of
+point lights and its visibility, gradients at the light region's faces, convergence to a known
+optimum on a synthetic model, and ``jprt design`` end to end on a test-preset RRF."""
+
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jprt import design
+from jprt.inputs import GBuffer
+
+NAMES = ["floor", "ceiling", "back", "large-box"]
+
+
+def _write(tmp_path, spec, name="objective.json"):
+    path = tmp_path / name
+    path.write_text(json.dumps(spec))
+    return str(path)
+
+
+@pytest.mark.parametrize("spec, message", [
+    ({"objects": [{"name": "flor", "min": 1.0}]}, "'flor' is not an object of the scene (did you mean floor?)"),
+    ({"objects": [{"name": "desk", "min": 1.0}]}, "'desk' is not an object of the scene (it has 4"),
+    ({"objects": [{"name": "floor", "min": 2.0, "max": 1.0}]}, "min 2.0 is above max 1.0"),
+    ({"objects": [{"name": "floor", "min": -1.0}]}, "objects[0].min must be >= 0"),
+    ({"objects": [{"name": "floor", "max": 0}]}, "objects[0].max must be > 0"),
+    ({"objects": [{"name": "floor", "max": float("nan")}]}, "must be a finite number"),
+    ({"objects": [{"name": "floor"}]}, "needs a 'min' or a 'max'"),
+    ({"objects": [{"name": "floor", "min": 1.0, "quantity": "flux"}]}, "quantity must be one of irradiance, radiance"),
+    ({"objects": [{"name": "floor", "mn": 1.0}]}, "unknown key 'mn'"),
+    ({"object": []}, "unknown key 'object'"),
+    ({}, "nothing to optimise"),
+    ({"image": {"quantity": "full"}}, "needs a 'path'"),
+    ({"image": {"path": "missing.exr"}}, "no such file"),
+    ({"objects": [{"name": "floor", "min": 1.0}], "power_penalty": -1}, "power_penalty must be >= 0"),
+])
+def test_a_bad_objective_is_refused_in_one_line(tmp_path, spec, message):
+    with pytest.raises(design.ObjectiveError) as e:
+        design.load_objective(_write(tmp_path, spec), NAMES)
+    assert message in str(e.value) and "\n" not in str(e.value) and "objective.json" in str(e.value)
+
+
+def test_a_good_objective_loads_with_its_image_and_mask(tmp_path):
+    np.save(tmp_path / "target.npy", np.ones((4, 4, 3), np.float32))
+    mask = np.zeros((4, 4), np.float32)
+    mask[1:3] = 1.0
+    np.save(tmp_path / "mask.npy", mask)
+    spec = {"image": {"path": "target.npy", "mask": "mask.npy", "quantity": "indirect"},
+            "objects": [{"name": "floor", "min": 0.5, "max": 2}, {"name": "back", "max": 1, "quantity": "radiance"}],
+            "power_penalty": 0.1}
+    obj = design.load_objective(_write(tmp_path, spec), NAMES, shape=(4, 4))
+    assert obj.image.quantity == "indirect" and obj.image.mask.sum() == 8
+    assert [t.name for t in obj.objects] == ["floor", "back"] and obj.objects[1].min is None
+    with pytest.raises(design.ObjectiveError, match="the frame is 8 x 8"):
+        design.load_objective(_write(tmp_path, spec), NAMES, shape=(8, 8))
+
+
+def _floor(n=12, size=2.0, albedo=0.5):
+    """A square diffuse floor (y = 0) of n x n pixels seen from straight above."""
+    c = (np.arange(n) + 0.5) / n * size - size / 2
+    x, z = np.meshgrid(c, c, indexing="xy")
+    pos = np.stack([x, np.zeros_like(x), z], -1).astype(np.float32)
+    up = np.broadcast_to(np.array([0, 1, 0], np.float32), pos.shape).copy()
+    return GBuffer(pos, up, up, up, np.zeros((n, n, 2), np.float32), np.full((n, n, 3), albedo, np.float32),
+                   np.zeros((n, n, 3), np.float32), np.ones((n, n), np.float32), np.zeros((n, n), np.int32),
+                   np.ones((n, n), bool))
+
+
+def test_direct_light_of_a_point_light_is_the_inverse_square_law():
+    gb = _floor(n=3, size=2.0)
+    h, inten = 1.5, np.array([[2.0, 1.0, 0.5]])
+    radiance, irradiance = design.point_direct(gb, np.array([[0.0, h, 0.0]]), inten, np.ones((3, 3, 1)))
+    np.testing.assert_allclose(irradiance[1, 1], inten[0] / h ** 2, rtol=1e-6)  # straight below the light
+    d2 = (2.0 / 3) ** 2 + h ** 2  # the pixel beside it: cos / r^2 = h / r^3
+    np.testing.assert_allclose(irradiance[1, 0], inten[0] * h / d2 ** 1.5, rtol=1e-5)
+    np.testing.assert_allclose(radiance, 0.5 / np.pi * np.asarray(irradiance), rtol=1e-6)
+    _, shadowed = design.point_direct(gb, np.array([[0.0, h, 0.0]]), inten, np.zeros((3, 3, 1)))
+    assert np.all(np.asarray(shadowed) == 0)
+
+
+def test_gradients_are_finite_at_the_light_regions_faces():
+    gb = _floor()
+    lo, hi = np.array([-1.0, 0.5, -1.0]), np.array([1.0, 2.0, 1.0])
+    obj = design.load_objective({"objects": [{"name": "floor", "min": 10.0}]}, NAMES)
+    masks = design.object_masks(obj, gb.object_id, NAMES)
+    def loss(p):
+        pos, inten = design.from_params(p, lo, hi)
+        _, irr = design.point_direct(gb, pos, inten, jnp.ones((12, 12, 1)))
+        return sum(design.objective_terms(obj, masks, irr, irr, irr, inten, 1.0).values())
+
+    grad = jax.jit(jax.grad(loss))
+    for corner in (lo, hi, np.array([lo[0], hi[1], lo[2]])):
+        params = design.to_params(corner[None], np.ones((1, 3)), lo, hi)
+        pos, _ = design.from_params(params, lo, hi)
+        np.testing.assert_allclose(pos[0], corner, atol=2e-4 * 2.0)  # EDGE inside the face
+        g = grad(params)
+        assert all(np.all(np.isfinite(np.asarray(a))) for a in g)
+        assert np.abs(np.asarray(g.log_intensity)).max() > 0  # the floor is below its bound: more light helps
+
+
+def test_design_finds_the_known_optimum_of_a_synthetic_linear_model():
+    """Direct light of one point light on a floor plus an indirect term linear in its intensity
+    (a fixed pattern): the target is this model's image under a known light; from another start
+    in the region, the design recovers its position and intensity."""
+    gb = _floor(n=16)
+    pattern = jnp.asarray(0.05 + 0.05 * np.linspace(0, 1, 16)[None, :, None] * np.ones((16, 16, 3)), jnp.float32)
+
+    def indirect(position, intensity):
+        return pattern * jnp.mean(intensity)
+
+    frame = design.design_frame(gb, indirect, glossy=False)
+    lo, hi = np.array([-0.8, 0.6, -0.8]), np.array([0.8, 1.6, 0.8])
+    true_pos, true_int = np.array([[0.3, 1.1, -0.25]]), np.array([[3.0, 3.0, 3.0]])
+    target, _, _ = frame(true_pos, true_int, jnp.ones((16, 16, 1)))
+    obj = design.Objective(design.ImageTarget(np.asarray(target), None, "full", 1.0), (), 0.0, "synthetic")
+    result = design.design(frame, obj, np.zeros((0, 16, 16)), np.array([[-0.4, 0.8, 0.4]]), np.ones((1, 3)), lo, hi,
+                           steps=400, learning_rate=0.05, progress=False)
+    assert result.history[-1] < 1e-5 * result.history[0]
+    np.testing.assert_allclose(result.position, true_pos, atol=0.01 * np.linalg.norm(hi - lo))
+    np.testing.assert_allclose(result.intensity, true_int, rtol=0.02)
+    assert np.all(result.position >= lo) and np.all(result.position <= hi)
+
+
+def test_visibility_is_traced_by_mitsuba(mi):
+    """In the Cornell box, a light just under the ceiling sees the floor's centre; one behind the
+    back wall sees no pixel."""
+    from jprt.render.gbuffer import gbuffer
+    from jprt.render.scenes import SceneHandle
+
+    handle = SceneHandle("cornell_box")
+    gb = gbuffer(handle, handle.default_camera(16, 16))
+    names = handle.object_names()
+    floor = np.asarray(gb.object_id) == names.index("floor")
+    vis = design.point_visibility(handle, gb, np.array([[0.0, 0.9, 0.0], [0.0, 0.0, -5.0]]))
+    assert vis.shape == (16, 16, 2)
+    assert vis[..., 0][floor].mean() > 0.5 and vis[..., 1].max() == 0.0
+    assert np.all(vis[~np.asarray(gb.valid, bool)] == 0)
+
+
+def _rrf_run(tmp_path, fitted_preset):
+    from jprt.runner import save_fit
+
+    m, config, dataset, result = fitted_preset("rrf")
+    return save_fit(str(tmp_path / "run"), "rrf", config, result.params)
+
+
+def test_jprt_design_refuses_a_bad_objective_in_one_line(tmp_path, fitted_preset, capsys):
+    from jprt.cli import main
+
+    bad = _write(tmp_path, {"objects": [{"name": "desk", "min": 1}]}, "bad.json")
+    assert main(["design", _rrf_run(tmp_path, fitted_preset), "--objective", bad]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "'desk' is not an object of the scene" in err
+
+
+@pytest.mark.slow
+def test_jprt_design_on_a_test_preset_rrf_writes_a_verified_report(tmp_path, fitted_preset):
+    from jprt.cli import main
+
+    run = _rrf_run(tmp_path, fitted_preset)
+    objective = _write(tmp_path, {"objects": [{"name": "floor", "min": 0.2}, {"name": "back", "max": 5.0}]})
+    out = str(tmp_path / "design.json")
+    assert main(["design", run, "--objective", objective, "--size", "12", "--steps", "6",
+                 "--verify-spp", "4", "--out", out]) == 0
+    with open(out) as f:
+        report = json.load(f)
+    lo, hi = np.asarray(report["light_region"]["lo"]), np.asarray(report["light_region"]["hi"])
+    pos = np.asarray(report["found"]["position"])
+    assert pos.shape == (1, 3) and np.all(pos >= lo) and np.all(pos <= hi)
+    assert len(report["history"]) == 6 and np.all(np.isfinite(report["history"]))
+    assert set(report["verified_terms"]) == set(report["model_terms"]) == {"floor.irradiance", "back.irradiance"}
+    assert np.isfinite(report["verified_objective"]) and report["visibility_updates"] >= 1
