@@ -65,6 +65,17 @@ INTROS: dict[str, dict] = {
         "make": "python benchmarks/device_evaluators.py export RUN OUT.npz; "
                 "python benchmarks/device_evaluators.py measure OUT.npz out.json",
     },
+    "design": {
+        "title": "Lighting design through a fitted model",
+        "intro": "Lights placed by gradient descent through RRF's evaluator on the Cornell box, checked against "
+                 "Mitsuba: the model's gradient of an image objective against central finite differences of "
+                 "Mitsuba renders at random light configurations (with the two seeds' disagreement as the noise "
+                 "level), and hidden point lights recovered from Mitsuba renders of them (position error over the "
+                 "scene's diagonal, intensity ratio, the objective on the model and on Mitsuba's verification "
+                 "render). What is not measured yet is listed with the reason. See "
+                 "[Lighting design](../design.md).",
+        "make": "python benchmarks/design.py",
+    },
     "export": {
         "title": "Exported evaluators in ONNX",
         "intro": "The ONNX models `jprt export` writes for the neural evaluators (RRF, neural-wavelet PRT, SG "

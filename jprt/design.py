@@ -53,7 +53,8 @@ from jprt.progress import bar as progress_bar
 
 __all__ = ["ObjectiveError", "ImageTarget", "ObjectTarget", "Objective", "load_objective", "object_masks",
            "objective_terms", "LightParams", "to_params", "from_params", "point_direct", "irradiance_from",
-           "point_visibility", "DesignResult", "design", "design_run", "OBJECTIVE_KEYS", "QUANTITIES"]
+           "point_visibility", "DesignResult", "design", "design_frame", "rendered_terms", "gradient_check",
+           "Problem", "load_problem", "design_run", "OBJECTIVE_KEYS", "QUANTITIES"]
 
 #: Keys of an objective file, of its ``image`` entry and of each ``objects`` entry.
 OBJECTIVE_KEYS = ("image", "objects", "power_penalty")
@@ -505,6 +506,91 @@ def design_frame(gbuffer, indirect_fn: Callable, *, glossy: bool = True) -> Call
     return frame
 
 
+def rendered_terms(handle, camera, gbuffer, objective: Objective, masks, position, intensity, *, spp: int,
+                   seed: int = 0, reference_power: float = 1.0) -> dict:
+    """``objective_terms`` on Mitsuba's render of point lights (``position``, ``intensity`` (K, 3))
+    at ``camera`` (``spp``, ``seed``; full and indirect, invalid G-buffer pixels 0). Irradiance
+    there is the lights' direct irradiance (exact for point lights, with traced visibility) plus
+    the render's indirect radiance read as irradiance (``irradiance_from``).
+
+    Numerics: not differentiable (Mitsuba renders).
+    """
+    from jprt.inputs import PointLights
+    from jprt.render import images
+
+    handle.set_lighting(PointLights.create(np.asarray(position, np.float32), np.asarray(intensity, np.float32)))
+    r = images.direct_indirect(handle, camera, spp=int(spp), seed=int(seed))
+    valid = np.asarray(gbuffer.valid, bool)[..., None]
+    full = np.where(valid, np.asarray(r.direct, np.float32) + np.asarray(r.indirect, np.float32), 0.0)
+    ind = np.where(valid, np.asarray(r.indirect, np.float32), 0.0)
+    irr = 0.0 * full
+    if objective.objects:
+        _, e_direct = point_direct(gbuffer, position, intensity, point_visibility(handle, gbuffer, position),
+                                   glossy=False)
+        irr = np.asarray(e_direct) + np.asarray(irradiance_from(ind, gbuffer.diffuse_albedo))
+    return {k: float(v) for k, v in objective_terms(objective, masks, full, ind, irr, np.asarray(intensity),
+                                                    reference_power).items()}
+
+
+def gradient_check(handle, camera, gbuffer, frame_fn: Callable, objective: Objective, masks, position, intensity,
+                   *, spp: int = 1024, step: float = 0.01, log_step: float = 0.05, seeds: Sequence[int] = (11, 12),
+                   size: float | None = None) -> dict:
+    """The model's gradient of ``objective`` against central finite differences of Mitsuba renders
+    (``rendered_terms`` at ``spp``, the same seed on both sides of each difference), at point
+    lights ``position``, ``intensity`` (K, 3). Parameters: every light's position (world units;
+    step ``step`` x ``size``, the scene's diagonal by default) and its log intensity scale (step
+    ``log_step``). The finite differences are taken once per seed of ``seeds``: their mean is
+    compared with the model, and their spread is the Mitsuba noise level.
+
+    Returns {"model", "mitsuba" (per seed), "cosine" (model against the seeds' mean), "cosine_seeds"
+    (seed against seed), "noise" (|g_1 - g_2| / |g_1 + g_2|), "parameters", "spp", "step"}.
+
+    Numerics: not differentiable (compares a gradient with Mitsuba's finite differences).
+    """
+    position = np.asarray(position, np.float64).reshape(-1, 3)
+    intensity = np.asarray(intensity, np.float64).reshape(-1, 3)
+    k = position.shape[0]
+    if size is None:
+        box = handle.scene.bbox()
+        size = float(np.linalg.norm(np.asarray(box.max) - np.asarray(box.min)))
+    vis = jnp.asarray(point_visibility(handle, gbuffer, position))
+    reference = float(np.sum(intensity))
+
+    def model(theta):
+        pos = theta[:3 * k].reshape(k, 3)
+        inten = jnp.asarray(intensity, theta.dtype) * jnp.exp(theta[3 * k:])[:, None]
+        full, ind, irr = frame_fn(pos, inten, vis)
+        return sum(objective_terms(objective, masks, full, ind, irr, inten, reference).values())
+
+    theta0 = np.concatenate([position.reshape(-1), np.zeros(k)])
+    g_model = np.asarray(jax.jacfwd(model)(jnp.asarray(theta0, jnp.float32)), np.float64)
+    steps = np.concatenate([np.full(3 * k, float(step) * size), np.full(k, float(log_step))])
+    per_seed = []
+    for seed in seeds:
+        g = np.zeros_like(theta0)
+        for i in range(theta0.size):
+            value = []
+            for sign in (1.0, -1.0):
+                t = theta0.copy()
+                t[i] += sign * steps[i]
+                pos, inten = t[:3 * k].reshape(k, 3), intensity * np.exp(t[3 * k:])[:, None]
+                value.append(sum(rendered_terms(handle, camera, gbuffer, objective, masks, pos, inten, spp=spp,
+                                                seed=seed, reference_power=reference).values()))
+            g[i] = (value[0] - value[1]) / (2.0 * steps[i])
+        per_seed.append(g)
+    mean = np.mean(per_seed, axis=0)
+
+    def cos(a, b):
+        return float(np.dot(a, b) / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-300))
+
+    noise = (float(np.linalg.norm(per_seed[0] - per_seed[1]) / max(np.linalg.norm(per_seed[0] + per_seed[1]), 1e-300))
+             if len(per_seed) > 1 else None)
+    return {"model": g_model.tolist(), "mitsuba": [g.tolist() for g in per_seed], "cosine": cos(g_model, mean),
+            "cosine_seeds": cos(per_seed[0], per_seed[1]) if len(per_seed) > 1 else None, "noise": noise,
+            "parameters": [f"light{j}.{c}" for j in range(k) for c in "xyz"] + [f"light{j}.log_scale" for j in range(k)],
+            "spp": int(spp), "step": {"position": float(step) * size, "log_scale": float(log_step)}}
+
+
 def _region(session) -> tuple[np.ndarray, np.ndarray]:
     meta = getattr(session.dataset, "meta", None)
     if isinstance(meta, dict) and "light_lo" in meta:
@@ -515,34 +601,39 @@ def _region(session) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(r["light_lo"], np.float64), np.asarray(r["light_hi"], np.float64)
 
 
-def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int = 64, steps: int = 200,
-               learning_rate: float = 0.05, visibility_every: int = 10,
-               optimise: Sequence[str] = ("position", "power"), start: dict | None = None, verify_spp: int = 256,
-               seed: int = 0, progress: bool | None = None) -> dict:
-    """Design the lighting of the run folder ``folder`` (a point-light method: RRF) for the
-    objective file ``objective_path`` at the run's camera (``size`` x ``size``, or the target
-    image's size); ``lights`` point lights start at ``start`` ({"position", "intensity"}, (K, 3)
-    each) or spread over the light region (seeded). Then the **verification**: the found
-    lighting rendered by Mitsuba at ``verify_spp`` (full and indirect), the objective's terms on
-    that render beside the model's. Returns the report (a dict, JSON-ready).
+class Problem(NamedTuple):
+    """A run folder's design problem at its camera: the ``jprt.view.Session``, the ``camera`` and its
+    G-buffer ``gbuffer``, the validated ``objective`` and its object ``masks``, the light region
+    ``lo``, ``hi``, and ``frame`` (``design_frame`` of the run's evaluator)."""
 
-    Numerics: not differentiable (loads a run folder, designs, renders with Mitsuba).
+    session: object
+    camera: object
+    gbuffer: object
+    objective: Objective
+    masks: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    frame: Callable
+
+
+def load_problem(folder: str, objective_path, *, size: int = 64, progress: bool | None = None) -> Problem:
+    """The ``Problem`` of the run folder ``folder`` (a point-light method: RRF) and the objective
+    file ``objective_path`` at the run's camera, ``size`` x ``size`` (or the target image's size).
+    The objective is checked against the scene's object names before the run's data is loaded.
+
+    Numerics: not differentiable (loads a run folder).
     """
     from jprt.inputs import PointLights
-    from jprt.render import images
-    from jprt.view import Session
-
     from jprt.methods import REGISTRY
     from jprt.render.scenes import SceneHandle
     from jprt.runner import method_config
-    from jprt.view import check_run_folder
+    from jprt.view import Session, check_run_folder
 
     summary, config = check_run_folder(folder)
     m = REGISTRY[summary["method"]]
     if m.name != "rrf":
         raise ValueError(f"jprt design relights point-light models through their evaluator (RRF so far); "
                          f"{m.name} takes {m.lighting.__name__}")
-    # the objective is checked against the scene's names before the run's data is loaded
     names = list(SceneHandle(method_config(m, config)["scene"]).object_names())
     probe = load_objective(objective_path, names)
     session = Session(folder, progress=progress)
@@ -560,6 +651,23 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
     def indirect(position, intensity):
         return evaluate(gb, PointLights(position, intensity))
 
+    return Problem(session, camera, gb, objective, masks, lo, hi, design_frame(gb, indirect))
+
+
+def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int = 64, steps: int = 200,
+               learning_rate: float = 0.05, visibility_every: int = 10,
+               optimise: Sequence[str] = ("position", "power"), start: dict | None = None, verify_spp: int = 256,
+               seed: int = 0, progress: bool | None = None) -> dict:
+    """Design the lighting of the run folder ``folder`` for the objective file ``objective_path``
+    (``load_problem``); ``lights`` point lights start at ``start`` ({"position", "intensity"},
+    (K, 3) each) or spread over the light region (seeded). Then the **verification**: the found
+    lighting rendered by Mitsuba at ``verify_spp`` (full and indirect), the objective's terms on
+    that render (``rendered_terms``) beside the model's. Returns the report (a dict, JSON-ready).
+
+    Numerics: not differentiable (loads a run folder, designs, renders with Mitsuba).
+    """
+    pb = load_problem(folder, objective_path, size=size, progress=progress)
+    lo, hi, gb, handle = pb.lo, pb.hi, pb.gbuffer, pb.session.handle
     if start is None:
         rng = np.random.default_rng(seed)
         pos0 = lo + (hi - lo) * rng.uniform(0.25, 0.75, (int(lights), 3))
@@ -567,27 +675,17 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
     else:
         pos0 = np.asarray(start["position"], np.float64).reshape(-1, 3)
         inten0 = np.asarray(start["intensity"], np.float64).reshape(-1, 3)
-    result = design(design_frame(gb, indirect), objective, masks, pos0, inten0, lo, hi,
-                    visibility_fn=lambda p: point_visibility(session.handle, gb, p), steps=steps,
+    result = design(pb.frame, pb.objective, pb.masks, pos0, inten0, lo, hi,
+                    visibility_fn=lambda p: point_visibility(handle, gb, p), steps=steps,
                     learning_rate=learning_rate, visibility_every=visibility_every, optimise=optimise,
                     progress=progress)
-    # verification: Mitsuba under the found lights, the objective on its render (irradiance: the
-    # lights' direct irradiance, exact for point lights with traced visibility, plus the render's
-    # indirect radiance read as irradiance)
+    # verification: Mitsuba under the found lights, the objective on its render
     t0 = time.perf_counter()
-    found = PointLights.create(result.position, result.intensity)
-    session.handle.set_lighting(found)
-    r = images.direct_indirect(session.handle, camera, spp=int(verify_spp), seed=int(seed) + 101)
-    full = np.asarray(r.direct, np.float32) + np.asarray(r.indirect, np.float32)
-    valid = np.asarray(gb.valid, bool)[..., None]
-    full, ind = np.where(valid, full, 0.0), np.where(valid, np.asarray(r.indirect, np.float32), 0.0)
-    _, e_direct = point_direct(gb, result.position, result.intensity,
-                               point_visibility(session.handle, gb, result.position), glossy=False)
-    irr = np.asarray(e_direct) + np.asarray(irradiance_from(ind, gb.diffuse_albedo))
-    verified = {k: float(v) for k, v in objective_terms(objective, masks, full, ind, irr, result.intensity,
-                                                        float(np.sum(inten0))).items()}
+    verified = rendered_terms(handle, pb.camera, gb, pb.objective, pb.masks, result.position, result.intensity,
+                              spp=int(verify_spp), seed=int(seed) + 101, reference_power=float(np.sum(inten0)))
     verify_s = time.perf_counter() - t0
-    return {"run": os.path.abspath(folder), "method": m.name, "objective": os.path.abspath(objective_path),
+    return {"run": os.path.abspath(folder), "method": pb.session.method.name,
+            "objective": os.path.abspath(objective_path),
             "frame": list(np.shape(gb.valid)), "light_region": {"lo": lo.tolist(), "hi": hi.tolist()},
             "start": {"position": pos0.tolist(), "intensity": inten0.tolist()},
             "found": {"position": result.position.tolist(), "intensity": result.intensity.tolist()},
