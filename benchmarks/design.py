@@ -114,7 +114,7 @@ def main() -> int:
         pos = lo + (hi - lo) * rng.uniform(0.2, 0.8, (1, 3))
         t1 = time.perf_counter()
         g = design.gradient_check(pb.session.handle, pb.camera, pb.gbuffer, pb.frame, pb.objective, pb.masks, pos,
-                                  np.full((1, 3), 0.8), spp=args.spp)
+                                  np.full((1, 3), 0.8), visibility_fn=pb.visibility, spp=args.spp)
         g.update(position=pos.tolist(), seconds=time.perf_counter() - t1)
         checks.append(g)
         print(f"gradient check {c}: cosine {g['cosine']:.4f} (seed against seed {g['cosine_seeds']:.4f}, "

@@ -54,7 +54,7 @@ from jprt.progress import bar as progress_bar
 __all__ = ["ObjectiveError", "ImageTarget", "ObjectTarget", "Objective", "load_objective", "object_masks",
            "objective_terms", "LightParams", "to_params", "from_params", "point_direct", "irradiance_from",
            "point_visibility", "DesignResult", "design", "design_frame", "rendered_terms", "gradient_check",
-           "Problem", "load_problem", "design_run", "OBJECTIVE_KEYS", "QUANTITIES"]
+           "Problem", "POINT_METHODS", "measurement_points", "load_problem", "design_run", "OBJECTIVE_KEYS", "QUANTITIES"]
 
 #: Keys of an objective file, of its ``image`` entry and of each ``objects`` entry.
 OBJECTIVE_KEYS = ("image", "objects", "power_penalty")
@@ -418,7 +418,9 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
 
     ``frame_fn(position, intensity, visibility) -> (full, indirect, irradiance)`` (each (H, W, 3),
     differentiable JAX; ``design_frame`` builds it from a G-buffer and a model); ``visibility_fn
-    (position) -> (H, W, K)`` traced every ``visibility_every`` steps (None: always 1). ``lo``,
+    (position) -> {"pixels": (H, W, K), ...}`` (the pixels' visibility and whatever else the model
+    needs, e.g. its measurement points') traced every ``visibility_every`` steps (None: every
+    light visible everywhere). ``lo``,
     ``hi``: the light region. ``optimise``: which of "position", "power" (the overall intensity
     per light) and "colour" (its RGB ratios) move; the rest keep their starting values. The
     gradient is taken in forward mode (``jax.jacfwd``: one JVP per parameter, 6 a light), which
@@ -475,7 +477,8 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
     for i in bar:
         if vis is None or (visibility_fn is not None and i % max(int(visibility_every), 1) == 0):
             pos = np.asarray(lights(params)[0], np.float64)
-            vis = jnp.ones((1, 1, k), jnp.float32) if visibility_fn is None else jnp.asarray(visibility_fn(pos))
+            vis = ({"pixels": jnp.ones((1, 1, k), jnp.float32)} if visibility_fn is None else
+                   jax.tree_util.tree_map(jnp.asarray, visibility_fn(pos)))
             updates += visibility_fn is not None
         params, state, value = step(params, state, vis)
         history.append(float(value))
@@ -483,7 +486,7 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
             bar.set_postfix(objective=f"{history[-1]:.3g}")
     pos, inten = lights(params)
     if visibility_fn is not None:
-        vis = jnp.asarray(visibility_fn(np.asarray(pos, np.float64)))
+        vis = jax.tree_util.tree_map(jnp.asarray, visibility_fn(np.asarray(pos, np.float64)))
         updates += 1
     _, terms = loss(params, vis)
     return DesignResult(np.asarray(pos, np.float64), np.asarray(inten, np.float64), np.asarray(history),
@@ -491,16 +494,17 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
 
 
 def design_frame(gbuffer, indirect_fn: Callable, *, glossy: bool = True) -> Callable:
-    """``frame_fn`` for ``design``: direct (``point_direct``) + ``indirect_fn(position, intensity)``
-    (the model's (H, W, 3) indirect radiance) at the pixels of ``gbuffer``, and their irradiance.
+    """``frame_fn`` for ``design``: direct (``point_direct`` with ``visibility["pixels"]``) +
+    ``indirect_fn(position, intensity, visibility)`` (the model's (H, W, 3) indirect radiance) at
+    the pixels of ``gbuffer``, and their irradiance.
 
     Numerics: not differentiable (builds the frame function: ``point_direct`` plus ``irradiance_from``).
     """
     gb = type(gbuffer)(*(jnp.asarray(a) for a in gbuffer))
 
     def frame(position, intensity, visibility):
-        direct, e_direct = point_direct(gb, position, intensity, visibility, glossy=glossy)
-        ind = indirect_fn(position, intensity)
+        direct, e_direct = point_direct(gb, position, intensity, visibility["pixels"], glossy=glossy)
+        ind = indirect_fn(position, intensity, visibility)
         return direct + ind, ind, e_direct + irradiance_from(ind, gb.diffuse_albedo)
 
     return frame
@@ -533,11 +537,12 @@ def rendered_terms(handle, camera, gbuffer, objective: Objective, masks, positio
 
 
 def gradient_check(handle, camera, gbuffer, frame_fn: Callable, objective: Objective, masks, position, intensity,
-                   *, spp: int = 1024, step: float = 0.01, log_step: float = 0.05, seeds: Sequence[int] = (11, 12),
-                   size: float | None = None) -> dict:
+                   *, visibility_fn: Callable | None = None, spp: int = 1024, step: float = 0.01,
+                   log_step: float = 0.05, seeds: Sequence[int] = (11, 12), size: float | None = None) -> dict:
     """The model's gradient of ``objective`` against central finite differences of Mitsuba renders
     (``rendered_terms`` at ``spp``, the same seed on both sides of each difference), at point
-    lights ``position``, ``intensity`` (K, 3). Parameters: every light's position (world units;
+    lights ``position``, ``intensity`` (K, 3), the model's visibility from ``visibility_fn``
+    (``Problem.visibility``; None: the pixels' only). Parameters: every light's position (world units;
     step ``step`` x ``size``, the scene's diagonal by default) and its log intensity scale (step
     ``log_step``). The finite differences are taken once per seed of ``seeds``: their mean is
     compared with the model, and their spread is the Mitsuba noise level.
@@ -553,7 +558,8 @@ def gradient_check(handle, camera, gbuffer, frame_fn: Callable, objective: Objec
     if size is None:
         box = handle.scene.bbox()
         size = float(np.linalg.norm(np.asarray(box.max) - np.asarray(box.min)))
-    vis = jnp.asarray(point_visibility(handle, gbuffer, position))
+    vis = jax.tree_util.tree_map(jnp.asarray, (visibility_fn or (lambda p: {
+        "pixels": point_visibility(handle, gbuffer, p)}))(position))
     reference = float(np.sum(intensity))
 
     def model(theta):
@@ -604,7 +610,8 @@ def _region(session) -> tuple[np.ndarray, np.ndarray]:
 class Problem(NamedTuple):
     """A run folder's design problem at its camera: the ``jprt.view.Session``, the ``camera`` and its
     G-buffer ``gbuffer``, the validated ``objective`` and its object ``masks``, the light region
-    ``lo``, ``hi``, and ``frame`` (``design_frame`` of the run's evaluator)."""
+    ``lo``, ``hi``, ``frame`` (``design_frame`` of the run's evaluator) and ``visibility``
+    (position -> the visibility dict ``frame`` reads)."""
 
     session: object
     camera: object
@@ -614,16 +621,53 @@ class Problem(NamedTuple):
     lo: np.ndarray
     hi: np.ndarray
     frame: Callable
+    visibility: Callable
+
+
+#: Methods ``jprt design`` optimises point lights for: RRF takes the lights themselves (Eq. 9);
+#: data-driven PRT and MRT take the direct radiance at their measurement points or texels, which
+#: the design computes with ``point_direct`` there (diffuse, seen along the normal).
+POINT_METHODS = ("rrf", "datadriven", "mrt")
+
+
+def measurement_points(session):
+    """The G-buffer (S, ...) of the points where a method measures its lights' direct radiance
+    (data-driven PRT: its fine measurement points; MRT: every texel of its layout, valid where
+    its face exists), seen along their normals (view = normal), with their diffuse albedo and no
+    specular lobe; None for a method that takes the lights themselves.
+
+    Numerics: not differentiable (reads a dataset).
+    """
+    from jprt.inputs import GBuffer
+
+    name, ds = session.method.name, session.dataset
+    if name == "datadriven":
+        fine = np.asarray(session.params["fine_index"])
+        pos = np.asarray(ds.candidates["position"], np.float32)[fine]
+        nrm = np.asarray(ds.candidates["normal"], np.float32)[fine]
+        alb = np.asarray(ds.candidates["albedo"], np.float32)[fine]
+        valid = np.ones(len(pos), bool)
+    elif name == "mrt":
+        pos = np.asarray(ds.positions, np.float32).reshape(-1, 3)
+        nrm = np.asarray(ds.normals, np.float32).reshape(-1, 3)
+        alb = np.asarray(ds.albedo, np.float32).reshape(-1, 3)
+        valid = np.asarray(session.params["mask"], bool).reshape(-1)  # texels of faces that exist
+    else:
+        return None
+    s = pos.shape[0]
+    return GBuffer(pos, nrm, nrm, nrm, np.zeros((s, 2), np.float32), alb, np.zeros((s, 3), np.float32),
+                   np.ones(s, np.float32), np.zeros(s, np.int32), valid)
 
 
 def load_problem(folder: str, objective_path, *, size: int = 64, progress: bool | None = None) -> Problem:
-    """The ``Problem`` of the run folder ``folder`` (a point-light method: RRF) and the objective
-    file ``objective_path`` at the run's camera, ``size`` x ``size`` (or the target image's size).
-    The objective is checked against the scene's object names before the run's data is loaded.
+    """The ``Problem`` of the run folder ``folder`` (a point-light method, ``POINT_METHODS``) and
+    the objective file ``objective_path`` at the run's camera, ``size`` x ``size`` (or the target
+    image's size). The objective is checked against the scene's object names before the run's
+    data is loaded.
 
     Numerics: not differentiable (loads a run folder).
     """
-    from jprt.inputs import PointLights
+    from jprt.inputs import PointLights, PointRadiance
     from jprt.methods import REGISTRY
     from jprt.render.scenes import SceneHandle
     from jprt.runner import method_config
@@ -631,9 +675,9 @@ def load_problem(folder: str, objective_path, *, size: int = 64, progress: bool 
 
     summary, config = check_run_folder(folder)
     m = REGISTRY[summary["method"]]
-    if m.name != "rrf":
-        raise ValueError(f"jprt design relights point-light models through their evaluator (RRF so far); "
-                         f"{m.name} takes {m.lighting.__name__}")
+    if m.name not in POINT_METHODS:
+        raise ValueError(f"jprt design places point lights for {', '.join(POINT_METHODS)}; {m.name} takes "
+                         f"{m.lighting.__name__}")
     names = list(SceneHandle(method_config(m, config)["scene"]).object_names())
     probe = load_objective(objective_path, names)
     session = Session(folder, progress=progress)
@@ -647,18 +691,33 @@ def load_problem(folder: str, objective_path, *, size: int = 64, progress: bool 
     masks = object_masks(objective, gb.object_id, names, gb.valid)
     lo, hi = _region(session)
     evaluate = session.evaluator()
+    points = measurement_points(session)
+    handle = session.handle
 
-    def indirect(position, intensity):
-        return evaluate(gb, PointLights(position, intensity))
+    if points is None:
+        def indirect(position, intensity, visibility):
+            return evaluate(gb, PointLights(position, intensity))
 
-    return Problem(session, camera, gb, objective, masks, lo, hi, design_frame(gb, indirect))
+        def visibility(position):
+            return {"pixels": point_visibility(handle, gb, position)}
+    else:
+        def indirect(position, intensity, visibility):
+            direct, _ = point_direct(points, position, intensity, visibility["points"], glossy=False)
+            return evaluate(gb, PointRadiance(direct))
+
+        def visibility(position):
+            return {"pixels": point_visibility(handle, gb, position),
+                    "points": point_visibility(handle, points, position)}
+
+    return Problem(session, camera, gb, objective, masks, lo, hi, design_frame(gb, indirect), visibility)
 
 
 def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int = 64, steps: int = 200,
                learning_rate: float = 0.05, visibility_every: int = 10,
                optimise: Sequence[str] = ("position", "power"), start: dict | None = None, verify_spp: int = 256,
                seed: int = 0, progress: bool | None = None) -> dict:
-    """Design the lighting of the run folder ``folder`` for the objective file ``objective_path``
+    """Design the lighting of the run folder ``folder`` (RRF, data-driven PRT or MRT) for the
+    objective file ``objective_path``
     (``load_problem``); ``lights`` point lights start at ``start`` ({"position", "intensity"},
     (K, 3) each) or spread over the light region (seeded). Then the **verification**: the found
     lighting rendered by Mitsuba at ``verify_spp`` (full and indirect), the objective's terms on
@@ -675,9 +734,8 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
     else:
         pos0 = np.asarray(start["position"], np.float64).reshape(-1, 3)
         inten0 = np.asarray(start["intensity"], np.float64).reshape(-1, 3)
-    result = design(pb.frame, pb.objective, pb.masks, pos0, inten0, lo, hi,
-                    visibility_fn=lambda p: point_visibility(handle, gb, p), steps=steps,
-                    learning_rate=learning_rate, visibility_every=visibility_every, optimise=optimise,
+    result = design(pb.frame, pb.objective, pb.masks, pos0, inten0, lo, hi, visibility_fn=pb.visibility,
+                    steps=steps, learning_rate=learning_rate, visibility_every=visibility_every, optimise=optimise,
                     progress=progress)
     # verification: Mitsuba under the found lights, the objective on its render
     t0 = time.perf_counter()

@@ -109,13 +109,13 @@ def test_design_finds_the_known_optimum_of_a_synthetic_linear_model():
     gb = _floor(n=16)
     pattern = jnp.asarray(0.05 + 0.05 * np.linspace(0, 1, 16)[None, :, None] * np.ones((16, 16, 3)), jnp.float32)
 
-    def indirect(position, intensity):
+    def indirect(position, intensity, visibility):
         return pattern * jnp.mean(intensity)
 
     frame = design.design_frame(gb, indirect, glossy=False)
     lo, hi = np.array([-0.8, 0.6, -0.8]), np.array([0.8, 1.6, 0.8])
     true_pos, true_int = np.array([[0.3, 1.1, -0.25]]), np.array([[3.0, 3.0, 3.0]])
-    target, _, _ = frame(true_pos, true_int, jnp.ones((16, 16, 1)))
+    target, _, _ = frame(true_pos, true_int, {"pixels": jnp.ones((16, 16, 1))})
     obj = design.Objective(design.ImageTarget(np.asarray(target), None, "full", 1.0), (), 0.0, "synthetic")
     result = design.design(frame, obj, np.zeros((0, 16, 16)), np.array([[-0.4, 0.8, 0.4]]), np.ones((1, 3)), lo, hi,
                            steps=400, learning_rate=0.05, progress=False)
@@ -174,3 +174,30 @@ def test_jprt_design_on_a_test_preset_rrf_writes_a_verified_report(tmp_path, fit
     assert len(report["history"]) == 6 and np.all(np.isfinite(report["history"]))
     assert set(report["verified_terms"]) == set(report["model_terms"]) == {"floor.irradiance", "back.irradiance"}
     assert np.isfinite(report["verified_objective"]) and report["visibility_updates"] >= 1
+
+
+@pytest.mark.parametrize("name", ["datadriven", "mrt"])
+def test_the_analytic_direct_light_at_measurement_points_is_mitsubas(name, fitted_preset, tmp_path):
+    """Data-driven PRT and MRT take the direct radiance at their points; the design computes it
+    with ``point_direct`` and traced visibility, which must be what the method's own task adapter
+    gets from Mitsuba (one shadow ray per light) for the same lights."""
+    from jprt.inputs import PointLights
+    from jprt.runner import save_fit
+    from jprt.view import Session
+
+    m, config, dataset, result = fitted_preset(name)
+    s = Session(save_fit(str(tmp_path / "run"), name, config, result.params))
+    points = design.measurement_points(s)
+    lo, hi = design._region(s)
+    rng = np.random.default_rng(3)
+    pos = lo + (hi - lo) * rng.uniform(0.2, 0.8, (2, 3))
+    inten = np.array([[1.0, 0.8, 0.6], [0.5, 0.5, 1.0]])
+    want = np.asarray(m.task_lighting(s.handle, dataset, result.params, config,
+                                      PointLights.create(pos, inten)).direct)
+    got, _ = design.point_direct(points, pos, inten, design.point_visibility(s.handle, points, pos), glossy=False)
+    valid = np.asarray(points.valid, bool)  # MRT: texels of faces that exist (the rest are masked out)
+    got, want = np.asarray(got)[valid], want[valid]
+    assert want.shape == got.shape and np.abs(want).max() > 0
+    # the same light at every point but a few on a shadow's edge (the two shadow rays start differently)
+    close = np.abs(got - want) <= 1e-4 * np.abs(want).max() + 1e-3 * np.abs(want)
+    assert close.all(axis=-1).mean() >= 0.98, close.all(axis=-1).mean()

@@ -50,6 +50,7 @@ __all__ = [
     "atlas_gbuffer",
     "surface_samples",
     "radiance_at_points",
+    "direct_at_points",
     "indirect_at_points",
     "incident_delta_lights",
     "free_positions",
@@ -750,13 +751,33 @@ def radiance_at_points(handle: SceneHandle, position, normal, *, spp: int, seed:
     """Outgoing radiance (S, 3) along the normal at surface points, path traced with
     ``max_depth`` (2 = direct lighting only, -1 = full global illumination).
 
-    With point, spot or directional lights the direct part is deterministic (one shadow ray per
-    light), so ``spp=1`` gives it exactly (the "deferred shading of measurement points" of §4.3).
+    With one point, spot or directional light the direct part is deterministic (one shadow ray),
+    so ``spp=1`` gives it exactly (the "deferred shading of measurement points" of §4.3). With
+    several, Mitsuba's integrator picks one emitter per sample: use ``direct_at_points``.
     """
     position = np.asarray(position, np.float64)
     normal = np.asarray(normal, np.float64)
     eps = ray_offset(handle)
     return images.radiance_rays(handle, position + eps * normal, -normal, spp=spp, seed=seed, max_depth=max_depth)
+
+
+def direct_at_points(handle: SceneHandle, lighting, position, normal) -> np.ndarray:
+    """Direct radiance (S, 3) along the normal at surface points under ``lighting`` (point, spot or
+    directional lights; set on ``handle`` when it returns), exact: each light alone at one sample
+    (one shadow ray), summed. Rendered together, Mitsuba's integrator samples one of the K emitters
+    per sample and weights it by K, a one-sample estimate (two lights at 1 spp: 70 % of the largest
+    value off at some points of data-driven PRT's test scene, against 2e-7 for this sum).
+    """
+    count = int(getattr(lighting, "count", 1) or 1)
+    if count <= 1:
+        handle.set_lighting(lighting)
+        return radiance_at_points(handle, position, normal, spp=1, max_depth=2)
+    total = 0.0
+    for k in range(count):
+        handle.set_lighting(type(lighting)(*(np.asarray(f)[k:k + 1] for f in lighting)))
+        total = total + radiance_at_points(handle, position, normal, spp=1, max_depth=2)
+    handle.set_lighting(lighting)
+    return np.asarray(total, np.float32)
 
 
 def indirect_at_points(handle: SceneHandle, position, normal, *, spp: int, seed: int = 0) -> np.ndarray:

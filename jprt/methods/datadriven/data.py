@@ -67,9 +67,7 @@ def render_examples(handle, atlas, candidates, lightings, *, spp: int, seed: int
 
     direct, indirect = [], []
     for k, lighting in enumerate(progress_bar(lightings, progress=progress, desc=desc)):
-        handle.set_lighting(lighting)
-        direct.append(lightmap.radiance_at_points(handle, candidates["position"], candidates["normal"], spp=1,
-                                                  max_depth=2))
+        direct.append(lightmap.direct_at_points(handle, lighting, candidates["position"], candidates["normal"]))
         indirect.append(lightmap.indirect_at_points(handle, atlas["position"], atlas["normal"], spp=spp,
                                                     seed=seed * 100003 + first + k))
     return np.stack(direct), np.stack(indirect)
@@ -244,12 +242,12 @@ def task_inputs(handle, dataset: DDData, camera):
 
 def task_lighting(handle, dataset: DDData, params, config, lighting):
     """§4.3 at run time: the direct radiance of ``lighting`` at the fine measurement points
-    (Mitsuba, one shadow ray per light, as in training), a ``PointRadiance``."""
+    (Mitsuba, one shadow ray per light, as in training: ``lightmap.direct_at_points``), a
+    ``PointRadiance``."""
     from jprt.inputs import PointRadiance
     from jprt.render import lightmap
 
     fine = np.asarray(params["fine_index"])
-    handle.set_lighting(lighting)
-    direct = lightmap.radiance_at_points(handle, np.asarray(dataset.candidates["position"])[fine],
-                                         np.asarray(dataset.candidates["normal"])[fine], spp=1, max_depth=2)
+    direct = lightmap.direct_at_points(handle, lighting, np.asarray(dataset.candidates["position"])[fine],
+                                       np.asarray(dataset.candidates["normal"])[fine])
     return PointRadiance(np.asarray(direct, np.float32))

@@ -106,8 +106,7 @@ def render_texels(handle, positions, normals, lightings, *, spp: int, seed: int,
     p, nrm = positions.reshape(-1, 3), normals.reshape(-1, 3)
     direct, indirect = [], []
     for k, lighting in enumerate(progress_bar(lightings, progress=progress, desc=desc)):
-        handle.set_lighting(lighting)
-        direct.append(lightmap.radiance_at_points(handle, p, nrm, spp=1, max_depth=2).reshape(positions.shape))
+        direct.append(lightmap.direct_at_points(handle, lighting, p, nrm).reshape(positions.shape))
         indirect.append(lightmap.indirect_at_points(handle, p, nrm, spp=spp, seed=seed * 100003 + k)
                         .reshape(positions.shape))
     shape = (0,) + positions.shape
@@ -186,12 +185,11 @@ def task_inputs(handle, dataset: MRTData, camera):
 
 
 def task_lighting(handle, dataset: MRTData, params, config, lighting):
-    """§7.3 step 1: Mitsuba's direct light of ``lighting`` at every texel (exact), a
-    ``PointRadiance``."""
+    """§7.3 step 1: Mitsuba's direct light of ``lighting`` at every texel (exact, one light at a
+    time: ``lightmap.direct_at_points``), a ``PointRadiance``."""
     from jprt.inputs import PointRadiance
     from jprt.render import lightmap
 
-    handle.set_lighting(lighting)
-    direct = lightmap.radiance_at_points(handle, dataset.positions.reshape(-1, 3), dataset.normals.reshape(-1, 3),
-                                         spp=1, max_depth=2)
+    direct = lightmap.direct_at_points(handle, lighting, dataset.positions.reshape(-1, 3),
+                                       dataset.normals.reshape(-1, 3))
     return PointRadiance(np.asarray(direct, np.float32))
