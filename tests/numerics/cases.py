@@ -451,3 +451,25 @@ def design_objective(draw, spec):
         return tuple(terms[k] for k in sorted(terms))
 
     return Problem(fn, args, ["full", "irradiance", "intensity"])
+
+
+# jprt.sphere.cubemap (bilinear sampling, rotation) ------------------------------------------------
+
+def cube_bilinear(draw, spec):
+    import numpy as np
+
+    from jprt.sphere import cubemap
+
+    args = _draw(draw, cubemap="(6, 4, 4, 3) in [0, 1e5]", d="(32, 3) unit")
+    d = np.asarray(args["d"], np.float64)
+    a = np.sort(np.abs(d), axis=-1)
+    keep = (a[:, 2] - a[:, 1]) > np.sin(np.radians(2.0))  # off the diagonals, where the face switches
+    args["d"] = np.where(keep[:, None], d, np.array([0.3, 0.2, 0.93]) / np.linalg.norm([0.3, 0.2, 0.93]))
+    return Problem(cubemap.sample_cubemap_bilinear, args, ["cubemap", "d"])
+
+
+def cube_rotate(draw, spec):
+    from jprt.sphere import cubemap
+
+    args = _draw(draw, cubemap="(6, 4, 4, 3) in [0, 1e5]", angle="() in [0.1, 1.4]")
+    return Problem(cubemap.rotate_cubemap_y, args, ["cubemap", "angle"])
