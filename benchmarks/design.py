@@ -65,7 +65,7 @@ def _target(problem, lights, spp: int, seed: int) -> np.ndarray:
     from jprt.render import images
 
     problem.session.handle.set_lighting(PointLights.create(lights[0], lights[1]))
-    r = images.direct_indirect(problem.session.handle, problem.camera, spp=spp, seed=seed)
+    r = images.centre_rays(problem.session.handle, problem.camera, spp=spp, seed=seed)
     full = np.asarray(r.direct, np.float32) + np.asarray(r.indirect, np.float32)
     return np.where(np.asarray(problem.gbuffer.valid, bool)[..., None], full, 0.0).astype(np.float32)
 
@@ -167,8 +167,8 @@ def main() -> int:
     write_benchmark(args.out, result, command,
                     notes="gradient check: parameters are each light's position (world units) and log intensity "
                           "scale; finite differences central, step 0.01 of the scene's diagonal (position) and "
-                          "0.05 (log scale), Mitsuba full renders (direct + indirect, pixel-averaged) at the G-buffer "
-                          "camera; noise = |g_seed1 - g_seed2| / |g_seed1 + g_seed2|. Inverse lighting: image "
+                          "0.05 (log scale), Mitsuba full radiance (direct + indirect) along the G-buffer's pixel-centre "
+                          "rays; noise = |g_seed1 - g_seed2| / |g_seed1 + g_seed2|. Inverse lighting: image "
                           "objective (relative squared error of the full image), Adam with cosine decay, visibility "
                           "traced every 10 steps; position error over the scene's bounding-box diagonal.")
     return 0

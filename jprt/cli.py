@@ -183,7 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-onnx", dest="onnx", action="store_false", help="skip the ONNX conversion")
     p = sub.add_parser("design", help="the lighting that meets an objective file, found through a run's model and "
                                       "rendered by Mitsuba to check it")
-    p.add_argument("folder", help="a run folder of a point-light model (RRF)")
+    p.add_argument("folder", help="a run folder: point lights for RRF, data-driven PRT and MRT; an environment's "
+                                  "turn and scale for neural-wavelet PRT and SH PRT")
     p.add_argument("--objective", required=True, help="the objective file (JSON; jprt.design says what it holds)")
     p.add_argument("--lights", type=int, default=1, help="point lights to place (default 1)")
     p.add_argument("--size", type=int, default=64, help="the square frame at the run's camera (default 64; a "
@@ -191,8 +192,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=200, help="Adam steps (default 200)")
     p.add_argument("--lr", type=float, default=0.05, help="Adam's learning rate on the unconstrained "
                                                           "parameters (default 0.05)")
-    p.add_argument("--optimise", default="position,power", help="what moves: position, power, colour "
-                                                                "(comma-separated; default position,power)")
+    p.add_argument("--optimise", default=None, help="what moves (comma-separated): position, power, colour for "
+                                                    "point lights (default position,power); rotation, scale, "
+                                                    "colour for an environment (default rotation,scale)")
+    p.add_argument("--env", default=None, help="the environment map to turn and scale (one of the run's; default "
+                                               "the first)")
     p.add_argument("--verify-spp", type=int, default=256, help="Mitsuba's spp for the verification render")
     p.add_argument("--out", default=None, help="write the report here (JSON)")
     args = parser.parse_args(argv)
@@ -258,10 +262,16 @@ def _design(args) -> int:
 
     check_run_folder(args.folder)
     report = design_run(args.folder, args.objective, lights=args.lights, size=args.size, steps=args.steps,
-                        learning_rate=args.lr, optimise=[s.strip() for s in args.optimise.split(",") if s.strip()],
-                        verify_spp=args.verify_spp, progress=True)
-    for k, (p, i) in enumerate(zip(report["found"]["position"], report["found"]["intensity"])):
-        print(f"light {k}: position {', '.join(f'{v:.4g}' for v in p)}; intensity {', '.join(f'{v:.4g}' for v in i)}")
+                        learning_rate=args.lr, verify_spp=args.verify_spp, env=args.env, progress=True,
+                        optimise=None if args.optimise is None else [s.strip() for s in args.optimise.split(",")
+                                                                      if s.strip()])
+    if "rotation_deg" in report["found"]:
+        print(f"environment {report['environment']}: turned {report['found']['rotation_deg']:.2f} degrees about +Y, "
+              f"scale {', '.join(f'{v:.4g}' for v in report['found']['scale'])}")
+    else:
+        for k, (p, i) in enumerate(zip(report["found"]["position"], report["found"]["intensity"])):
+            print(f"light {k}: position {', '.join(f'{v:.4g}' for v in p)}; intensity "
+                  f"{', '.join(f'{v:.4g}' for v in i)}")
     print(f"objective: model {report['model_objective']:.4g}, Mitsuba at {report['verify_spp']} spp "
           f"{report['verified_objective']:.4g} (design {report['design_s']:.1f} s, verification {report['verify_s']:.1f} s)")
     if args.out:

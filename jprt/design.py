@@ -54,7 +54,8 @@ from jprt.progress import bar as progress_bar
 __all__ = ["ObjectiveError", "ImageTarget", "ObjectTarget", "Objective", "load_objective", "object_masks",
            "objective_terms", "LightParams", "to_params", "from_params", "point_direct", "irradiance_from",
            "point_visibility", "DesignResult", "design", "design_frame", "rendered_terms", "gradient_check",
-           "Problem", "POINT_METHODS", "measurement_points", "load_problem", "design_run", "OBJECTIVE_KEYS", "QUANTITIES"]
+           "Problem", "POINT_METHODS", "measurement_points", "load_problem", "design_run", "EnvironmentResult",
+           "environment_transfer", "environment_frame", "design_environment", "ENVIRONMENT_METHODS", "OBJECTIVE_KEYS", "QUANTITIES"]
 
 #: Keys of an objective file, of its ``image`` entry and of each ``objects`` entry.
 OBJECTIVE_KEYS = ("image", "objects", "power_penalty")
@@ -431,8 +432,6 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
     bad = sorted(set(optimise) - {"position", "power", "colour"})
     if bad or not optimise:
         raise ValueError(f"optimise names 'position', 'power' and 'colour', got {list(optimise)}")
-    import optax
-
     p0 = to_params(position, intensity, lo, hi)
     reference = float(np.sum(intensity))
     free_u = "position" in optimise
@@ -452,45 +451,57 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
         terms = objective_terms(objective, masks, full, ind, irr, inten, reference)
         return sum(terms.values()), terms
 
+    def refresh(params):
+        if visibility_fn is None:
+            return {"pixels": jnp.ones((1, 1, int(np.shape(position)[0])), jnp.float32)}
+        return jax.tree_util.tree_map(jnp.asarray, visibility_fn(np.asarray(lights(params)[0], np.float64)))
+
+    params, history, terms, seconds, updates = _adam(loss, p0, steps=steps, learning_rate=learning_rate,
+                                                     refresh=refresh, every=visibility_every, progress=progress)
+    pos, inten = lights(params)
+    return DesignResult(np.asarray(pos, np.float64), np.asarray(inten, np.float64), history, terms, seconds,
+                        updates if visibility_fn is not None else 0)
+
+
+def _adam(loss: Callable, params, *, steps: int, learning_rate: float, refresh: Callable, every: int,
+          progress: bool | None):
+    """Adam on ``loss(params, aux) -> (value, terms)`` for ``steps`` steps, the rate decaying on a
+    cosine to 1 %, the gradient in forward mode; ``aux = refresh(params)`` first, every ``every``
+    steps and at the end. Returns (params, history, terms at the end, seconds, refreshes)."""
+    import optax
+
     # cosine decay to 1 % of the rate: the last steps settle instead of circling the optimum
     opt = optax.adam(optax.cosine_decay_schedule(float(learning_rate), max(int(steps), 1), alpha=0.01))
 
-    def value_only(params, vis):
-        value, terms = loss(params, vis)
+    def value_only(params, aux):
+        value, _ = loss(params, aux)
         return value, value
 
     @jax.jit
-    def step(params, state, vis):
-        # forward mode: 6 parameters a light, one JVP each, and it differentiates through the while
+    def step(params, state, aux):
+        # forward mode: a few parameters, one JVP each, and it differentiates through the while
         # loops that reverse mode cannot (RRF's kd-tree traversal)
-        grads, value = jax.jacfwd(value_only, has_aux=True)(params, vis)
+        grads, value = jax.jacfwd(value_only, has_aux=True)(params, aux)
         updates, state = opt.update(grads, state, params)
         return optax.apply_updates(params, updates), state, value
 
-    params, state = p0, opt.init(p0)
-    k = int(np.shape(position)[0])
-    vis = None
-    updates = 0
-    history = []
+    state = opt.init(params)
+    aux, refreshes, history = None, 0, []
     t0 = time.perf_counter()
     bar = progress_bar(range(int(steps)), progress=progress, desc="design", unit="step")
     for i in bar:
-        if vis is None or (visibility_fn is not None and i % max(int(visibility_every), 1) == 0):
-            pos = np.asarray(lights(params)[0], np.float64)
-            vis = ({"pixels": jnp.ones((1, 1, k), jnp.float32)} if visibility_fn is None else
-                   jax.tree_util.tree_map(jnp.asarray, visibility_fn(pos)))
-            updates += visibility_fn is not None
-        params, state, value = step(params, state, vis)
+        if aux is None or i % max(int(every), 1) == 0:
+            aux = refresh(params)
+            refreshes += 1
+        params, state, value = step(params, state, aux)
         history.append(float(value))
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(objective=f"{history[-1]:.3g}")
-    pos, inten = lights(params)
-    if visibility_fn is not None:
-        vis = jax.tree_util.tree_map(jnp.asarray, visibility_fn(np.asarray(pos, np.float64)))
-        updates += 1
-    _, terms = loss(params, vis)
-    return DesignResult(np.asarray(pos, np.float64), np.asarray(inten, np.float64), np.asarray(history),
-                        {k2: float(v) for k2, v in terms.items()}, time.perf_counter() - t0, updates)
+    aux = refresh(params)
+    refreshes += 1
+    _, terms = loss(params, aux)
+    return (params, np.asarray(history), {k: float(v) for k, v in terms.items()}, time.perf_counter() - t0,
+            refreshes)
 
 
 def design_frame(gbuffer, indirect_fn: Callable, *, glossy: bool = True) -> Callable:
@@ -513,7 +524,8 @@ def design_frame(gbuffer, indirect_fn: Callable, *, glossy: bool = True) -> Call
 def rendered_terms(handle, camera, gbuffer, objective: Objective, masks, position, intensity, *, spp: int,
                    seed: int = 0, reference_power: float = 1.0) -> dict:
     """``objective_terms`` on Mitsuba's render of point lights (``position``, ``intensity`` (K, 3))
-    at ``camera`` (``spp``, ``seed``; full and indirect, invalid G-buffer pixels 0). Irradiance
+    at ``camera`` (``spp``, ``seed``; full and indirect along the pixel-centre rays the G-buffer
+    traces, ``jprt.render.images.centre_rays``; invalid G-buffer pixels 0). Irradiance
     there is the lights' direct irradiance (exact for point lights, with traced visibility) plus
     the render's indirect radiance read as irradiance (``irradiance_from``).
 
@@ -523,7 +535,7 @@ def rendered_terms(handle, camera, gbuffer, objective: Objective, masks, positio
     from jprt.render import images
 
     handle.set_lighting(PointLights.create(np.asarray(position, np.float32), np.asarray(intensity, np.float32)))
-    r = images.direct_indirect(handle, camera, spp=int(spp), seed=int(seed))
+    r = images.centre_rays(handle, camera, spp=int(spp), seed=int(seed))
     valid = np.asarray(gbuffer.valid, bool)[..., None]
     full = np.where(valid, np.asarray(r.direct, np.float32) + np.asarray(r.indirect, np.float32), 0.0)
     ind = np.where(valid, np.asarray(r.indirect, np.float32), 0.0)
@@ -597,6 +609,115 @@ def gradient_check(handle, camera, gbuffer, frame_fn: Callable, objective: Objec
             "spp": int(spp), "step": {"position": float(step) * size, "log_scale": float(log_step)}}
 
 
+# --------------------------------------------------------------------------------------------
+# Environment lighting: rotation about +Y and scale
+
+
+class EnvironmentResult(NamedTuple):
+    """What ``design_environment`` found: ``angle`` (radians about +Y), ``scale`` (3,) per channel,
+    ``history``, ``terms`` at the end, ``seconds``."""
+
+    angle: float
+    scale: np.ndarray
+    history: np.ndarray
+    terms: dict
+    seconds: float
+
+
+def environment_transfer(handle, gbuffer, face: int, *, chunk: int = 64) -> np.ndarray:
+    """(H, W, 6 face^2) direct-light transfer of an environment cube map of face ``face`` to the
+    G-buffer's pixels: T[p, j] = V(p, w_j) max(n_p . w_j, 0) Omega_j, w_j the texel centres'
+    directions and Omega_j their solid angles, V traced by Mitsuba (a ray from the point, offset
+    along its normal, that escapes the scene). The direct irradiance under a map L is T L; the map's
+    detail below a texel (a sun's disk) is spread over its texel. Invalid pixels are 0.
+
+    Numerics: not differentiable (Mitsuba's visibility rays; the transfer is a constant of the design).
+    """
+    from jprt.render.lightmap import intersect, ray_offset
+    from jprt.sphere import cubemap
+
+    valid = np.asarray(gbuffer.valid, bool)
+    shape = valid.shape
+    dirs = np.asarray(cubemap.texel_directions(int(face)), np.float64).reshape(-1, 3)
+    omega = np.asarray(cubemap.texel_solid_angles(int(face)), np.float64).reshape(-1)
+    pos = np.asarray(gbuffer.position, np.float64).reshape(-1, 3)
+    nrm = np.asarray(gbuffer.normal, np.float64).reshape(-1, 3)
+    idx = np.flatnonzero(valid.reshape(-1))
+    out = np.zeros((pos.shape[0], dirs.shape[0]), np.float32)
+    origin = pos[idx] + ray_offset(handle) * nrm[idx]
+    for j0 in range(0, dirs.shape[0], int(chunk)):
+        d = dirs[j0:j0 + int(chunk)]  # (J, 3)
+        cos = np.maximum(nrm[idx] @ d.T, 0.0)  # (P, J)
+        o = np.repeat(origin, d.shape[0], axis=0)
+        dd = np.tile(d, (origin.shape[0], 1))
+        hit = np.asarray(intersect(handle, o, dd).is_valid(), bool).reshape(origin.shape[0], d.shape[0])
+        out[idx, j0:j0 + d.shape[0]] = (cos * ~hit * omega[None, j0:j0 + d.shape[0]]).astype(np.float32)
+    return out.reshape(shape + (dirs.shape[0],))
+
+
+def environment_frame(gbuffer, indirect_fn: Callable, transfer) -> Callable:
+    """``frame(cube) -> (full, indirect, irradiance)`` for an environment cube map (6, n, n, 3):
+    direct = albedo / pi x T L (``environment_transfer``: diffuse only, the glossy lobe of the
+    direct light is not modelled), indirect = ``indirect_fn(cube)`` (the model's), irradiance =
+    T L + pi L_indirect / albedo.
+
+    Numerics: not differentiable (builds the frame function: a linear map plus ``irradiance_from``).
+    """
+    t = jnp.asarray(transfer)
+    albedo = jnp.asarray(gbuffer.diffuse_albedo)
+    valid = jnp.asarray(gbuffer.valid, bool)[..., None]
+
+    def frame(cube):
+        e_direct = jnp.einsum("hwj,jc->hwc", t, jnp.reshape(cube, (-1, 3)))
+        ind = indirect_fn(cube)
+        direct = jnp.where(valid, albedo / jnp.pi * e_direct, 0.0)
+        return direct + ind, ind, e_direct + irradiance_from(ind, albedo)
+
+    return frame
+
+
+def design_environment(frame_fn: Callable, objective: Objective, masks, cube, *, angle: float = 0.0,
+                       scale=(1.0, 1.0, 1.0), steps: int = 200, learning_rate: float = 0.05,
+                       optimise: Sequence[str] = ("rotation", "scale"), progress: bool | None = None
+                       ) -> EnvironmentResult:
+    """Turn the environment ``cube`` (6, n, n, 3) about +Y and scale it (per channel, > 0) so that
+    ``objective`` is smallest: Adam (``_adam``) on (angle, log scale), the lighting
+    exp(log scale) x ``jprt.sphere.cubemap.rotate_cubemap_y(cube, angle)`` handed to
+    ``frame_fn(cube) -> (full, indirect, irradiance)`` (``environment_frame``). ``optimise``
+    names which of "rotation", "scale" (the overall level) and "colour" (the RGB ratios) move.
+
+    Numerics: not differentiable (an optimisation loop over ``objective_terms``, ``rotate_cubemap_y`` and the model).
+    """
+    from jprt.sphere import cubemap
+
+    bad = sorted(set(optimise) - {"rotation", "scale", "colour"})
+    if bad or not optimise:
+        raise ValueError(f"optimise names 'rotation', 'scale' and 'colour', got {list(optimise)}")
+    base = jnp.asarray(cube, jnp.float32)
+    s0 = np.maximum(np.asarray(scale, np.float64).reshape(3), 1e-12)
+    p0 = (jnp.asarray(float(angle), jnp.float32), jnp.asarray(np.log(s0), jnp.float32))
+    reference = float(np.sum(s0))
+
+    def lighting(params):
+        a, s = params
+        a = a if "rotation" in optimise else jax.lax.stop_gradient(a)
+        mean = jnp.mean(s)
+        level = mean if "scale" in optimise else jax.lax.stop_gradient(mean)
+        tint = s - mean if "colour" in optimise else jax.lax.stop_gradient(s - mean)
+        scale_rgb = jnp.exp(level + tint)
+        return cubemap.rotate_cubemap_y(base, a) * scale_rgb.reshape(1, 1, 1, 3), scale_rgb
+
+    def loss(params, aux):
+        turned, scale_rgb = lighting(params)
+        full, ind, irr = frame_fn(turned)
+        terms = objective_terms(objective, masks, full, ind, irr, scale_rgb.reshape(1, 3), reference)
+        return sum(terms.values()), terms
+
+    params, history, terms, seconds, _ = _adam(loss, p0, steps=steps, learning_rate=learning_rate,
+                                               refresh=lambda p: None, every=max(int(steps), 1), progress=progress)
+    return EnvironmentResult(float(params[0]), np.asarray(lighting(params)[1], np.float64), history, terms, seconds)
+
+
 def _region(session) -> tuple[np.ndarray, np.ndarray]:
     meta = getattr(session.dataset, "meta", None)
     if isinstance(meta, dict) and "light_lo" in meta:
@@ -611,18 +732,28 @@ class Problem(NamedTuple):
     """A run folder's design problem at its camera: the ``jprt.view.Session``, the ``camera`` and its
     G-buffer ``gbuffer``, the validated ``objective`` and its object ``masks``, the light region
     ``lo``, ``hi``, ``frame`` (``design_frame`` of the run's evaluator) and ``visibility``
-    (position -> the visibility dict ``frame`` reads)."""
+    (position -> the visibility dict ``frame`` reads); for an environment-lit model (``kind``
+    "environment") ``frame`` takes a cube map (``environment_frame``), ``environments`` are the
+    run's maps {name: (6, n, n, 3)} and ``transfer`` their direct transfer, and there is no light
+    region or visibility."""
 
     session: object
     camera: object
     gbuffer: object
     objective: Objective
     masks: np.ndarray
-    lo: np.ndarray
-    hi: np.ndarray
+    lo: np.ndarray | None
+    hi: np.ndarray | None
     frame: Callable
-    visibility: Callable
+    visibility: Callable | None
+    kind: str = "point"
+    environments: dict | None = None
+    transfer: np.ndarray | None = None
 
+
+#: Environment-lit methods ``jprt design`` turns and scales the map of: neural-wavelet PRT takes the
+#: cube map itself, SH PRT its SH projection (``jprt.sphere.sh.project_cubemap``, differentiable).
+ENVIRONMENT_METHODS = ("wavelet_prt", "sh_prt")
 
 #: Methods ``jprt design`` optimises point lights for: RRF takes the lights themselves (Eq. 9);
 #: data-driven PRT and MRT take the direct radiance at their measurement points or texels, which
@@ -659,11 +790,33 @@ def measurement_points(session):
                    np.ones(s, np.float32), np.zeros(s, np.int32), valid)
 
 
-def load_problem(folder: str, objective_path, *, size: int = 64, progress: bool | None = None) -> Problem:
+def _environment_cube(session, env: str | None) -> tuple[str, np.ndarray]:
+    """(name, (6, n, n, 3) cube) of ``env``: one of the run's maps (default the first), or an
+    environment-map file (resampled to the model's cube face: neural-wavelet PRT's
+    ``envmaps.face_size``, else 32; radiance as in the file)."""
+    envs = dict(session.environments)
+    if env is not None and os.path.isfile(env):
+        from jprt.render.lights import EnvMap
+        from jprt.sphere.envmap import prepare_environment
+
+        face = int(session.method_config.get("envmaps", {}).get("face_size", 32))
+        return os.path.basename(env), np.asarray(prepare_environment(EnvMap.from_file(env).radiance, face,
+                                                                     normalise=False), np.float32)
+    if not envs:
+        raise ValueError(f"{session.folder}: the run has no environment maps: give --env an environment-map file")
+    name = next(iter(envs)) if env is None else env
+    if name not in envs:
+        raise ValueError(f"no environment {name!r} in the run (it has {', '.join(envs)}), and no such file")
+    return name, np.asarray(envs[name], np.float32)
+
+
+def load_problem(folder: str, objective_path, *, size: int = 64, env: str | None = None,
+                 progress: bool | None = None) -> Problem:
     """The ``Problem`` of the run folder ``folder`` (a point-light method, ``POINT_METHODS``) and
     the objective file ``objective_path`` at the run's camera, ``size`` x ``size`` (or the target
     image's size). The objective is checked against the scene's object names before the run's
-    data is loaded.
+    data is loaded. Environment-lit models: ``env`` chooses the map (``_environment_cube``), whose
+    direct transfer is traced here; ``environments`` holds it alone.
 
     Numerics: not differentiable (loads a run folder).
     """
@@ -675,9 +828,9 @@ def load_problem(folder: str, objective_path, *, size: int = 64, progress: bool 
 
     summary, config = check_run_folder(folder)
     m = REGISTRY[summary["method"]]
-    if m.name not in POINT_METHODS:
-        raise ValueError(f"jprt design places point lights for {', '.join(POINT_METHODS)}; {m.name} takes "
-                         f"{m.lighting.__name__}")
+    if m.name not in POINT_METHODS + ENVIRONMENT_METHODS:
+        raise ValueError(f"jprt design places point lights for {', '.join(POINT_METHODS)} and turns and scales the "
+                         f"environment of {', '.join(ENVIRONMENT_METHODS)}; {m.name} takes {m.lighting.__name__}")
     names = list(SceneHandle(method_config(m, config)["scene"]).object_names())
     probe = load_objective(objective_path, names)
     session = Session(folder, progress=progress)
@@ -686,24 +839,46 @@ def load_problem(folder: str, objective_path, *, size: int = 64, progress: bool 
         if probe.image.target.shape[1] != size:
             raise ObjectiveError(f"{probe.source}: image must be square (the run's camera at size x size)")
     camera = session.camera(int(size))
-    gb = session.inputs(int(size))
+    model_inputs = session.inputs(int(size))
+    from jprt.inputs import GBuffer
+
+    if isinstance(model_inputs, GBuffer):
+        gb = model_inputs
+    else:  # a model that reads a few fields of its own (neural-wavelet PRT): the full G-buffer for the design
+        from jprt.render.gbuffer import gbuffer
+
+        gb = gbuffer(session.handle, camera)
     objective = load_objective(objective_path, names, shape=np.shape(gb.valid))
     masks = object_masks(objective, gb.object_id, names, gb.valid)
-    lo, hi = _region(session)
     evaluate = session.evaluator()
+    if m.name in ENVIRONMENT_METHODS:
+        from jprt.inputs import CubeMap, SHLighting
+        from jprt.sphere import sh
+
+        name, cube = _environment_cube(session, env)
+        transfer = environment_transfer(session.handle, gb, int(cube.shape[1]))
+        degree = int(session.dataset.meta["degree"]) if m.name == "sh_prt" else 0
+
+        def indirect_env(cube):
+            lighting = SHLighting(sh.project_cubemap(cube, degree)) if m.name == "sh_prt" else CubeMap(cube)
+            return evaluate(model_inputs, lighting)
+
+        return Problem(session, camera, gb, objective, masks, None, None,
+                       environment_frame(gb, indirect_env, transfer), None, "environment", {name: cube}, transfer)
+    lo, hi = _region(session)
     points = measurement_points(session)
     handle = session.handle
 
     if points is None:
         def indirect(position, intensity, visibility):
-            return evaluate(gb, PointLights(position, intensity))
+            return evaluate(model_inputs, PointLights(position, intensity))
 
         def visibility(position):
             return {"pixels": point_visibility(handle, gb, position)}
     else:
         def indirect(position, intensity, visibility):
             direct, _ = point_direct(points, position, intensity, visibility["points"], glossy=False)
-            return evaluate(gb, PointRadiance(direct))
+            return evaluate(model_inputs, PointRadiance(direct))
 
         def visibility(position):
             return {"pixels": point_visibility(handle, gb, position),
@@ -714,10 +889,12 @@ def load_problem(folder: str, objective_path, *, size: int = 64, progress: bool 
 
 def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int = 64, steps: int = 200,
                learning_rate: float = 0.05, visibility_every: int = 10,
-               optimise: Sequence[str] = ("position", "power"), start: dict | None = None, verify_spp: int = 256,
-               seed: int = 0, progress: bool | None = None) -> dict:
-    """Design the lighting of the run folder ``folder`` (RRF, data-driven PRT or MRT) for the
-    objective file ``objective_path``
+               optimise: Sequence[str] | None = None, start: dict | None = None, verify_spp: int = 256,
+               seed: int = 0, env: str | None = None, progress: bool | None = None) -> dict:
+    """Design the lighting of the run folder ``folder`` for the objective file ``objective_path``:
+    point lights (RRF, data-driven PRT, MRT) or the turn and scale of an environment map (``env``,
+    one of the run's maps; default the first: neural-wavelet PRT, SH PRT, ``_design_environment_run``).
+    ``optimise``: what moves (default position and power, or rotation and scale). Point lights:
     (``load_problem``); ``lights`` point lights start at ``start`` ({"position", "intensity"},
     (K, 3) each) or spread over the light region (seeded). Then the **verification**: the found
     lighting rendered by Mitsuba at ``verify_spp`` (full and indirect), the objective's terms on
@@ -725,7 +902,11 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
 
     Numerics: not differentiable (loads a run folder, designs, renders with Mitsuba).
     """
-    pb = load_problem(folder, objective_path, size=size, progress=progress)
+    pb = load_problem(folder, objective_path, size=size, env=env, progress=progress)
+    if pb.kind == "environment":
+        return _design_environment_run(pb, folder, objective_path, steps=steps,
+                                       learning_rate=learning_rate, optimise=optimise, verify_spp=verify_spp,
+                                       seed=seed, progress=progress)
     lo, hi, gb, handle = pb.lo, pb.hi, pb.gbuffer, pb.session.handle
     if start is None:
         rng = np.random.default_rng(seed)
@@ -734,6 +915,7 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
     else:
         pos0 = np.asarray(start["position"], np.float64).reshape(-1, 3)
         inten0 = np.asarray(start["intensity"], np.float64).reshape(-1, 3)
+    optimise = ("position", "power") if optimise is None else optimise
     result = design(pb.frame, pb.objective, pb.masks, pos0, inten0, lo, hi, visibility_fn=pb.visibility,
                     steps=steps, learning_rate=learning_rate, visibility_every=visibility_every, optimise=optimise,
                     progress=progress)
@@ -754,3 +936,42 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
             "verify_s": verify_s,
             "direct": "analytic point lights (diffuse + GGX) with Mitsuba shadow rays every "
                       f"{int(visibility_every)} steps, held constant between"}
+
+
+def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, steps: int,
+                            learning_rate: float, optimise, verify_spp: int, seed: int, progress) -> dict:
+    """``design_run`` for an environment-lit model: turn and scale the problem's map (from angle 0
+    and scale 1), then render the found map with Mitsuba (``jprt.render.lights.EnvMap`` of its
+    equirect, along the G-buffer's pixel-centre rays) and evaluate the objective there: irradiance = T L (the traced direct transfer) +
+    the render's indirect radiance read as irradiance."""
+    from jprt.render import images
+    from jprt.render.lights import EnvMap
+    from jprt.sphere import cubemap
+    from jprt.sphere.envmap import render_equirect
+
+    name, cube = next(iter(pb.environments.items()))
+    optimise = ("rotation", "scale") if optimise is None else optimise
+    result = design_environment(pb.frame, pb.objective, pb.masks, cube, steps=steps, learning_rate=learning_rate,
+                                optimise=optimise, progress=progress)
+    model_terms = result.terms
+    t0 = time.perf_counter()
+    found = np.asarray(cubemap.rotate_cubemap_y(cube, result.angle), np.float64) * result.scale.reshape(1, 1, 1, 3)
+    handle, gb = pb.session.handle, pb.gbuffer
+    handle.set_lighting(EnvMap.create(render_equirect(found.astype(np.float32))))
+    r = images.centre_rays(handle, pb.camera, spp=int(verify_spp), seed=int(seed) + 101)
+    valid = np.asarray(gb.valid, bool)[..., None]
+    full = np.where(valid, np.asarray(r.direct, np.float32) + np.asarray(r.indirect, np.float32), 0.0)
+    ind = np.where(valid, np.asarray(r.indirect, np.float32), 0.0)
+    e_direct = np.einsum("hwj,jc->hwc", pb.transfer, found.reshape(-1, 3))
+    irr = e_direct + np.asarray(irradiance_from(ind, gb.diffuse_albedo))
+    verified = {k: float(v) for k, v in objective_terms(pb.objective, pb.masks, full, ind, irr,
+                                                        result.scale.reshape(1, 3), 3.0).items()}
+    return {"run": os.path.abspath(folder), "method": pb.session.method.name,
+            "objective": os.path.abspath(objective_path), "frame": list(np.shape(gb.valid)), "environment": name,
+            "found": {"rotation_deg": float(np.degrees(result.angle)), "scale": result.scale.tolist()},
+            "steps": int(steps), "design_s": result.seconds, "history": result.history.tolist(),
+            "model_terms": model_terms, "model_objective": float(sum(model_terms.values())),
+            "verified_terms": verified, "verified_objective": float(sum(verified.values())),
+            "verify_spp": int(verify_spp), "verify_s": time.perf_counter() - t0,
+            "direct": "the map's direct light through a traced transfer at the cube's face size (diffuse; visibility "
+                      "per texel direction, one ray)"}
