@@ -85,19 +85,22 @@ function layerTexture(fill, resolution, count, texelValue) {
   return texture;
 }
 
+// the meshes' vertex stage: the lightmap UV (TEXCOORD_1) passed on
+const VERTEX_UV = `
+  in vec2 uv1;
+  out vec2 vLightmapUv;
+  void main() {
+    vLightmapUv = uv1;
+    gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
+  }`;
+
 function layerMaterial(texture, count) {
   return new THREE.ShaderMaterial({
     glslVersion: THREE.GLSL3,
     side: THREE.DoubleSide,
     defines: { LAYERS: count },
     uniforms: { layers: { value: texture }, weights: { value: Array.from({ length: count }, () => new THREE.Vector3()) } },
-    vertexShader: `
-      in vec2 uv1;
-      out vec2 vLightmapUv;
-      void main() {
-        vLightmapUv = uv1;
-        gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
-      }`,
+    vertexShader: VERTEX_UV,
     fragmentShader: `
       precision highp float;
       precision highp sampler2DArray;
@@ -301,13 +304,7 @@ async function mrt(base, manifest) {
     glslVersion: THREE.GLSL3,
     side: THREE.DoubleSide,
     uniforms: { layers: { value: texture } },
-    vertexShader: `
-      in vec2 uv1;
-      out vec2 vLightmapUv;
-      void main() {
-        vLightmapUv = uv1;
-        gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
-      }`,
+    vertexShader: VERTEX_UV,
     fragmentShader: `
       precision highp float;
       precision highp sampler2DArray;
