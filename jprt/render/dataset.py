@@ -152,7 +152,8 @@ def render_dataset(scene, cameras: Sequence[cams.Camera], lightings: Sequence[Li
         "cameras": [c.describe() for c in cameras],
         "lightings": [lighting_description(li) for li in lightings],
         "items": items,
-        "render": {"spp": spp, "seed": int(seed), "integrator": "path", "direct_max_depth": 2, "gbuffers": bool(gbuffers)},
+        "render": {"spp": spp, "seed": int(seed), "integrator": "volpath" if desc.get("media") else "path",
+                   "direct_max_depth": 2, "gbuffers": bool(gbuffers)},
     }
     folder = os.path.join(cache_dir or cache_root(), "datasets", stable_hash(spec))
     os.makedirs(folder, exist_ok=True)

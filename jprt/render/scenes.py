@@ -34,6 +34,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import os
+import re
 from typing import Any
 
 import numpy as np
@@ -191,10 +192,13 @@ def xml(path: str, *, keep_emitters: bool = True, opening: str = "") -> dict:
     if opening not in OPENINGS:
         raise ValueError(f"unknown scene opening {opening!r}: use one of {list(OPENINGS)}")
     with open(path, "rb") as f:
-        digest = hashlib.sha256(f.read()).hexdigest()
+        content = f.read()
+    digest = hashlib.sha256(content).hexdigest()
     desc = {"name": "xml", "path": path, "sha256": digest, "keep_emitters": bool(keep_emitters), "reader": XML_READER}
     if opening:  # only present when set, so descriptions without one (and their cache hashes) are unchanged
         desc["opening"] = opening
+    if re.search(rb"<medium\b", content):  # the file defines a medium: renders use volpath (datasets record it)
+        desc["media"] = True
     return desc
 
 

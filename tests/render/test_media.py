@@ -46,6 +46,8 @@ def test_a_visible_glass_with_an_absorbing_interior_renders_with_volpath(mi, tmp
     clear = SceneHandle(scenes.xml(_scene(tmp_path, "clear", _glass("ball", (-0.3, -0.5, 0.3), 0.5, False))))
     assert with_medium.has_media and images.integrator_type(with_medium) == "volpath"
     assert not clear.has_media and images.integrator_type(clear) == "path"
+    # the description says so (a dataset's spec records volpath for it); a file without one is unchanged
+    assert with_medium.description.get("media") is True and "media" not in clear.description
     camera = with_medium.default_camera()
     tinted, plain = (images.direct_indirect(h, camera, spp=64, seed=1) for h in (with_medium, clear))
     for r in (tinted, plain):
@@ -94,3 +96,16 @@ def test_a_medium_around_the_camera_is_refused_in_one_line(mi, tmp_path):
     with pytest.raises(ValueError, match=r"fog\.xml: media that fill the camera's space are not supported") as e:
         SceneHandle(scenes.xml(fog))
     assert "\n" not in str(e.value)
+
+
+def test_a_dataset_of_a_file_with_a_medium_records_volpath(mi, tmp_path):
+    import json
+
+    from jprt.render import cameras
+    from jprt.render.dataset import render_dataset
+
+    path = _scene(tmp_path, "tinted", _glass("ball", (-0.3, -0.5, 0.3), 0.5, True))
+    cam = cameras.look_at((0, 0.3, 4), (0, -0.2, 0), width=4, height=4)
+    ds = render_dataset(path, [cam], [None], spp=1, cache_dir=str(tmp_path / "cache"), gbuffers=False, progress=False)
+    with open(f"{ds.folder}/spec.json") as f:
+        assert json.load(f)["render"]["integrator"] == "volpath"
