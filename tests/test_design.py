@@ -258,3 +258,24 @@ def test_the_environment_transfer_gives_mitsubas_direct_light(mi):
     ratio = pred[diffuse].mean() / ref[diffuse].mean()
     rel = np.sqrt(np.mean((pred[diffuse] - ref[diffuse]) ** 2) / np.mean(ref[diffuse] ** 2))
     assert abs(ratio - 1.0) < 0.05 and rel < 0.25, (ratio, rel)
+
+
+@pytest.mark.slow
+def test_jprt_design_turns_and_scales_an_environment_for_sh_prt(tmp_path, fitted_preset, assets):
+    import glob
+
+    from jprt.cli import main
+    from jprt.runner import save_fit
+
+    m, config, dataset, result = fitted_preset("sh_prt")
+    run = save_fit(str(tmp_path / "run"), "sh_prt", config, result.params)
+    hdr = sorted(glob.glob(os.path.join(assets, "envmaps", "*.hdr")))[0]
+    objective = _write(tmp_path, {"objects": [{"name": "back", "min": 5.0}]})
+    out = str(tmp_path / "design.json")
+    assert main(["design", run, "--objective", objective, "--env", hdr, "--size", "12", "--steps", "8",
+                 "--verify-spp", "4", "--out", out]) == 0
+    with open(out) as f:
+        report = json.load(f)
+    assert report["environment"] == os.path.basename(hdr) and np.isfinite(report["found"]["rotation_deg"])
+    assert np.all(np.asarray(report["found"]["scale"]) > 0) and len(report["history"]) == 8
+    assert set(report["verified_terms"]) == {"back.irradiance"} and np.isfinite(report["verified_objective"])
