@@ -44,7 +44,8 @@ NOT_RUN = {
                                  "whose vertices move",
     "speedup_vs_mitsuba": "needs the peer",
     "staircase": "no RRF of the staircase is fitted by this benchmark yet",
-    "living_room": "the environment-lit methods (rotation and scale) are not designable yet",
+    "living_room": "no environment-lit model of the living room is fitted by this benchmark yet (jprt design turns "
+                   "and scales environments for neural-wavelet PRT and SH PRT)",
 }
 
 

@@ -186,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("folder", help="a run folder: point lights for RRF, data-driven PRT and MRT; an environment's "
                                   "turn and scale for neural-wavelet PRT and SH PRT")
     p.add_argument("--objective", required=True, help="the objective file (JSON; jprt.design says what it holds)")
-    p.add_argument("--lights", type=int, default=1, help="point lights to place (default 1)")
+    p.add_argument("--lights", type=int, default=1, help="point lights to place (default 1; point-light models)")
     p.add_argument("--size", type=int, default=64, help="the square frame at the run's camera (default 64; a "
                                                         "target image sets it)")
     p.add_argument("--steps", type=int, default=200, help="Adam steps (default 200)")
@@ -195,8 +195,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--optimise", default=None, help="what moves (comma-separated): position, power, colour for "
                                                     "point lights (default position,power); rotation, scale, "
                                                     "colour for an environment (default rotation,scale)")
-    p.add_argument("--env", default=None, help="the environment map to turn and scale (one of the run's; default "
-                                               "the first)")
+    p.add_argument("--env", default=None, help="the environment map to turn and scale: one of the run's by name "
+                                               "(default the first) or an environment-map file")
     p.add_argument("--verify-spp", type=int, default=256, help="Mitsuba's spp for the verification render")
     p.add_argument("--out", default=None, help="write the report here (JSON)")
     args = parser.parse_args(argv)

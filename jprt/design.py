@@ -231,7 +231,9 @@ def object_masks(objective: Objective, object_id, object_names: Sequence[str], v
 
 def objective_terms(objective: Objective, masks, full, indirect, irradiance, intensity, reference_power: float):
     """{term name: scalar} of ``objective`` for one frame: ``full`` / ``indirect`` radiance and
-    ``irradiance`` (H, W, 3), ``intensity`` (K, 3) of the lights; ``masks`` from ``object_masks``.
+    ``irradiance`` (H, W, 3), ``intensity`` (K, 3) of the lights; ``masks`` from ``object_masks``;
+    the image term over its mask's pixels (every pixel without one: ``load_problem`` gives it the
+    frame's valid pixels).
     Differentiable (JAX); the objective is the sum of the values.
 
     Numerics:
@@ -437,12 +439,17 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
     free_u = "position" in optimise
     free_power, free_colour = "power" in optimise, "colour" in optimise
 
+    s0 = p0.log_intensity
+    level0, tint0 = jnp.mean(s0, axis=-1, keepdims=True), s0 - jnp.mean(s0, axis=-1, keepdims=True)
+
     def lights(params):
-        u = params.u if free_u else jax.lax.stop_gradient(params.u)
+        # what does not move keeps its starting value (a constant, not the current parameter under
+        # stop_gradient: Adam's per-element steps would let a held mean drift)
+        u = params.u if free_u else p0.u
         s = params.log_intensity
         mean = jnp.mean(s, axis=-1, keepdims=True)
-        level = mean if free_power else jax.lax.stop_gradient(mean)
-        tint = s - mean if free_colour else jax.lax.stop_gradient(s - mean)
+        level = mean if free_power else level0
+        tint = s - mean if free_colour else tint0
         return from_params(LightParams(u, level + tint), lo, hi)
 
     def loss(params, vis):
@@ -487,10 +494,11 @@ def _adam(loss: Callable, params, *, steps: int, learning_rate: float, refresh: 
 
     state = opt.init(params)
     aux, refreshes, history = None, 0, []
+    every = max(int(every), 1)
     t0 = time.perf_counter()
     bar = progress_bar(range(int(steps)), progress=progress, desc="design", unit="step")
     for i in bar:
-        if aux is None or i % max(int(every), 1) == 0:
+        if i % every == 0:
             aux = refresh(params)
             refreshes += 1
         params, state, value = step(params, state, aux)
@@ -698,12 +706,14 @@ def design_environment(frame_fn: Callable, objective: Objective, masks, cube, *,
     p0 = (jnp.asarray(float(angle), jnp.float32), jnp.asarray(np.log(s0), jnp.float32))
     reference = float(np.sum(s0))
 
+    level0, tint0 = jnp.mean(p0[1]), p0[1] - jnp.mean(p0[1])
+
     def lighting(params):
-        a, s = params
-        a = a if "rotation" in optimise else jax.lax.stop_gradient(a)
+        a, s = params  # what does not move keeps its starting value (as in ``design``)
+        a = a if "rotation" in optimise else p0[0]
         mean = jnp.mean(s)
-        level = mean if "scale" in optimise else jax.lax.stop_gradient(mean)
-        tint = s - mean if "colour" in optimise else jax.lax.stop_gradient(s - mean)
+        level = mean if "scale" in optimise else level0
+        tint = s - mean if "colour" in optimise else tint0
         scale_rgb = jnp.exp(level + tint)
         return cubemap.rotate_cubemap_y(base, a) * scale_rgb.reshape(1, 1, 1, 3), scale_rgb
 
@@ -810,6 +820,18 @@ def _environment_cube(session, env: str | None) -> tuple[str, np.ndarray]:
     return name, np.asarray(envs[name], np.float32)
 
 
+def _on_valid(objective: Objective, valid) -> Objective:
+    """The objective with its image term restricted to the frame's valid pixels (the mask's, or
+    all of them without one): elsewhere the model predicts nothing and the verification is 0."""
+    if objective.image is None:
+        return objective
+    ok = np.asarray(valid, bool)
+    mask = ok if objective.image.mask is None else (np.asarray(objective.image.mask, bool) & ok)
+    if not mask.any():
+        raise ObjectiveError(f"{objective.source}: image.mask selects no pixel the model sees")
+    return objective._replace(image=objective.image._replace(mask=mask))
+
+
 def load_problem(folder: str, objective_path, *, size: int = 64, env: str | None = None,
                  progress: bool | None = None) -> Problem:
     """The ``Problem`` of the run folder ``folder`` (a point-light method, ``POINT_METHODS``) and
@@ -848,7 +870,7 @@ def load_problem(folder: str, objective_path, *, size: int = 64, env: str | None
         from jprt.render.gbuffer import gbuffer
 
         gb = gbuffer(session.handle, camera)
-    objective = load_objective(objective_path, names, shape=np.shape(gb.valid))
+    objective = _on_valid(load_objective(objective_path, names, shape=np.shape(gb.valid)), gb.valid)
     masks = object_masks(objective, gb.object_id, names, gb.valid)
     evaluate = session.evaluator()
     if m.name in ENVIRONMENT_METHODS:

@@ -279,3 +279,22 @@ def test_jprt_design_turns_and_scales_an_environment_for_sh_prt(tmp_path, fitted
     assert report["environment"] == os.path.basename(hdr) and np.isfinite(report["found"]["rotation_deg"])
     assert np.all(np.asarray(report["found"]["scale"]) > 0) and len(report["history"]) == 8
     assert set(report["verified_terms"]) == {"back.irradiance"} and np.isfinite(report["verified_objective"])
+
+
+def test_what_is_not_optimised_keeps_its_starting_value():
+    """Colour alone moves the RGB ratios and leaves each light's power (its mean log intensity) and
+    position as they started; power alone leaves the colour."""
+    gb = _floor(n=8)
+    frame = design.design_frame(gb, lambda p, i, v: jnp.zeros((8, 8, 3)), glossy=False)
+    lo, hi = np.array([-0.8, 0.6, -0.8]), np.array([0.8, 1.6, 0.8])
+    target, _, _ = frame(np.array([[0.1, 1.0, 0.0]]), np.array([[2.0, 1.0, 0.5]]), {"pixels": jnp.ones((8, 8, 1))})
+    obj = design.Objective(design.ImageTarget(np.asarray(target), None, "full", 1.0), (), 0.0, "synthetic")
+    start_p, start_i = np.array([[-0.2, 1.2, 0.3]]), np.array([[1.0, 1.0, 1.0]])
+    colour = design.design(frame, obj, np.zeros((0, 8, 8)), start_p, start_i, lo, hi, steps=100, optimise=["colour"],
+                           progress=False)
+    np.testing.assert_allclose(np.mean(np.log(colour.intensity)), 0.0, atol=1e-5)
+    np.testing.assert_allclose(colour.position, start_p, atol=1e-5)
+    assert colour.intensity[0, 0] > colour.intensity[0, 1] > colour.intensity[0, 2]  # it took the target's tint
+    power = design.design(frame, obj, np.zeros((0, 8, 8)), start_p, start_i, lo, hi, steps=50, optimise=["power"],
+                          progress=False)
+    np.testing.assert_allclose(power.intensity[0] / power.intensity[0, 0], 1.0, rtol=1e-5)

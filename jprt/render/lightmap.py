@@ -766,7 +766,9 @@ def direct_at_points(handle: SceneHandle, lighting, position, normal) -> np.ndar
     directional lights; set on ``handle`` when it returns), exact: each light alone at one sample
     (one shadow ray), summed. Rendered together, Mitsuba's integrator samples one of the K emitters
     per sample and weights it by K, a one-sample estimate (two lights at 1 spp: 70 % of the largest
-    value off at some points of data-driven PRT's test scene, against 2e-7 for this sum).
+    value off at some points of data-driven PRT's test scene, against 2e-7 for this sum). The
+    scene's own emitters, if it keeps any, would be counted once per light: the callers' scenes
+    have none. Several lights cost two scene rebuilds (K lights to one and back).
     """
     count = int(getattr(lighting, "count", 1) or 1)
     if count <= 1:
