@@ -439,23 +439,29 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
     free_u = "position" in optimise
     free_power, free_colour = "power" in optimise, "colour" in optimise
 
-    s0 = p0.log_intensity
-    level0, tint0 = jnp.mean(s0, axis=-1, keepdims=True), s0 - jnp.mean(s0, axis=-1, keepdims=True)
+    # the starting values as NumPy constants of the traced step (closed-over device arrays gave the
+    # jitted forward-mode step garbage values here, run to run)
+    s0 = np.asarray(p0.log_intensity)
+    level0, tint0 = s0.mean(axis=-1, keepdims=True), s0 - s0.mean(axis=-1, keepdims=True)
+    u0 = np.asarray(p0.u)
 
     def lights(params):
         # what does not move keeps its starting value (a constant, not the current parameter under
         # stop_gradient: Adam's per-element steps would let a held mean drift)
-        u = params.u if free_u else p0.u
+        u = params.u if free_u else u0
         s = params.log_intensity
         mean = jnp.mean(s, axis=-1, keepdims=True)
         level = mean if free_power else level0
         tint = s - mean if free_colour else tint0
-        return from_params(LightParams(u, level + tint), lo, hi)
+        position, _ = from_params(LightParams(u, s), lo, hi)
+        return position, jnp.exp(level) * jnp.exp(tint)
 
-    def loss(params, vis):
+    def model(params, vis):
         pos, inten = lights(params)
-        full, ind, irr = frame_fn(pos, inten, vis)
-        terms = objective_terms(objective, masks, full, ind, irr, inten, reference)
+        return frame_fn(pos, inten, vis), inten
+
+    def loss(frames, inten):
+        terms = objective_terms(objective, masks, *frames, inten, reference)
         return sum(terms.values()), terms
 
     def refresh(params):
@@ -463,32 +469,42 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
             return {"pixels": jnp.ones((1, 1, int(np.shape(position)[0])), jnp.float32)}
         return jax.tree_util.tree_map(jnp.asarray, visibility_fn(np.asarray(lights(params)[0], np.float64)))
 
-    params, history, terms, seconds, updates = _adam(loss, p0, steps=steps, learning_rate=learning_rate,
+    params, history, terms, seconds, updates = _adam(model, loss, p0, steps=steps, learning_rate=learning_rate,
                                                      refresh=refresh, every=visibility_every, progress=progress)
     pos, inten = lights(params)
     return DesignResult(np.asarray(pos, np.float64), np.asarray(inten, np.float64), history, terms, seconds,
                         updates if visibility_fn is not None else 0)
 
 
-def _adam(loss: Callable, params, *, steps: int, learning_rate: float, refresh: Callable, every: int,
-          progress: bool | None):
-    """Adam on ``loss(params, aux) -> (value, terms)`` for ``steps`` steps, the rate decaying on a
-    cosine to 1 %, the gradient in forward mode; ``aux = refresh(params)`` first, every ``every``
-    steps and at the end. Returns (params, history, terms at the end, seconds, refreshes)."""
+def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_rate: float, refresh: Callable,
+          every: int, progress: bool | None):
+    """Adam on ``objective(*model(params, aux)) -> (value, terms)`` for ``steps`` steps, the rate
+    decaying on a cosine to 1 %; ``aux = refresh(params)`` first, every ``every`` steps and at the
+    end. ``model(params, aux) -> (frames, lighting)`` (arrays) is differentiated in forward mode
+    (a few parameters, one JVP each; it goes through the while loops reverse mode cannot: RRF's
+    kd-tree traversal) and compiled apart from the objective, whose gradient in the frames is
+    reverse mode; the chain rule joins them. (One program for both gave wrong values here, run to
+    run: XLA fused the objective's reductions with RRF's renderer; each part alone is exact.)
+    Returns (params, history, terms at the end, seconds, refreshes)."""
     import optax
 
     # cosine decay to 1 % of the rate: the last steps settle instead of circling the optimum
     opt = optax.adam(optax.cosine_decay_schedule(float(learning_rate), max(int(steps), 1), alpha=0.01))
 
-    def value_only(params, aux):
-        value, _ = loss(params, aux)
-        return value, value
+    @jax.jit
+    def forward(params, aux):
+        out = model(params, aux)
+        jac = jax.jacfwd(lambda p: model(p, aux))(params)
+        return out, jac
 
     @jax.jit
-    def step(params, state, aux):
-        # forward mode: a few parameters, one JVP each, and it differentiates through the while
-        # loops that reverse mode cannot (RRF's kd-tree traversal)
-        grads, value = jax.jacfwd(value_only, has_aux=True)(params, aux)
+    def update(params, state, out, jac):
+        value, g_out = jax.value_and_grad(lambda o: objective(*o)[0])(out)
+        # d value / d params = sum over every output element of g_out x d out / d params
+        leaves_g = jax.tree_util.tree_leaves(g_out)
+        per_output = [jax.tree_util.tree_map(lambda j, g=g: jnp.tensordot(g, j, axes=g.ndim), jo)
+                      for g, jo in zip(leaves_g, _jacobian_per_output(jac, out))]
+        grads = jax.tree_util.tree_map(lambda *a: sum(a), *per_output)
         updates, state = opt.update(grads, state, params)
         return optax.apply_updates(params, updates), state, value
 
@@ -501,15 +517,23 @@ def _adam(loss: Callable, params, *, steps: int, learning_rate: float, refresh: 
         if i % every == 0:
             aux = refresh(params)
             refreshes += 1
-        params, state, value = step(params, state, aux)
+        out, jac = forward(params, aux)
+        params, state, value = update(params, state, out, jac)
         history.append(float(value))
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(objective=f"{history[-1]:.3g}")
     aux = refresh(params)
     refreshes += 1
-    _, terms = loss(params, aux)
+    _, terms = objective(*model(params, aux))
     return (params, np.asarray(history), {k: float(v) for k, v in terms.items()}, time.perf_counter() - t0,
             refreshes)
+
+
+def _jacobian_per_output(jac, out) -> list:
+    """``jax.jacfwd``'s Jacobian of a pytree output (each output leaf holding a params-shaped tree)
+    as a list, one params tree per output leaf, in the output's leaf order."""
+    treedef = jax.tree_util.tree_structure(out)
+    return treedef.flatten_up_to(jac)
 
 
 def design_frame(gbuffer, indirect_fn: Callable, *, glossy: bool = True) -> Callable:
@@ -706,24 +730,27 @@ def design_environment(frame_fn: Callable, objective: Objective, masks, cube, *,
     p0 = (jnp.asarray(float(angle), jnp.float32), jnp.asarray(np.log(s0), jnp.float32))
     reference = float(np.sum(s0))
 
-    level0, tint0 = jnp.mean(p0[1]), p0[1] - jnp.mean(p0[1])
+    s0 = np.asarray(p0[1])
+    a0, level0, tint0 = float(angle), float(s0.mean()), s0 - s0.mean()  # NumPy constants (as in ``design``)
 
     def lighting(params):
         a, s = params  # what does not move keeps its starting value (as in ``design``)
-        a = a if "rotation" in optimise else p0[0]
+        a = a if "rotation" in optimise else a0
         mean = jnp.mean(s)
         level = mean if "scale" in optimise else level0
         tint = s - mean if "colour" in optimise else tint0
         scale_rgb = jnp.exp(level + tint)
         return cubemap.rotate_cubemap_y(base, a) * scale_rgb.reshape(1, 1, 1, 3), scale_rgb
 
-    def loss(params, aux):
+    def model(params, aux):
         turned, scale_rgb = lighting(params)
-        full, ind, irr = frame_fn(turned)
-        terms = objective_terms(objective, masks, full, ind, irr, scale_rgb.reshape(1, 3), reference)
+        return frame_fn(turned), scale_rgb.reshape(1, 3)
+
+    def loss(frames, scale_rgb):
+        terms = objective_terms(objective, masks, *frames, scale_rgb, reference)
         return sum(terms.values()), terms
 
-    params, history, terms, seconds, _ = _adam(loss, p0, steps=steps, learning_rate=learning_rate,
+    params, history, terms, seconds, _ = _adam(model, loss, p0, steps=steps, learning_rate=learning_rate,
                                                refresh=lambda p: None, every=max(int(steps), 1), progress=progress)
     return EnvironmentResult(float(params[0]), np.asarray(lighting(params)[1], np.float64), history, terms, seconds)
 
