@@ -556,28 +556,41 @@ def design_frame(gbuffer, indirect_fn: Callable, *, glossy: bool = True) -> Call
 def rendered_terms(handle, camera, gbuffer, objective: Objective, masks, position, intensity, *, spp: int,
                    seed: int = 0, reference_power: float = 1.0) -> dict:
     """``objective_terms`` on Mitsuba's render of point lights (``position``, ``intensity`` (K, 3))
-    at ``camera`` (``spp``, ``seed``; full and indirect along the pixel-centre rays the G-buffer
-    traces, ``jprt.render.images.centre_rays``; invalid G-buffer pixels 0). Irradiance
-    there is the lights' direct irradiance (exact for point lights, with traced visibility) plus
-    the render's indirect radiance read as irradiance (``irradiance_from``).
+    at ``camera`` (``_terms_on_render``); the direct irradiance is the lights' (exact for point
+    lights, with traced visibility).
 
     Numerics: not differentiable (Mitsuba renders).
     """
     from jprt.inputs import PointLights
+
+    def e_direct():
+        vis = point_visibility(handle, gbuffer, position)
+        return point_direct(gbuffer, position, intensity, vis, glossy=False)[1]
+
+    return _terms_on_render(handle, camera, gbuffer, objective, masks,
+                            PointLights.create(np.asarray(position, np.float32), np.asarray(intensity, np.float32)),
+                            e_direct, np.asarray(intensity), spp=spp, seed=seed, reference_power=reference_power)
+
+
+def _terms_on_render(handle, camera, gbuffer, objective: Objective, masks, lighting, e_direct: Callable, power, *,
+                     spp: int, seed: int, reference_power: float) -> dict:
+    """``objective_terms`` on Mitsuba's render of ``lighting`` at ``camera`` (``spp``, ``seed``;
+    full and indirect along the pixel-centre rays the G-buffer traces,
+    ``jprt.render.images.centre_rays``; invalid G-buffer pixels 0). Irradiance there is
+    ``e_direct()`` (the design's own direct irradiance, asked for only when an object term needs
+    it) plus the render's indirect radiance read as irradiance (``irradiance_from``); ``power``:
+    the lighting's intensity (K, 3) or scale (1, 3) for the power penalty."""
     from jprt.render import images
 
-    handle.set_lighting(PointLights.create(np.asarray(position, np.float32), np.asarray(intensity, np.float32)))
+    handle.set_lighting(lighting)
     r = images.centre_rays(handle, camera, spp=int(spp), seed=int(seed))
     valid = np.asarray(gbuffer.valid, bool)[..., None]
     full = np.where(valid, np.asarray(r.direct, np.float32) + np.asarray(r.indirect, np.float32), 0.0)
     ind = np.where(valid, np.asarray(r.indirect, np.float32), 0.0)
     irr = 0.0 * full
     if objective.objects:
-        _, e_direct = point_direct(gbuffer, position, intensity, point_visibility(handle, gbuffer, position),
-                                   glossy=False)
-        irr = np.asarray(e_direct) + np.asarray(irradiance_from(ind, gbuffer.diffuse_albedo))
-    return {k: float(v) for k, v in objective_terms(objective, masks, full, ind, irr, np.asarray(intensity),
-                                                    reference_power).items()}
+        irr = np.asarray(e_direct()) + np.asarray(irradiance_from(ind, gbuffer.diffuse_albedo))
+    return {k: float(v) for k, v in objective_terms(objective, masks, full, ind, irr, power, reference_power).items()}
 
 
 def gradient_check(handle, camera, gbuffer, frame_fn: Callable, objective: Objective, masks, position, intensity,
@@ -991,9 +1004,8 @@ def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, st
                             learning_rate: float, optimise, verify_spp: int, seed: int, progress) -> dict:
     """``design_run`` for an environment-lit model: turn and scale the problem's map (from angle 0
     and scale 1), then render the found map with Mitsuba (``jprt.render.lights.EnvMap`` of its
-    equirect, along the G-buffer's pixel-centre rays) and evaluate the objective there: irradiance = T L (the traced direct transfer) +
-    the render's indirect radiance read as irradiance."""
-    from jprt.render import images
+    equirect) and evaluate the objective there (``_terms_on_render``; the direct irradiance is the
+    traced transfer's, T L)."""
     from jprt.render.lights import EnvMap
     from jprt.sphere import cubemap
     from jprt.sphere.envmap import render_equirect
@@ -1005,16 +1017,12 @@ def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, st
     model_terms = result.terms
     t0 = time.perf_counter()
     found = np.asarray(cubemap.rotate_cubemap_y(cube, result.angle), np.float64) * result.scale.reshape(1, 1, 1, 3)
-    handle, gb = pb.session.handle, pb.gbuffer
-    handle.set_lighting(EnvMap.create(render_equirect(found.astype(np.float32))))
-    r = images.centre_rays(handle, pb.camera, spp=int(verify_spp), seed=int(seed) + 101)
-    valid = np.asarray(gb.valid, bool)[..., None]
-    full = np.where(valid, np.asarray(r.direct, np.float32) + np.asarray(r.indirect, np.float32), 0.0)
-    ind = np.where(valid, np.asarray(r.indirect, np.float32), 0.0)
-    e_direct = np.einsum("hwj,jc->hwc", pb.transfer, found.reshape(-1, 3))
-    irr = e_direct + np.asarray(irradiance_from(ind, gb.diffuse_albedo))
-    verified = {k: float(v) for k, v in objective_terms(pb.objective, pb.masks, full, ind, irr,
-                                                        result.scale.reshape(1, 3), 3.0).items()}
+    gb = pb.gbuffer
+    verified = _terms_on_render(pb.session.handle, pb.camera, gb, pb.objective, pb.masks,
+                                EnvMap.create(render_equirect(found.astype(np.float32))),
+                                lambda: np.einsum("hwj,jc->hwc", pb.transfer, found.reshape(-1, 3)),
+                                result.scale.reshape(1, 3), spp=int(verify_spp), seed=int(seed) + 101,
+                                reference_power=3.0)
     return {"run": os.path.abspath(folder), "method": pb.session.method.name,
             "objective": os.path.abspath(objective_path), "frame": list(np.shape(gb.valid)), "environment": name,
             "found": {"rotation_deg": float(np.degrees(result.angle)), "scale": result.scale.tolist()},
