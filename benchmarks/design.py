@@ -17,8 +17,14 @@ runner unless ``--run`` names a run folder; its fit time is reported). At the ru
   the intensity); position error over the scene's diagonal (lights matched), intensity ratio,
   the objective on the model and on Mitsuba's verification render, the design's time.
 
-Not yet measured (``not_run`` says why): Mitsuba's own inverse rendering (the peer and the speed
-ratio), the staircase and living-room designs.
+* **the peer** (``_peer``): Mitsuba's own inverse rendering of the same lights on the same image
+  objective (``jprt.render.inverse.SphereLights``: ``prb`` for the radiance, ``direct_projective``
+  for the positions; ``jprt.design.mitsuba_design``: the same parameters and Adam from the
+  same start), each checkpoint verified like jprt's result; the time it took to reach jprt's
+  verified objective and the speed-up (``speed``, with the fit time and the break-even number of
+  designs).
+
+Not yet measured (``not_run`` says why): the staircase and living-room designs.
 """
 
 from __future__ import annotations
@@ -37,12 +43,6 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 
 NOT_RUN = {
-    "mitsuba_inverse_rendering": "the peer is not built: Mitsuba 3.9's point emitter does not differentiate its "
-                                 "position (traverse() lists 'position' without the differentiable flag, and prb "
-                                 "raises 'the contribution ... is not attached to the AD graph' when it is made to "
-                                 "require gradients); the peer has to model each light as a small emitting sphere "
-                                 "whose vertices move",
-    "speedup_vs_mitsuba": "needs the peer",
     "staircase": "no RRF of the staircase is fitted by this benchmark yet",
     "living_room": "no environment-lit model of the living room is fitted by this benchmark yet (jprt design turns "
                    "and scales environments for neural-wavelet PRT and SH PRT)",
@@ -79,6 +79,58 @@ def _image_objective(folder: str, target: np.ndarray) -> str:
     return path
 
 
+def _peer(args, folder: str, objective_path: str, pb, true_p, start: dict, diagonal: float, rep: dict, lo, hi) -> dict:
+    """Mitsuba's inverse rendering of the same lights from the same start (``jprt.design.mitsuba_design``
+    over ``jprt.render.inverse.SphereLights``), every checkpoint verified like jprt's result
+    (``rendered_terms``, the same spp and seed); the time it took to reach jprt's verified
+    objective, and the speed-up of jprt's design over it (a lower bound when it never did)."""
+    from jprt import design
+    from jprt.render.inverse import SphereLights
+
+    k = len(true_p)
+    pk = design.load_problem(folder, objective_path, size=args.size, progress=False)
+    sphere = SphereLights(pk.session.handle, pk.camera, pk.objective.image.target, pk.objective.image.mask,
+                          count=k, radius=args.peer_radius * diagonal, spp=args.peer_spp)
+    steps = args.peer_steps or 2 * args.steps
+    res = design.mitsuba_design(sphere, start["position"], start["intensity"], lo, hi, steps=steps,
+                                learning_rate=args.learning_rate, every=args.peer_every, seed=args.seed,
+                                progress=False)
+    for c in res.checkpoints:
+        c["verified_objective"] = float(sum(design.rendered_terms(
+            pk.session.handle, pk.camera, pk.gbuffer, pk.objective, pk.masks, np.asarray(c["position"]),
+            np.asarray(c["intensity"]), spp=args.target_spp, seed=args.seed + 101,
+            reference_power=float(np.sum(start["intensity"]))).values()))
+    ours = rep["verified_objective"]
+    reached = [c for c in res.checkpoints if c["verified_objective"] <= ours]
+    seconds_to = reached[0]["seconds"] if reached else res.seconds
+    cost = np.linalg.norm(res.position[:, None] - np.asarray(true_p)[None], axis=-1)
+    return {"integrators": "prb (radiance, full transport) + direct_projective with guiding 'none' (positions)",
+            "sphere_radius": args.peer_radius * diagonal, "spp": args.peer_spp, "steps": steps,
+            "seconds": res.seconds, "seconds_per_step": res.seconds / max(steps, 1),
+            "found": {"position": res.position.tolist(), "intensity": res.intensity.tolist()},
+            "position_error_fraction": float(cost.min(axis=0).max() / diagonal),
+            "verified_objective": res.checkpoints[-1]["verified_objective"],
+            "best_verified_objective": min(c["verified_objective"] for c in res.checkpoints),
+            "checkpoints": res.checkpoints, "history": res.history.tolist(),
+            "reached_jprt": bool(reached), "seconds_to_jprt_objective": seconds_to,
+            "speedup": seconds_to / rep["design_s"], "speedup_is_lower_bound": not reached}
+
+
+def _speed(inverse: dict, summary: dict) -> dict:
+    """jprt's design against Mitsuba's inverse rendering to the same verified objective, per
+    problem; the fit's time and the number of designs after which fitting has paid for itself."""
+    rows = {}
+    fit = float(summary.get("train_s") or 0.0) + float(summary.get("dataset_s") or 0.0)
+    for name, r in inverse.items():
+        peer = r["mitsuba"]
+        saved = peer["seconds_to_jprt_objective"] - r["design_s"]
+        rows[name] = {"jprt_design_s": r["design_s"], "mitsuba_s": peer["seconds_to_jprt_objective"],
+                      "speedup": peer["speedup"], "speedup_is_lower_bound": peer["speedup_is_lower_bound"],
+                      "break_even_designs": (fit / saved) if saved > 0 else None}
+    return {"per_problem": rows, "fit_s": fit, "target": "jprt at least 20x faster (fit excluded)",
+            "met": bool(rows) and all(v["speedup"] >= 20 for v in rows.values())}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--run", default=None, help="an RRF run folder (default: fit the demo preset)")
@@ -86,7 +138,14 @@ def main() -> int:
     parser.add_argument("--configs", type=int, default=5, help="gradient-check configurations")
     parser.add_argument("--spp", type=int, default=1024, help="Mitsuba's spp for the finite differences")
     parser.add_argument("--target-spp", type=int, default=1024, help="Mitsuba's spp for the hidden lights' renders")
-    parser.add_argument("--steps", type=int, default=300, help="design steps")
+    parser.add_argument("--steps", type=int, default=300, help="jprt's design steps")
+    parser.add_argument("--learning-rate", type=float, default=0.05, help="Adam's rate (both designers)")
+    parser.add_argument("--peer-spp", type=int, default=16, help="Mitsuba inverse rendering: spp of each render")
+    parser.add_argument("--peer-radius", type=float, default=0.005,
+                        help="Mitsuba inverse rendering: each light's sphere radius over the scene's diagonal")
+    parser.add_argument("--peer-every", type=int, default=25, help="Mitsuba inverse rendering: verify every N steps")
+    parser.add_argument("--peer-steps", type=int, default=None,
+                        help="Mitsuba inverse rendering: Adam steps (default twice --steps: its gradients are noisy)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=os.path.join(HERE, "results", "design.json"))
     args = parser.parse_args()
@@ -131,11 +190,13 @@ def main() -> int:
         path = _image_objective(work, _target(pb, (true_p, true_i), args.target_spp, 2 + k))
         start = {"position": lo + (hi - lo) * rng.uniform(0.3, 0.7, (k, 3)), "intensity": np.full((k, 3), 0.5)}
         rep = design.design_run(folder, path, lights=k, size=args.size, steps=args.steps, start=start,
+                                learning_rate=args.learning_rate,
                                 verify_spp=args.target_spp, seed=args.seed, progress=False)
         found = np.asarray(rep["found"]["position"])
         cost = np.linalg.norm(found[:, None] - true_p[None], axis=-1)
         rows, cols = linear_sum_assignment(cost)
         ratio = np.asarray(rep["found"]["intensity"])[rows] / true_i[cols]
+        peer = _peer(args, folder, path, pb, true_p, start, diagonal, rep, lo, hi)
         inverse[f"{k}_lights"] = {
             "hidden": {"position": true_p.tolist(), "intensity": true_i.tolist()},
             "found": rep["found"], "start": rep["start"],
@@ -144,7 +205,11 @@ def main() -> int:
             "model_objective": rep["model_objective"], "verified_objective": rep["verified_objective"],
             "design_s": rep["design_s"], "verify_s": rep["verify_s"], "steps": rep["steps"],
             "position_within_3_percent": bool(np.all(cost[rows, cols] / diagonal <= 0.03)),
-            "intensity_within_10_percent": bool(np.all(np.abs(ratio - 1.0) <= 0.10))}
+            "intensity_within_10_percent": bool(np.all(np.abs(ratio - 1.0) <= 0.10)),
+            "mitsuba": peer,
+            "verified_within_1_2x_of_mitsuba": bool(rep["verified_objective"] <= 1.2 * peer["verified_objective"])}
+        print(f"  Mitsuba's inverse rendering: verified {peer['verified_objective']:.4g} after {peer['seconds']:.1f} s; "
+              f"reached jprt's verified objective: {peer['reached_jprt']}, speed-up {peer['speedup']:.1f}x", flush=True)
         print(f"{k} hidden lights: position error {np.round(cost[rows, cols] / diagonal, 4)} of the diagonal, "
               f"intensity x{np.round(ratio.mean(axis=1), 3)}, objective model {rep['model_objective']:.4g} / "
               f"Mitsuba {rep['verified_objective']:.4g}, {rep['design_s']:.1f} s", flush=True)
@@ -160,6 +225,7 @@ def main() -> int:
                            "met": bool(all(c["cosine"] >= 0.9 for c in checks))},
         "inverse_lighting": {"cornell_box": inverse, "target": "position error <= 3 % of the scene's size per "
                              "light, intensity within 10 %"},
+        "speed": _speed(inverse, summary),
         "not_run": NOT_RUN, "total_s": time.perf_counter() - t0,
     }
     command = "python benchmarks/design.py" + "".join(

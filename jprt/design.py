@@ -412,6 +412,35 @@ class DesignResult(NamedTuple):
     visibility_updates: int
 
 
+def _light_map(p0: LightParams, optimise: Sequence[str], lo, hi) -> Callable:
+    """``lights(params) -> (position, intensity)`` (K, 3) each, JAX) of design parameters
+    starting at ``p0``: what ``optimise`` leaves out ("position", "power": the overall intensity
+    per light, "colour": its RGB ratios) keeps its starting value."""
+    bad = sorted(set(optimise) - {"position", "power", "colour"})
+    if bad or not optimise:
+        raise ValueError(f"optimise names 'position', 'power' and 'colour', got {list(optimise)}")
+    free_u = "position" in optimise
+    free_power, free_colour = "power" in optimise, "colour" in optimise
+    # the starting values as NumPy constants of the traced step (closed-over device arrays gave the
+    # jitted forward-mode step garbage values here, run to run)
+    s0 = np.asarray(p0.log_intensity)
+    level0, tint0 = s0.mean(axis=-1, keepdims=True), s0 - s0.mean(axis=-1, keepdims=True)
+    u0 = np.asarray(p0.u)
+
+    def lights(params):
+        # what does not move keeps its starting value (a constant, not the current parameter under
+        # stop_gradient: Adam's per-element steps would let a held mean drift)
+        u = params.u if free_u else u0
+        s = params.log_intensity
+        mean = jnp.mean(s, axis=-1, keepdims=True)
+        level = mean if free_power else level0
+        tint = s - mean if free_colour else tint0
+        position, _ = from_params(LightParams(u, s), lo, hi)
+        return position, jnp.exp(level) * jnp.exp(tint)
+
+    return lights
+
+
 def design(frame_fn: Callable, objective: Objective, masks, position, intensity, lo, hi, *,
            visibility_fn: Callable | None = None, steps: int = 200, learning_rate: float = 0.05,
            visibility_every: int = 10, optimise: Sequence[str] = ("position", "power"),
@@ -431,30 +460,9 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
 
     Numerics: not differentiable (an optimisation loop over ``objective_terms``, ``point_direct`` and the model).
     """
-    bad = sorted(set(optimise) - {"position", "power", "colour"})
-    if bad or not optimise:
-        raise ValueError(f"optimise names 'position', 'power' and 'colour', got {list(optimise)}")
     p0 = to_params(position, intensity, lo, hi)
     reference = float(np.sum(intensity))
-    free_u = "position" in optimise
-    free_power, free_colour = "power" in optimise, "colour" in optimise
-
-    # the starting values as NumPy constants of the traced step (closed-over device arrays gave the
-    # jitted forward-mode step garbage values here, run to run)
-    s0 = np.asarray(p0.log_intensity)
-    level0, tint0 = s0.mean(axis=-1, keepdims=True), s0 - s0.mean(axis=-1, keepdims=True)
-    u0 = np.asarray(p0.u)
-
-    def lights(params):
-        # what does not move keeps its starting value (a constant, not the current parameter under
-        # stop_gradient: Adam's per-element steps would let a held mean drift)
-        u = params.u if free_u else u0
-        s = params.log_intensity
-        mean = jnp.mean(s, axis=-1, keepdims=True)
-        level = mean if free_power else level0
-        tint = s - mean if free_colour else tint0
-        position, _ = from_params(LightParams(u, s), lo, hi)
-        return position, jnp.exp(level) * jnp.exp(tint)
+    lights = _light_map(p0, optimise, lo, hi)
 
     def model(params, vis):
         pos, inten = lights(params)
@@ -474,6 +482,59 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
     pos, inten = lights(params)
     return DesignResult(np.asarray(pos, np.float64), np.asarray(inten, np.float64), history, terms, seconds,
                         updates if visibility_fn is not None else 0)
+
+
+class PeerResult(NamedTuple):
+    """What ``mitsuba_design`` found: the lights after the last step, the objective of each step
+    (Mitsuba's noisy estimate), the seconds the steps took and, every ``every`` steps, a
+    checkpoint {"step", "seconds", "position", "intensity"} (the lights after that step, the
+    clock then) for verifying the way there."""
+
+    position: np.ndarray
+    intensity: np.ndarray
+    history: np.ndarray
+    seconds: float
+    checkpoints: list
+
+
+def mitsuba_design(peer, position, intensity, lo, hi, *, steps: int = 200, learning_rate: float = 0.05,
+                   optimise: Sequence[str] = ("position", "power"), every: int = 25, seed: int = 0,
+                   progress: bool | None = None) -> PeerResult:
+    """The peer of ``design``: the same parameters (``to_params``, ``_light_map``), the same optax
+    Adam and rate schedule from the same start, the gradient from Mitsuba's differentiable
+    renderers instead of a fitted model (``peer``: a ``jprt.render.inverse.SphereLights``, image
+    objective only), a new seed every step.
+
+    Numerics: not differentiable (an optimisation loop over Mitsuba renders).
+    """
+    import optax
+
+    p0 = to_params(position, intensity, lo, hi)
+    lights = _light_map(p0, optimise, lo, hi)
+    opt = optax.adam(optax.cosine_decay_schedule(float(learning_rate), max(int(steps), 1), alpha=0.01))
+    state, params = opt.init(p0), p0
+    lights_vjp = jax.jit(lambda p, g: jax.vjp(lights, p)[1](g)[0])
+    history, checkpoints = [], []
+    every = max(int(every), 1)
+    t0 = time.perf_counter()
+    bar = progress_bar(range(int(steps)), progress=progress, desc="Mitsuba design", unit="step")
+    for i in bar:
+        pos, inten = (np.asarray(a, np.float64) for a in lights(params))
+        value, d_pos, d_inten = peer.loss_and_grad(pos, inten, seed=int(seed) * 100003 + i)
+        grads = lights_vjp(params, (jnp.asarray(d_pos, jnp.float32), jnp.asarray(d_inten, jnp.float32)))
+        updates, state = opt.update(grads, state, params)
+        params = optax.apply_updates(params, updates)
+        history.append(value)
+        if hasattr(bar, "set_postfix"):
+            bar.set_postfix(objective=f"{value:.3g}")
+        if (i + 1) % every == 0 or i + 1 == int(steps):
+            pos, inten = lights(params)
+            checkpoints.append({"step": i + 1, "seconds": time.perf_counter() - t0,
+                                "position": np.asarray(pos, np.float64).tolist(),
+                                "intensity": np.asarray(inten, np.float64).tolist()})
+    pos, inten = lights(params)
+    return PeerResult(np.asarray(pos, np.float64), np.asarray(inten, np.float64), np.asarray(history),
+                      time.perf_counter() - t0, checkpoints)
 
 
 def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_rate: float, refresh: Callable,

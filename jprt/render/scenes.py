@@ -939,6 +939,11 @@ class SceneHandle:
         origin, target, fov = CORNELL_CAMERA
         return look_at(origin, target, fov=fov, width=width or 256, height=height or 256)
 
+    def scene_dict(self) -> dict:
+        """A copy of the scene's Mitsuba dict without sensor, integrator or jprt lights (what
+        ``set_lighting`` builds on): callers add their own emitters and sensor to it."""
+        return dict(self._base)
+
     def shapes(self) -> list:
         """The scene's shapes in object-id order."""
         return list(self.scene.shapes())
