@@ -63,10 +63,10 @@ def _isolated_cache(tmp_path_factory):
 @pytest.fixture(scope="session")
 def fitted_preset():
     """``get(name) -> (method, config, dataset, FitResult)`` on the method's ``test`` preset. The
-    dataset comes from the worker's own cache; the fit is made once for the whole session: the
-    first worker to ask fits it and pickles the ``FitResult`` into a folder the workers share
-    (under a file lock), the others load it (test_contract, test_self_check and test_export fit
-    the same presets, often on different workers). Its fit warnings (a test preset's systems are
+    dataset and the fit are made once for the whole session: the first worker to ask renders the
+    dataset, fits it and pickles both into a folder the workers share (under a file lock), the
+    others load them (test_contract, test_self_check, test_export and test_design use the same
+    presets, often on different workers). Its fit warnings (a test preset's systems are
     ill-conditioned) are not shown."""
     from jprt.hashing import config_hash
     from jprt.methods import REGISTRY
@@ -77,19 +77,19 @@ def fitted_preset():
         if name not in done:
             m = REGISTRY[name]
             config = m.resolve(m.presets["test"])
-            dataset = m.make_dataset(config["scene"], config, progress=False)
             path = os.path.join(_SHARED_FITS, f"{name}_{config_hash(config)}.pkl")
             with open(path + ".lock", "w") as lock:
                 fcntl.flock(lock, fcntl.LOCK_EX)
                 if os.path.exists(path):
                     with open(path, "rb") as f:
-                        result = pickle.load(f)
+                        dataset, result = pickle.load(f)
                 else:
+                    dataset = m.make_dataset(config["scene"], config, progress=False)
                     with warnings.catch_warnings():
                         warnings.simplefilter("ignore")
                         result = m.fit(dataset, config)
                     with open(path + ".tmp", "wb") as f:
-                        pickle.dump(result, f)
+                        pickle.dump((dataset, result), f)
                     os.replace(path + ".tmp", path)
             done[name] = (m, config, dataset, result)
         return done[name]

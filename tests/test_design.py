@@ -148,11 +148,18 @@ def _rrf_run(tmp_path, fitted_preset):
     return save_fit(str(tmp_path / "run"), "rrf", config, result.params)
 
 
-def test_jprt_design_refuses_a_bad_objective_in_one_line(tmp_path, fitted_preset, capsys):
+def test_jprt_design_refuses_a_bad_objective_in_one_line(tmp_path, capsys):
+    """The objective is checked against the scene's object names before the run's model is used
+    (``jprt.design.load_problem``), so the run folder (the RRF test preset's config) holds a
+    placeholder model rather than a fit."""
     from jprt.cli import main
+    from jprt.methods import REGISTRY
+    from jprt.runner import save_fit
 
+    m = REGISTRY["rrf"]
+    run = save_fit(str(tmp_path / "run"), "rrf", m.resolve(m.presets["test"]), {"placeholder": np.zeros(1, np.float32)})
     bad = _write(tmp_path, {"objects": [{"name": "desk", "min": 1}]}, "bad.json")
-    assert main(["design", _rrf_run(tmp_path, fitted_preset), "--objective", bad]) == 2
+    assert main(["design", run, "--objective", bad]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "'desk' is not an object of the scene" in err
 

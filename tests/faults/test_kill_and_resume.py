@@ -64,7 +64,8 @@ def test_a_killed_dataset_render_resumes_without_touching_finished_entries(tmp_p
 
     cache = tmp_path / "cache"
     items = lambda: sorted(glob.glob(str(cache / "datasets" / "*" / "item_*.npz.sha256")))  # noqa: E731
-    _kill_when(_start("render", cache, 0.4), lambda: len(items()) >= 3)
+    # 0.15 s after each entry: the 13 items after the third leave a 2 s window for the kill
+    _kill_when(_start("render", cache, 0.15), lambda: len(items()) >= 3)
     before = {p: (os.stat(p[:-7]).st_mtime_ns, open(p[:-7], "rb").read()) for p in items()}
     assert 3 <= len(before) < 16
     resumed = fault_worker.render(str(cache))
@@ -108,17 +109,29 @@ def test_a_killed_adam_training_resumes_bit_identically(tmp_path):
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
 
 
-@pytest.mark.parametrize("damage", ["truncate", "flip_byte"])
-def test_a_damaged_checkpoint_is_detected_and_training_rebuilt(tmp_path, damage):
-    """A truncated or bit-flipped checkpoint is not resumed from: a warning, the file kept aside
-    as .corrupt, and training from step 0 (bit-identical to a run that never had it)."""
+@pytest.fixture(scope="module")
+def tiny_wavelet_fits(tmp_path_factory):
+    """(data, the bytes of a checkpoint after 4 of TINY's 12 steps, the uninterrupted fit) of the
+    tiny neural-wavelet model on fake data, made once for the damaged-checkpoint tests."""
     from jprt.methods.wavelet_prt import model as wp
     from tests.methods.test_wavelet_prt import TINY, _fake_data
 
     data = _fake_data(n=4)
-    path = tmp_path / "ckpt.npz"
+    path = tmp_path_factory.mktemp("tiny_wavelet") / "ckpt.npz"
     wp.fit(data, TINY, checkpoint_path=str(path), progress=False, stop_after=4)
-    raw = bytearray(path.read_bytes())
+    return data, path.read_bytes(), wp.fit(data, TINY, progress=False)
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip_byte"])
+def test_a_damaged_checkpoint_is_detected_and_training_rebuilt(tmp_path, damage, tiny_wavelet_fits):
+    """A truncated or bit-flipped checkpoint is not resumed from: a warning, the file kept aside
+    as .corrupt, and training from step 0 (bit-identical to a run that never had it)."""
+    from jprt.methods.wavelet_prt import model as wp
+    from tests.methods.test_wavelet_prt import TINY
+
+    data, checkpoint, whole = tiny_wavelet_fits
+    path = tmp_path / "ckpt.npz"
+    raw = bytearray(checkpoint)
     if damage == "truncate":
         raw = raw[: len(raw) // 2]
     else:
@@ -127,7 +140,6 @@ def test_a_damaged_checkpoint_is_detected_and_training_rebuilt(tmp_path, damage)
     with pytest.warns(UserWarning, match="cannot read checkpoint"):
         rebuilt = wp.fit(data, TINY, checkpoint_path=str(path), progress=False)
     assert rebuilt.info["resumed_from"] == 0 and (tmp_path / "ckpt.npz.corrupt").exists()
-    whole = wp.fit(data, TINY, progress=False)
     for a, b in zip(jax.tree_util.tree_leaves(rebuilt.params), jax.tree_util.tree_leaves(whole.params)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
@@ -166,8 +178,9 @@ def test_training_on_a_1e5_sun_and_a_near_black_map_stays_finite():
     train["indirect"] = train["indirect"] * np.array([1e3, 1e-8, 1.0], np.float32)[:, None, None, None, None]
     train["direct"] = train["direct"] * np.array([1e3, 1e-8, 1.0], np.float32)[:, None, None, None, None]
     extreme = data._replace(train=train, envs=envs)
-    result = wp.fit(extreme, dict(TINY, train=dict(TINY["train"], steps=24)), progress=False)
-    assert np.all(np.isfinite(result.info["losses"])) and len(result.info["losses"]) == 24
+    # TINY's 12 steps: the training program of the tests above (compiled once)
+    result = wp.fit(extreme, TINY, progress=False)
+    assert np.all(np.isfinite(result.info["losses"])) and len(result.info["losses"]) == TINY["train"]["steps"]
     assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in jax.tree_util.tree_leaves(result.params))
 
 
@@ -199,13 +212,14 @@ def test_a_killed_sweep_resumes_without_redoing_finished_points(tmp_path, monkey
 def test_a_killed_lm_fit_resumes_bit_identically(tmp_path):
     """An RRF kd-tree fit by LM, killed after its first batch of node fits: the rerun reads the
     finished batches (none fitted twice), fits the rest, and its params equal an uninterrupted
-    fit's bit for bit."""
+    fit's bit for bit. The rerun and the uninterrupted fit run in this process (the batches it
+    reads were fitted by the killed one: equal bits across processes too)."""
     from tests.faults import worker as fault_worker
 
     batches = lambda: glob.glob(str(tmp_path / "ckpt" / "rrf_*" / "nodes_*.npz"))  # noqa: E731
     _kill_when(_start("lm", tmp_path / "ckpt", tmp_path / "unused.npz"), lambda: len(batches()) >= 1)
     finished = len(batches())
-    counts = _run("lm", tmp_path / "ckpt", tmp_path / "resumed.npz")
+    counts = fault_worker.lm(str(tmp_path / "ckpt"), str(tmp_path / "resumed.npz"))[1]["checkpoint"]
     assert counts["loaded"] == finished >= 1 and counts["fitted"] >= 1
     total = counts["loaded"] + counts["fitted"]
     fault_worker.lm(None, str(tmp_path / "whole.npz"))  # uninterrupted, in this process, no checkpoints

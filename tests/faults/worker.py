@@ -9,8 +9,8 @@
 * ``sweep OUT [DELAY]``: the fake method's 2 x 2 sweep of ``tests/test_sweep.py`` into OUT,
   sleeping DELAY seconds after each point; prints its counts;
 * ``lm CHECKPOINT_DIR OUT``: an RRF kd-tree fit by LM (the step target of
-  ``tests/methods/test_rrf.py``) checkpointing each batch of node fits; params to OUT, the
-  checkpoint counts to stdout;
+  ``tests/methods/test_rrf.py``, 500 samples, depth 2: three batches of node fits) checkpointing
+  each batch of node fits; params to OUT, the checkpoint counts to stdout;
 * ``render-limited CACHE LIMIT``: ``render`` under a file-size limit of LIMIT bytes (set here, in
   the worker: a fork of the multithreaded test process to set it could deadlock).
 """
@@ -50,8 +50,8 @@ def train(checkpoint: str, out: str):
     return result
 
 
-LM_CONFIG = {"model": {"hidden": [3]}, "tree": {"min_samples": 40, "max_depth": 3, "threshold": 0.01, "expand": 0.0},
-             "train": {"max_iters": 30, "trial_iters": 30, "progress": False}}
+LM_CONFIG = {"model": {"hidden": [3]}, "tree": {"min_samples": 40, "max_depth": 2, "threshold": 0.01, "expand": 0.0},
+             "train": {"max_iters": 15, "trial_iters": 15, "progress": False}}
 
 
 def lm(checkpoint_dir, out: str):
@@ -61,7 +61,7 @@ def lm(checkpoint_dir, out: str):
     from jprt.methods.rrf import model as rrf
 
     rng = np.random.default_rng(0)
-    x = rng.random((2000, 2)).astype(np.float32)
+    x = rng.random((500, 2)).astype(np.float32)
     y = (1 + 0.3 * x[:, 0] + 0.2 * x[:, 1] + np.where(x[:, 0] < 0.3, 0.0, 1.0))[:, None]
     params, info = rrf.fit_arrays(x, y, np.zeros(len(x), np.int32), LM_CONFIG, checkpoint_dir=checkpoint_dir)
     io.save_checkpoint(out, params)

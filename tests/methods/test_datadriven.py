@@ -158,8 +158,11 @@ def test_all_zero_direct_is_an_error():
        st.floats(1.0, 3.0))
 def test_gamma_round_trip(values, gamma):
     np.testing.assert_allclose(dd.gamma_decode(dd.gamma_encode(values, gamma), gamma), values, rtol=1e-9, atol=1e-9)
-    got = dd.gamma_decode(dd.gamma_encode(jnp.asarray(values, jnp.float32), gamma), gamma)
-    np.testing.assert_allclose(np.asarray(got), values, rtol=2e-5, atol=1e-4)
+    # float32 in JAX on the values padded to the longest draw: the maps are elementwise, and one
+    # shape compiles their operations once instead of once per drawn length
+    padded = jnp.asarray(np.pad(values, (0, 30 - len(values))), jnp.float32)
+    got = np.asarray(dd.gamma_decode(dd.gamma_encode(padded, gamma), gamma))[:len(values)]
+    np.testing.assert_allclose(got, values, rtol=2e-5, atol=1e-4)
     assert np.all(np.sign(dd.gamma_encode(values, gamma)) == np.sign(values))
 
 

@@ -48,12 +48,15 @@ def model():
     return params, info
 
 
+#: One-leaf fits of 1500 samples of three inputs (the two tests below: one LM program, compiled once).
+SMOOTH = {"model": {"hidden": [8, 4]}, "train": {"max_iters": 40, "progress": False}, "tree": {"min_samples": 50}}
+
+
 def test_smooth_target_single_leaf():
     rng = np.random.default_rng(0)
     x = rng.random((1500, 3)).astype(np.float32)
     y = np.stack([1.0 + 0.5 * np.sin(2.0 * x[:, 0]) + 0.3 * x[:, 1] * x[:, 2]] * 3, axis=1)
-    cfg = {"model": {"hidden": [8, 4]}, "train": {"max_iters": 40, "progress": False}, "tree": {"min_samples": 50}}
-    params, info = rrf.fit_arrays(x, y, np.zeros(len(x), np.int32), cfg)
+    params, info = rrf.fit_arrays(x, y, np.zeros(len(x), np.int32), SMOOTH)
     assert kdtree.KDTree(**params["tree"]).n_leaves == 1
     assert info["leaf_val_error"][0] < 0.01  # stated: a smooth target is fit below 1 % relative error
     test = rng.random((500, 3)).astype(np.float32)
@@ -67,16 +70,16 @@ def test_a_feature_constant_in_training_stays_constant_at_run_time():
     training normal of its leaf had y = 0): the renderer clips each input to its leaf's training
     range, so a feature that was constant there is held at that constant instead of extrapolated."""
     rng = np.random.default_rng(3)
-    x = rng.random((600, 3)).astype(np.float32)
+    x = rng.random((1500, 3)).astype(np.float32)
     x[:, 2] = 0.0
     y = np.stack([1.0 + 0.5 * np.sin(3.0 * x[:, 0]) * x[:, 1]] * 3, axis=1)
-    cfg = {"model": {"hidden": [4, 2]}, "train": {"max_iters": 15, "progress": False}, "tree": {"min_samples": 50}}
-    params, _ = rrf.fit_arrays(x, y, np.zeros(len(x), np.int32), cfg)
-    seen = _sorted(params, x, np.zeros(600, np.int32))
+    params, _ = rrf.fit_arrays(x, y, np.zeros(len(x), np.int32), SMOOTH)
+    clamped = _predictor(params)
+    seen = clamped(x, np.zeros(1500, np.int32))
     x_new = x.copy()
     x_new[:, 2] = 1.0
-    held = _sorted(params, x_new, np.zeros(600, np.int32))
-    free = _sorted(params, x_new, np.zeros(600, np.int32), clamp=False)
+    held = clamped(x_new, np.zeros(1500, np.int32))
+    free = _sorted(params, x_new, np.zeros(1500, np.int32), clamp=False)
     np.testing.assert_allclose(held, seen, rtol=1e-5, atol=1e-6)
     assert np.abs(free - seen).max() > 1e-3  # extrapolated, the output moves
 
@@ -85,8 +88,13 @@ def _sorted(params, x, object_id, **kw) -> np.ndarray:
     """``rrf_renderer._predict_sorted`` compiled as one program (the trained tree closed over, as the
     evaluator does): run eagerly, each of its many small operations compiles on its own, several
     times slower in the suite."""
+    return _predictor(params, **kw)(x, object_id)
+
+
+def _predictor(params, **kw):
+    """``_sorted`` as a function of (x, object_id): one compiled program for calls of one shape."""
     predict = jax.jit(lambda a, b: rrf_renderer._predict_sorted(params, a, b, **kw))
-    return np.asarray(predict(jnp.asarray(x), jnp.asarray(object_id)))
+    return lambda x, object_id: np.asarray(predict(jnp.asarray(x), jnp.asarray(object_id)))
 
 
 def _reference_phi(layers, scaling, x):
@@ -353,7 +361,8 @@ def test_blocked_prediction_matches_per_leaf_numpy(model):
         want_c[i] = _reference_phi(layers, s, clipped[None])[0]
     assert np.any(leaf < 0) and np.all(got[leaf < 0] == 0)
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
-    got_c = _sorted(params, x, obj, block=16, clamp=True)
+    clamped = _predictor(params, block=16, clamp=True)
+    got_c = clamped(x, obj)
     np.testing.assert_allclose(got_c, want_c, rtol=1e-4, atol=1e-5)
     assert np.abs(want_c - want).max() > 1e-2  # the normals drawn from N(0, 1) leave the trained range
     # the renderer's form: one light for every sample, the other columns shared; sorted by object and
@@ -362,7 +371,7 @@ def test_blocked_prediction_matches_per_leaf_numpy(model):
     order = np.lexsort((x[:, 0], obj))
     x, obj = x[order], obj[order]
     shared = np.delete(x, [6, 7, 8], axis=1)
-    ref = _sorted(params, x, obj, block=16, clamp=True)
+    ref = clamped(x, obj)
     for tile, chunk in ((4, 3), (16, 1)):  # a chunk that does not divide the tiles, and one chunk
         tiles = jax.jit(lambda a, b, light, o: rrf_renderer._predict_tiles(  # noqa: B023 (called at once)
             params, [a, b], light, jnp.ones((1, 3)), o, light_cols=(6, 7, 8), tile=tile, chunk=chunk, clamp=True,

@@ -169,11 +169,18 @@ def test_sh_prt_check_keeps_the_bake_cache_key(mi, fitted):
     sh = {k: v for k, v in config["sh"].items() if k != "check_maps"}
     old = {"format": 1, "scene": describe(config["scene"]), "objects": list(config["objects"]),
            "lightmap": config["lightmap"], "sh": sh, "atlas_format": ATLAS_FORMAT}
-    assert os.path.exists(cache.entry_path("sh_prt", old))
     assert int(config["sh"]["check_maps"]) >= 1 and "check" in dataset.meta
     bare = m.make_dataset(config["scene"], m.resolve({**m.presets["test"], "sh": {**m.presets["test"]["sh"],
                                                                                  "check_maps": 0}}),
                           progress=False)
     assert "check" not in bare.meta
+    assert os.path.exists(cache.entry_path("sh_prt", old))
     np.testing.assert_array_equal(bare.transfer, dataset.transfer)
+    # check_maps 1 in this worker's cache reads the same bake entry and adds only the check's entry
+    bakes = os.path.dirname(cache.entry_path("sh_prt", old))
+    before = sorted(os.listdir(bakes))
+    again = m.make_dataset(config["scene"], config, progress=False)
+    assert sorted(os.listdir(bakes)) == before
+    np.testing.assert_array_equal(again.transfer, dataset.transfer)
+    assert "check" in again.meta
     assert m.self_check(bare, m.fit(bare, config), config)["warning"] is None

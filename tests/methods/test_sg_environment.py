@@ -64,13 +64,18 @@ def test_eq8_matches_quadrature_of_the_rendered_brdf_under_an_open_sky():
     n = np.array([0.0, 0.0, 1.0], np.float32)
     alphas = [0.1, 0.2, 0.3]
     u = E.preconvolve(_sky(32), alphas, 16)
+
+    @jax.jit  # one program for both sides, compiled once for both views (eagerly, ~160 small compiles)
+    def split_and_exact(v, r):
+        split = E.shade_environment(E.lookup_preconvolved(u, alphas, r, 0.2), 1.0, n, v, 0.2,
+                                    np.full(3, 0.9, np.float32))
+        return split, M.shade_quadrature(_sky(32), n, v, 0.2, np.full(3, 0.9, np.float32), sub=4)
+
     for deg in (0.0, 45.0):
         t = np.radians(deg)
         v = np.array([np.sin(t), 0.0, np.cos(t)], np.float32)
         r = 2 * v @ n * n - v
-        split = np.asarray(E.shade_environment(E.lookup_preconvolved(u, alphas, jnp.asarray(r), 0.2), 1.0, n, v, 0.2,
-                                               np.full(3, 0.9, np.float32)))
-        exact = np.asarray(M.shade_quadrature(_sky(32), n, v, 0.2, np.full(3, 0.9, np.float32), sub=4))
+        split, exact = (np.asarray(a) for a in split_and_exact(jnp.asarray(v), jnp.asarray(r)))
         np.testing.assert_allclose(split, exact, rtol=0.04)
 
 
@@ -117,10 +122,14 @@ def test_fast_evaluator_equals_the_reference_shading_of_its_fetched_lobes():
                 specular_albedo=f32(rng.uniform(0, 1, (h, h, 3))), roughness=f32(rng.uniform(0.01, 1, (h, h))),
                 object_id=np.zeros((h, h), np.int32), valid=rng.uniform(size=(h, h)) > 0.2)
     got = np.asarray(M.evaluator(params)(g, LightScale(np.ones(3, np.float32))))
-    irr = atlas_lookup(atlas_image(jnp.asarray(params["irradiance"], jnp.float32), jnp.asarray(params["fill_index"])),
-                       jnp.asarray(g.uv))
-    want = np.asarray(jax.jit(lambda p, g, irr: M.shade(M.lookup_lobes(p, g.uv), g.normal, g.view, g.roughness,
-                                                        g.specular_albedo, g.diffuse_albedo, irr))(params, g, irr))
+
+    @jax.jit  # one program for the reference (eagerly, each operation compiles on its own)
+    def reference(p, g):
+        irr = atlas_lookup(atlas_image(jnp.asarray(p["irradiance"], jnp.float32), jnp.asarray(p["fill_index"])),
+                           jnp.asarray(g.uv))
+        return M.shade(M.lookup_lobes(p, g.uv), g.normal, g.view, g.roughness, g.specular_albedo, g.diffuse_albedo, irr)
+
+    want = np.asarray(reference(params, g))
     want = np.where(g.valid[..., None], want, 0.0)
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-6)
 
@@ -186,8 +195,8 @@ def test_we_from_a_capture_is_near_zero_under_a_plate_and_high_under_the_open_sk
         assert vis.visible.shape[1:] == (32, 32) and np.isfinite(vis.visible).all()
         assert ((0 <= vis.visible) & (vis.visible <= 1)).all()
         w, _ = E.weighted_visibility(vis.visible, vis.normal, np.full(len(vis.normal), 0.05), _sky(32), 16)
-        up = np.asarray(jnp.stack([E.octahedral_lookup(w[k], jnp.asarray(vis.normal[k]))
-                                   for k in range(len(vis.normal))]))[:, 0]
+        # each texel's own map at its normal, one program for all of them
+        up = np.asarray(jax.jit(jax.vmap(E.octahedral_lookup))(w, jnp.asarray(vis.normal)))[:, 0]
         values[name] = up
         # texel centres: the conservative texels at the floor's rim sit within a quarter texel of
         # the walls, whose feet block the lobe's tails far more there

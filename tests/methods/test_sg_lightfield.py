@@ -2,6 +2,8 @@
 Appendix A's gradients, the encoder recovering a known mixture, the run-time shading against
 quadrature of the GGX BRDF, and float32 at the extremes against float64."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,17 +16,22 @@ from jprt.methods.sg_lightfield import model as M
 from jprt.sphere import octahedral
 
 
+#: ``constrain`` then ``to_storage`` as one program (run eagerly, each of their operations compiles
+#: on its own, 40 small programs)
+_CONSTRAIN_AND_STORE = jax.jit(lambda raw: (M.constrain(raw), M.to_storage(M.constrain(raw))))
+
+
 @given(raw=hnp.arrays(np.float32, (5, 3, 7), elements=st.floats(-1e4, 1e4, width=32)))
 @settings(max_examples=60, deadline=None)
 def test_constraints_hold_for_any_raw_output(raw):
-    lobes = M.constrain(jnp.asarray(raw))
+    lobes, stored = _CONSTRAIN_AND_STORE(jnp.asarray(raw))
     np.testing.assert_allclose(np.linalg.norm(np.asarray(lobes.axes), axis=-1), 1.0, rtol=1e-5)
     s = np.asarray(lobes.sharpness)
     assert (s >= 0.5 * (1 - 1e-6)).all() and (s <= 1e4 * (1 + 1e-6)).all()
     assert (np.asarray(lobes.amplitude) >= 0).all() and np.isfinite(np.asarray(lobes.amplitude)).all()
-    stored = M.to_storage(lobes)  # float16 holds every constrained sharpness (<= 1e4 < 65504)
+    # float16 holds every constrained sharpness (<= 1e4 < 65504)
     assert all(np.isfinite(np.asarray(a, np.float32)).all() for a in stored)
-    np.testing.assert_allclose(float(M.constrain(jnp.zeros((1, 7))).sharpness[0]), 1.0, rtol=1e-5)
+    np.testing.assert_allclose(float(_CONSTRAIN_AND_STORE(jnp.zeros((1, 7)))[0].sharpness[0]), 1.0, rtol=1e-5)
 
 
 def test_appendix_a_gradients_with_the_errata():
@@ -79,13 +86,20 @@ def test_cnn_recovers_a_known_two_lobe_mixture():
         assert (cos > np.cos(np.radians(3.0))).all()
 
 
-def _quadrature(axis, lam, n, v, alpha, f0, nt=900, npp=400):
-    """int G(w; axis, lam, 1) f_GGX(w, v) (n . w) dw over the hemisphere of n = +z (float64)."""
+@functools.lru_cache(maxsize=None)
+def _hemisphere(nt=900, npp=400):
+    """Midpoint quadrature of the hemisphere of n = +z: directions w and their solid angles (float64)."""
     th = (np.arange(nt) + 0.5) / nt * np.pi / 2
     ph = (np.arange(npp) + 0.5) / npp * 2 * np.pi
     t, p = np.meshgrid(th, ph, indexing="ij")
     w = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
-    d_omega = np.sin(t) * (np.pi / 2 / nt) * (2 * np.pi / npp)
+    return w, np.sin(t) * (np.pi / 2 / nt) * (2 * np.pi / npp)
+
+
+def _quadrature(axis, lams, n, v, alpha, f0):
+    """int G(w; axis, lam, 1) f_GGX(w, v) (n . w) dw over the hemisphere of n = +z (float64), for
+    each lam of ``lams`` (the BRDF-cosine computed once for them)."""
+    w, d_omega = _hemisphere()
     h = w + v
     h /= np.linalg.norm(h, axis=-1, keepdims=True)
     a2 = alpha ** 2
@@ -93,7 +107,9 @@ def _quadrature(axis, lam, n, v, alpha, f0, nt=900, npp=400):
     g1 = lambda x: 2 * x / (x + np.sqrt(a2 + (1 - a2) * x * x))  # noqa: E731
     fresnel = f0 + (1 - f0) * (1 - np.clip(np.sum(w * h, -1), 0, 1)) ** 5
     brdf = ndf * g1(w[..., 2]) * g1(v[2]) * fresnel / (4 * w[..., 2] * v[2])
-    return float(np.sum(np.exp(lam * (w @ axis - 1)) * brdf * w[..., 2] * d_omega))
+    weight = brdf * w[..., 2] * d_omega
+    cos = w @ axis - 1
+    return [float(np.sum(np.exp(lam * cos) * weight)) for lam in lams]
 
 
 def test_shading_matches_quadrature_of_the_ggx_brdf():
@@ -114,8 +130,8 @@ def test_shading_matches_quadrature_of_the_ggx_brdf():
                                          jnp.asarray([a for a, *_ in cases]), jnp.full((k, 3), 0.9),
                                          jnp.zeros((k, 3)), jnp.zeros((k, 3))))
     for i in range(0, k, len(lams)):  # one (alpha, view) per group of lambdas
-        ratios = [float(shaded[i + j, 0]) / _quadrature(refl[i + j], lam, n, views[i + j], cases[i][0], 0.9)
-                  for j, lam in enumerate(lams)]
+        exact = _quadrature(refl[i], lams, n, views[i], cases[i][0], 0.9)
+        ratios = [float(shaded[i + j, 0]) / exact[j] for j in range(len(lams))]
         assert all(1.0 <= q <= 1.25 for q in ratios), (cases[i][:2], ratios)
         assert ratios[-1] <= 1.08 and ratios[0] >= ratios[1] >= ratios[2], (cases[i][:2], ratios)
 
@@ -126,7 +142,7 @@ def test_float32_at_the_extremes_matches_float64():
     rng = np.random.default_rng(0)
     raw = rng.normal(size=(64, 16, 7)) * 3.0
     raw[..., 3] = np.linspace(-30, 30, 64 * 16).reshape(64, 16)
-    stored = M.to_storage(M.constrain(jnp.asarray(raw, jnp.float32)))
+    stored = _CONSTRAIN_AND_STORE(jnp.asarray(raw, jnp.float32))[1]
     assert float(jnp.max(stored.sharpness)) == pytest.approx(1e4, rel=1e-3)
     t = np.radians(np.linspace(0.0, 89.9, 64))
     view = np.stack([np.sin(t), 0 * t, np.cos(t)], -1)
@@ -149,7 +165,7 @@ def test_texel_irradiance_of_a_constant_sky_is_pi_l():
     size = 32
     images = np.full((2, size, size, 3), 2.0, np.float32)
     normals = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]], np.float32)
-    e = np.asarray(M.texel_irradiance(images, normals, size))
+    e = np.asarray(jax.jit(M.texel_irradiance, static_argnums=2)(images, normals, size))  # one program
     np.testing.assert_allclose(e, 2.0 * np.pi, rtol=0.01)  # cosine quadrature at pixel centres
 
 
@@ -163,9 +179,9 @@ def test_gradients_stay_finite_at_a_zero_raw_axis():
         lobes = M.constrain(raw)
         return jnp.sum(M.lobe_radiance(lobes, v[None]))
 
-    g = jax.grad(loss)(raw)
+    g = jax.jit(jax.grad(loss))(raw)  # one program (eagerly, the gradient is ~80 small compiles)
     assert np.isfinite(np.asarray(g)).all()
-    np.testing.assert_allclose(np.asarray(M.constrain(raw).axes[0]), [0.0, 0.0, 1.0])
+    np.testing.assert_allclose(np.asarray(jax.jit(M.constrain)(raw).axes[0]), [0.0, 0.0, 1.0])
 
 
 @pytest.mark.slow  # ~15 s: capture, fit and shade a tiny light-field texture end to end

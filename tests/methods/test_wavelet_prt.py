@@ -51,6 +51,10 @@ def _fake_data(seed=0, e=3, v=2, h=6, w=5, n=4) -> wp.WaveletData:
                           {}, {"spp": 1})
 
 
+#: The unit box's corners: the bbox the model tests initialise with.
+BOX = np.array([[-1, -1, -1], [1, 1, 1]], np.float32)
+
+
 # -- wavelet selection and relighting ----------------------------------------------------------
 
 
@@ -150,7 +154,7 @@ def test_frame_flops_is_xla_count_of_one_chunk(overrides):
            "render": {"k": 64, "chunk": 8 * 8, **overrides.get("render", {})}}
     data = _fake_data(h=8, w=8, n=16)
     m = wp.model(cfg)
-    params = m.init(jax.random.PRNGKey(0), np.array([[-1, -1, -1], [1, 1, 1]], np.float32))
+    params = jax.jit(m.init)(jax.random.PRNGKey(0), BOX)  # one program (eagerly, each random draw compiles)
     g = {f: jnp.asarray(data.train[f][0, 0]) for f in wp.GBUFFER_FIELDS}
     g["valid"] = jnp.ones_like(g["valid"])  # XLA counts every pixel of the one chunk
     lighting = CubeMap(data.envs[0])
@@ -515,15 +519,18 @@ def test_fit_rejects_mismatched_face_size():
 
 
 def test_evaluator_masks_invalid_pixels_and_checks_k():
+    """On the model as ``init`` draws it: masking and the k check do not depend on training (the
+    module's fits and the contract test evaluate trained models)."""
     data = _fake_data(n=4)
-    res = wp.fit(data, dict(TINY, train=dict(TINY["train"], steps=2)), progress=False)
-    ev = wp.evaluator(res.params, TINY)
+    params = wp.model(TINY).init(jax.random.PRNGKey(0), BOX)  # eagerly, as fit does: compiled once for the module
+    ev = wp.evaluator(params, TINY)
     g = {f: data.train[f][0, 0] for f in wp.GBUFFER_FIELDS}
     out = np.asarray(ev(g, CubeMap(data.envs[0])))
     assert out.shape == g["valid"].shape + (3,)
     assert np.all(out[~g["valid"]] == 0) and np.all(np.isfinite(out))
+    assert np.abs(out[g["valid"]]).max() > 0  # the valid pixels are lit: the zeros are the mask's
     with pytest.raises(ValueError, match="render.k must be"):
-        wp.evaluator(res.params, dict(TINY, render={"k": 6 * 16 + 1}))
+        wp.evaluator(params, dict(TINY, render={"k": 6 * 16 + 1}))
 
 
 def test_per_vertex_variant_trains_and_renders():
@@ -566,10 +573,30 @@ def test_turned_maps_follow_the_rotation():
     assert np.dot(d[hit], rs[0] @ d[20, 30]) > np.cos(np.radians(4.0))  # within a texel or so
 
 
+@pytest.fixture(scope="module")
+def maps_decoded_once():
+    """``jprt.io.read_hdr`` remembering what it decoded, for this module: each lighting set below
+    reads all twelve 1k maps of the assets folder, and decoding them was most of these tests' time.
+    Each call gets its own copy."""
+    from jprt import io as jio
+
+    read, decoded = jio.read_hdr, {}
+
+    def read_hdr(path, *args, **kwargs):
+        key = (os.path.abspath(path), args, tuple(sorted(kwargs.items())))
+        if key not in decoded:
+            decoded[key] = read(path, *args, **kwargs)
+        return np.array(decoded[key], copy=True)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(jio, "read_hdr", read_hdr)
+        yield
+
+
 @pytest.mark.mitsuba
 # the plain file maps (0.0, 0.0) with the slow tests: the per-image and tilted cases hold them too
 @pytest.mark.parametrize("fraction, tilt", [pytest.param(0.0, 0.0, marks=pytest.mark.slow), (0.5, 0.0), (0.0, 1.0)])
-def test_per_image_lightings_never_use_a_held_out_map(mi, assets, fraction, tilt):
+def test_per_image_lightings_never_use_a_held_out_map(mi, assets, maps_decoded_once, fraction, tilt):
     from jprt.methods.wavelet_prt import data as wp_data
 
     ecfg = dict(wp.DEFAULT_CONFIG["envmaps"], folder=os.path.join(assets, "envmaps"), face_size=4,

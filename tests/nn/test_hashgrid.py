@@ -88,5 +88,6 @@ def test_check_grads():
     x = jax.random.uniform(jax.random.PRNGKey(1), (4, 3), minval=0.05, maxval=0.95)
     with jax.enable_x64(True):
         p64 = jax.tree_util.tree_map(lambda t: jnp.asarray(t, jnp.float64) * 1e3, params)
-        check_grads(lambda p: grid.apply(p, jnp.asarray(x, jnp.float64)), (p64,), order=2, modes=["rev"])
-        check_grads(lambda y: grid.apply(p64, y), (jnp.asarray(x, jnp.float64),), order=1, modes=["rev"])
+        # jitted: each derivative is one program (eagerly, every primitive compiles apart)
+        check_grads(jax.jit(lambda p: grid.apply(p, jnp.asarray(x, jnp.float64))), (p64,), order=2, modes=["rev"])
+        check_grads(jax.jit(lambda y: grid.apply(p64, y)), (jnp.asarray(x, jnp.float64),), order=1, modes=["rev"])

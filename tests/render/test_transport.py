@@ -26,17 +26,36 @@ def setup():
     return handle, cube, o.reshape(-1, 3), d.reshape(-1, 3)
 
 
+SPP, DEPTH = 512, 5
+
+
+@pytest.fixture(scope="module")
+def transport(setup):
+    """``get(min_depth)``: the transport of ``setup``'s pixels at SPP samples and paths up to DEPTH
+    bounces, traced once per module (the wavelet check below reuses the comparison's)."""
+    handle, _, o, d = setup
+    done = {}
+
+    def get(min_depth):
+        if min_depth not in done:
+            done[min_depth] = environment_transport(handle, o, d, face_size=N, spp=SPP, seed=1, min_depth=min_depth,
+                                                    max_depth=DEPTH)
+        return done[min_depth]
+
+    return get
+
+
 def _rel(a, b):
     return float(np.linalg.norm(a - b) / np.linalg.norm(b))
 
 
 @pytest.mark.parametrize("min_depth", [pytest.param(0, marks=pytest.mark.slow), 2])
-def test_transport_relights_like_mitsuba(setup, min_depth):
+def test_transport_relights_like_mitsuba(setup, transport, min_depth):
     """B = sum_t T_t L_t (all path lengths, or indirect only) agrees with Mitsuba's render of the same
     environment within the noise of two Mitsuba renders with different seeds."""
     handle, cube, o, d = setup
-    spp, depth = 512, 5
-    t = environment_transport(handle, o, d, face_size=N, spp=spp, seed=1, min_depth=min_depth, max_depth=depth)
+    spp, depth = SPP, DEPTH
+    t = transport(min_depth)
     assert t.shape == (36, 6, N, N, 3) and np.all(t >= 0)
     b = np.einsum("ptijc,tijc->pc", t, cube)
 
@@ -50,11 +69,11 @@ def test_transport_relights_like_mitsuba(setup, min_depth):
     assert b.mean() == pytest.approx(ref.mean(), rel=0.1)
 
 
-def test_transport_check_in_the_wavelet_basis(setup):
+def test_transport_check_in_the_wavelet_basis(setup, transport):
     """Projected onto the Haar basis, all wavelets reproduce the texel-domain product exactly and the
-    truncation error falls with K."""
-    handle, cube, o, d = setup
-    t = environment_transport(handle, o, d, face_size=N, spp=64, seed=3, max_depth=4)
+    truncation error falls with K (on the indirect transport the comparison above traced)."""
+    _, cube, _, _ = setup
+    t = transport(2)
     out = wp.transport_check(t, cube, ks=(4, 16, 96))
     assert _rel(out["wavelet_all"], out["full"]) < 1e-4
     assert _rel(out["by_k"][96], out["full"]) < 1e-4

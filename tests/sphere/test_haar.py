@@ -31,7 +31,9 @@ def test_parseval_and_shapes(seed, n, channels):
     cube = np.random.default_rng(seed).normal(size=(6, n, n) + channels).astype(np.float32)
     c = haar.forward(jnp.asarray(cube))
     assert c.shape == cube.shape and c.dtype == jnp.float32
-    np.testing.assert_allclose(float(jnp.sum(c**2)), float(np.sum(cube.astype(np.float64) ** 2)), rtol=1e-5)
+    # the energies summed by NumPy (in JAX each of the 12 shapes compiled its own sum)
+    energy = float(np.sum(np.asarray(c, np.float64) ** 2))
+    np.testing.assert_allclose(energy, float(np.sum(cube.astype(np.float64) ** 2)), rtol=1e-5)
 
 
 def test_matches_pywavelets_per_face():
@@ -53,12 +55,13 @@ def test_flat_index_round_trip(n):
     idx = jnp.arange(6 * n * n)
     w = haar.unflatten_index(idx, n)
     np.testing.assert_array_equal(haar.flat_index(*w, n), idx)
-    assert int(jnp.sum(w.band == haar.BAND_SCALING)) == 6
+    w = type(w)(*map(np.asarray, w))  # counted by NumPy (in JAX each size compiled its own reductions)
+    assert int(np.sum(w.band == haar.BAND_SCALING)) == 6
     # Each level l holds 3 * 4^l coefficients per face.
     for level in range(int(np.log2(n))):
-        count = int(jnp.sum((w.level == level) & (w.band != haar.BAND_SCALING)))
+        count = int(np.sum((w.level == level) & (w.band != haar.BAND_SCALING)))
         assert count == 6 * 3 * 4**level
-    assert (w.i >= 0).all() and (w.i < jnp.left_shift(1, w.level)).all()
+    assert (w.i >= 0).all() and (w.i < np.left_shift(1, w.level)).all()
 
 
 def test_basis_support_matches_level():

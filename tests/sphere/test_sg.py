@@ -12,6 +12,11 @@ from jprt.sphere import sg
 from jprt.sphere.quadrature import integrate
 
 LAMBDAS = np.logspace(-3, 4, 8)
+# The polar grid of the quadratures of products of lobes (jprt.sphere.quadrature, dense at the
+# pole): at 600 x 200 points every integral of this file is within 2.3e-6 of the 1500 x 400-500
+# grid's (measured on all cases of the inner product and convolution tests; their tolerances are
+# 1e-3 and 5 %), at a fifth of the cost.
+GRID = {"n_theta": 600, "n_phi": 200}
 ANGLES = [0.0, 0.3, 1.0, 2.0, np.pi]  # aligned ... antipodal
 
 
@@ -39,7 +44,7 @@ def test_inner_product_matches_quadrature(x64, lam1, lam2, angle):
         v = jnp.asarray(v)
         return sg.evaluate(v, jnp.asarray(u1), lam1, 0.5) * sg.evaluate(v, jnp.asarray(u2), lam2, 2.0)
 
-    numeric = integrate(product, pole)
+    numeric = integrate(product, pole, **GRID)
     if numeric < 1e-280:  # both underflow to 0 far apart at lambda = 1e4
         assert closed < 1e-280
     else:
@@ -121,7 +126,7 @@ def convolution_case(roughness, light_sharpness, view_deg, offset_rad):
     closed = float(sg.convolve_sg_asg(jnp.asarray(axis), jnp.asarray(light_sharpness), 1.0, asg))
     pole = axis if light_sharpness > float(asg.sharpness_x) else z
     numeric = integrate(lambda v: _lobe_product(jnp.asarray(v), jnp.asarray(axis), jnp.asarray(light_sharpness), asg),
-                        pole, n_theta=1500, n_phi=500)
+                        pole, **GRID)
     effective = 0.5 * light_sharpness + min(float(asg.sharpness_x), float(asg.sharpness_y))
     return closed, numeric, effective
 
