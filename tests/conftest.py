@@ -125,3 +125,20 @@ def pytest_collection_modifyitems(config, items):
     here = os.path.dirname(os.path.abspath(__file__))
     rank = {os.path.join(here, name): i for i, name in enumerate(LONGEST_FILES)}
     items.sort(key=lambda item: rank.get(os.path.abspath(str(item.path)), len(rank)))
+
+
+@pytest.fixture(scope="module")
+def small_machine_measurements():
+    """Every run's roofline measures the machine (``jeval.matmul_peak_gflops``: 1024 x 1024
+    matmuls; ``jeval.stream_bandwidth_gbs``: 256 MiB arrays). A module whose tests run whole
+    experiments but never read those numbers asks for this fixture: the same measurements at
+    test_eval's sizes (test_eval checks them)."""
+    import functools
+
+    from jprt import eval as jeval
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(jeval, "matmul_peak_gflops", functools.partial(jeval.matmul_peak_gflops, n=64, repeats=2))
+        mp.setattr(jeval, "stream_bandwidth_gbs",
+                   functools.partial(jeval.stream_bandwidth_gbs, n_bytes=1 << 20, repeats=2))
+        yield

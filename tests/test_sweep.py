@@ -19,20 +19,7 @@ from jprt.config import ConfigError, parse_value
 from jprt.methods import REGISTRY
 
 
-@pytest.fixture(scope="module", autouse=True)
-def small_machine_measurements():
-    """Every run's roofline measures the machine (``jeval.matmul_peak_gflops``: 1024 x 1024 matmuls;
-    ``jeval.stream_bandwidth_gbs``: 256 MiB arrays) and nothing here reads it: the same
-    measurements at test_eval's sizes (test_eval checks them)."""
-    import functools
-
-    from jprt import eval as jeval
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(jeval, "matmul_peak_gflops", functools.partial(jeval.matmul_peak_gflops, n=64, repeats=2))
-        mp.setattr(jeval, "stream_bandwidth_gbs",
-                   functools.partial(jeval.stream_bandwidth_gbs, n_bytes=1 << 20, repeats=2))
-        yield
+pytestmark = pytest.mark.usefixtures("small_machine_measurements")
 
 
 @pytest.fixture
