@@ -331,8 +331,12 @@ def point_direct(gbuffer, position, intensity, visibility, *, glossy: bool = Tru
         float32: value rtol 1e-4 atol 1e-3; grad rtol 1e-3 atol 1e-2
         (GGX peaks to ~30 at roughness 0.1, times intensities to 1e3 over r^2 >= 1: values to ~3e4)
     """
+    valid = jnp.asarray(gbuffer.valid, bool)[..., None]
     p = jnp.asarray(gbuffer.position)[..., None, :]  # (H, W, 1, 3)
-    n = jnp.asarray(gbuffer.normal)
+    # invalid pixels get a unit normal and view and a rough surface: their zero attributes make the
+    # BRDF 0 / 0 there, masked out of the value but not out of a reverse-mode gradient
+    up = jnp.asarray([0.0, 0.0, 1.0], p.dtype)
+    n = jnp.where(valid, jnp.asarray(gbuffer.normal), up)
     lead = (1,) * (p.ndim - 2)
     position = jnp.asarray(position).reshape(lead + (-1, 3))  # (1, 1, K, 3)
     intensity = jnp.asarray(intensity).reshape(lead + (-1, 3))
@@ -346,10 +350,10 @@ def point_direct(gbuffer, position, intensity, visibility, *, glossy: bool = Tru
     radiance = jnp.asarray(gbuffer.diffuse_albedo) / jnp.pi * irradiance
     if glossy:
         spec = jnp.asarray(gbuffer.specular_albedo)
-        f = _ggx_brdf_cos(n[..., None, :], jnp.asarray(gbuffer.view)[..., None, :], w,
-                          jnp.asarray(gbuffer.roughness)[..., None], spec[..., None, :])
+        view = jnp.where(valid, jnp.asarray(gbuffer.view), up)
+        rough = jnp.where(valid[..., 0], jnp.asarray(gbuffer.roughness), 1.0)
+        f = _ggx_brdf_cos(n[..., None, :], view[..., None, :], w, rough[..., None], spec[..., None, :])
         radiance = radiance + jnp.sum(f * (vis / r2)[..., None] * intensity, axis=-2)
-    valid = jnp.asarray(gbuffer.valid, bool)[..., None]
     return jnp.where(valid, radiance, 0.0), jnp.where(valid, irradiance, 0.0)
 
 
@@ -455,8 +459,7 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
     light visible everywhere). ``lo``,
     ``hi``: the light region. ``optimise``: which of "position", "power" (the overall intensity
     per light) and "colour" (its RGB ratios) move; the rest keep their starting values. The
-    gradient is taken in forward mode (``jax.jacfwd``: one JVP per parameter, 6 a light), which
-    also goes through the while loops reverse mode cannot (RRF's kd-tree traversal).
+    gradient is reverse mode (``_adam``): ``frame_fn`` must go through ``jax.grad``.
 
     Numerics: not differentiable (an optimisation loop over ``objective_terms``, ``point_direct`` and the model).
     """
@@ -541,31 +544,19 @@ def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_
           every: int, progress: bool | None):
     """Adam on ``objective(*model(params, aux)) -> (value, terms)`` for ``steps`` steps, the rate
     decaying on a cosine to 1 %; ``aux = refresh(params)`` first, every ``every`` steps and at the
-    end. ``model(params, aux) -> (frames, lighting)`` (arrays) is differentiated in forward mode
-    (a few parameters, one JVP each; it goes through the while loops reverse mode cannot: RRF's
-    kd-tree traversal) and compiled apart from the objective, whose gradient in the frames is
-    reverse mode; the chain rule joins them. (One program for both gave wrong values here, run to
-    run: XLA fused the objective's reductions with RRF's renderer; each part alone is exact.)
-    Returns (params, history, terms at the end, seconds, refreshes)."""
+    end. ``model(params, aux) -> (frames, lighting)`` (arrays) must be reverse-mode differentiable
+    (the problem's evaluator is the method's ``gradient_evaluator`` where it has one): each step
+    is one compiled program, the objective's value and its gradient in the parameters
+    (``jax.value_and_grad``) and the update. Returns (params, history, terms at the end, seconds,
+    refreshes)."""
     import optax
 
     # cosine decay to 1 % of the rate: the last steps settle instead of circling the optimum
     opt = optax.adam(optax.cosine_decay_schedule(float(learning_rate), max(int(steps), 1), alpha=0.01))
 
     @jax.jit
-    def forward(params, aux):
-        out = model(params, aux)
-        jac = jax.jacfwd(lambda p: model(p, aux))(params)
-        return out, jac
-
-    @jax.jit
-    def update(params, state, out, jac):
-        value, g_out = jax.value_and_grad(lambda o: objective(*o)[0])(out)
-        # d value / d params = sum over every output element of g_out x d out / d params
-        leaves_g = jax.tree_util.tree_leaves(g_out)
-        per_output = [jax.tree_util.tree_map(lambda j, g=g: jnp.tensordot(g, j, axes=g.ndim), jo)
-                      for g, jo in zip(leaves_g, _jacobian_per_output(jac, out))]
-        grads = jax.tree_util.tree_map(lambda *a: sum(a), *per_output)
+    def step(params, state, aux):
+        (value, _), grads = jax.value_and_grad(lambda p: objective(*model(p, aux)), has_aux=True)(params)
         updates, state = opt.update(grads, state, params)
         return optax.apply_updates(params, updates), state, value
 
@@ -578,23 +569,15 @@ def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_
         if i % every == 0:
             aux = refresh(params)
             refreshes += 1
-        out, jac = forward(params, aux)
-        params, state, value = update(params, state, out, jac)
+        params, state, value = step(params, state, aux)
         history.append(float(value))
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(objective=f"{history[-1]:.3g}")
     aux = refresh(params)
     refreshes += 1
-    _, terms = objective(*model(params, aux))
+    _, terms = jax.jit(lambda p, a: objective(*model(p, a)))(params, aux)
     return (params, np.asarray(history), {k: float(v) for k, v in terms.items()}, time.perf_counter() - t0,
             refreshes)
-
-
-def _jacobian_per_output(jac, out) -> list:
-    """``jax.jacfwd``'s Jacobian of a pytree output (each output leaf holding a params-shaped tree)
-    as a list, one params tree per output leaf, in the output's leaf order."""
-    treedef = jax.tree_util.tree_structure(out)
-    return treedef.flatten_up_to(jac)
 
 
 def design_frame(gbuffer, indirect_fn: Callable, *, glossy: bool = True) -> Callable:
@@ -973,7 +956,7 @@ def load_problem(folder: str, objective_path, *, size: int = 64, env: str | None
         gb = gbuffer(session.handle, camera)
     objective = _on_valid(load_objective(objective_path, names, shape=np.shape(gb.valid)), gb.valid)
     masks = object_masks(objective, gb.object_id, names, gb.valid)
-    evaluate = session.evaluator()
+    evaluate = session.evaluator(gradient=True)
     if m.name in ENVIRONMENT_METHODS:
         from jprt.inputs import CubeMap, SHLighting
         from jprt.sphere import sh

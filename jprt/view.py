@@ -244,17 +244,24 @@ class Session:
             self._inputs_key = key
         return self._inputs
 
-    def evaluator(self):
-        """The jitted evaluator at the current knob (one per knob value, kept)."""
+    def evaluator(self, *, gradient: bool = False):
+        """The jitted evaluator at the current knob (one per knob value, kept); with ``gradient``
+        the method's ``gradient_evaluator`` where it has one (the same image by a program that
+        reverse-mode differentiation goes through), not jitted (it is traced inside the caller's
+        gradient program)."""
         from jprt.config import merge
 
         k = self.state["knob"]
-        if k not in self._evaluators:
+        key = ("gradient", k) if gradient else k
+        if key not in self._evaluators:
             config = self.method_config
             if self.knob:
                 config = self.method.resolve(merge(config, {self.knob[0]: {self.knob[1]: int(k)}}))
-            self._evaluators[k] = jax.jit(self.method.evaluator(self.params, config))
-        return self._evaluators[k]
+            if gradient:
+                self._evaluators[key] = (self.method.gradient_evaluator or self.method.evaluator)(self.params, config)
+            else:
+                self._evaluators[key] = jax.jit(self.method.evaluator(self.params, config))
+        return self._evaluators[key]
 
     # -- frames --------------------------------------------------------------------------------
     def prediction(self, size: int) -> np.ndarray:

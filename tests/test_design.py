@@ -102,6 +102,28 @@ def test_gradients_are_finite_at_the_light_regions_faces():
         assert np.abs(np.asarray(g.log_intensity)).max() > 0  # the floor is below its bound: more light helps
 
 
+def test_reverse_mode_gradient_of_the_direct_light_is_finite_beside_empty_pixels():
+    """Pixels that see no surface carry zero normal, view and roughness (GGX's D is 0 / 0 there):
+    their value is masked to 0, and so must be their part of a reverse-mode gradient, which
+    sums every pixel's cotangent (one NaN pixel made the whole gradient NaN). The gradient
+    equals forward mode's, which never mixed pixels."""
+    gb = _floor(n=6)
+    empty = np.zeros((6, 6), bool)
+    empty[:, :2] = True
+    zero = lambda a: np.where(empty.reshape(empty.shape + (1,) * (a.ndim - 2)), 0, a).astype(a.dtype)  # noqa: E731
+    gb = gb._replace(normal=zero(gb.normal), view=zero(gb.view), roughness=zero(gb.roughness),
+                     specular_albedo=np.full((6, 6, 3), 0.3, np.float32), valid=~empty)
+    pos, inten = jnp.asarray([[0.2, 1.5, -0.1]]), jnp.ones((1, 3))
+
+    def loss(p):
+        radiance, irradiance = design.point_direct(gb, p, inten, jnp.ones((6, 6, 1)))
+        return jnp.sum(radiance) + jnp.sum(irradiance)
+
+    g_rev, g_fwd = np.asarray(jax.grad(loss)(pos)), np.asarray(jax.jacfwd(loss)(pos))
+    assert np.all(np.isfinite(g_rev)) and np.abs(g_rev).max() > 0
+    np.testing.assert_allclose(g_rev, g_fwd, rtol=1e-5, atol=1e-7)
+
+
 def test_design_finds_the_known_optimum_of_a_synthetic_linear_model():
     """Direct light of one point light on a floor plus an indirect term linear in its intensity
     (a fixed pattern): the target is this model's image under a known light; from another start

@@ -113,6 +113,10 @@ class Method(NamedTuple):
         environment reflected once) (``data.PREDICTS``).
       view_environments: optional ``(dataset, config) -> {name: (6, n, n, 3) cube map}``, the
         environments the viewer offers (``data.view_environments``); None: the run's own maps.
+      gradient_evaluator: optional, ``evaluator``'s signature and image by a program that
+        reverse-mode differentiation (``jax.grad`` in the lighting) goes through, where
+        ``evaluator``'s does not (``model.gradient_evaluator``; RRF's tiled renderer loops a
+        data-dependent number of times); None: ``evaluator`` is one. ``jprt.design`` uses it.
     """
 
     name: str
@@ -132,6 +136,7 @@ class Method(NamedTuple):
     view_lightings: tuple = ()
     predicts: str = "indirect"
     view_environments: Callable | None = None
+    gradient_evaluator: Callable | None = None
 
     def resolve(self, config: Mapping | None = None) -> dict:
         """``default_config`` deep-merged with ``config``; an unknown key raises ConfigError."""
@@ -144,7 +149,7 @@ class Method(NamedTuple):
         ``data.make_dataset``, ``model.fit`` (or ``fit``), ``model.evaluator``, ``model.example``;
         ``model.frame_flops``, ``data.self_check`` and the task and viewer adapters
         (``data.TASK_LIGHTINGS``, ``task_inputs``, ``task_lighting``, ``VIEW_LIGHTINGS``,
-        ``PREDICTS``, ``view_environments``) where the package has them.
+        ``PREDICTS``, ``view_environments``) and ``model.gradient_evaluator`` where the package has them.
 
         Raises TypeError when the package declares lightings (task or view) without both
         adapter functions, or a lighting kind or ``PREDICTS`` value the contract does not know."""
@@ -163,7 +168,9 @@ class Method(NamedTuple):
         return cls(name, paper, lighting, model.DEFAULT_CONFIG, presets, data.make_dataset, fit or model.fit,
                    checked_evaluator(model.evaluator, lighting), model.example, getattr(model, "frame_flops", None),
                    getattr(data, "self_check", None), task_lightings, task_inputs, task_lighting, view_lightings,
-                   predicts, getattr(data, "view_environments", None))
+                   predicts, getattr(data, "view_environments", None),
+                   checked_evaluator(model.gradient_evaluator, lighting) if hasattr(model, "gradient_evaluator")
+                   else None)
 
 
 def checked_evaluator(evaluator: Callable, lighting_type: type) -> Callable:

@@ -136,6 +136,37 @@ def test_eq9_linearity(model):
     assert np.all(ia[~gb.valid] == 0)
 
 
+def test_gradient_evaluator_is_the_evaluator_and_reverse_mode_goes_through_it(model):
+    """``gradient_evaluator`` (``render_dense``): the tiled renderer's image, pixel for pixel, for
+    one and three lights; ``jax.grad`` of an image objective through it equals ``jax.jacfwd``
+    through the tiled renderer (the same function, away from the leaves' boundaries) and a
+    central difference of it."""
+    params, _ = model
+    gb = _fake_gbuffer(h=12, w=10)
+    tiled, dense = rrf.evaluator(params), rrf.gradient_evaluator(params)
+    pos = np.asarray([[0.1, 0.5, 0.0], [-0.3, 0.8, 0.2], [0.35, 0.42, -0.31]], np.float32)
+    rgb = np.asarray([[1.0, 0.5, 2.0], [0.3, 1.0, 0.7], [0.6, 0.6, 0.2]], np.float32)
+    for k in (1, 3):
+        lights = PointLights.create(pos[:k], rgb[:k])
+        want = np.asarray(tiled(gb, lights))
+        assert np.abs(want).max() > 0
+        np.testing.assert_allclose(np.asarray(dense(gb, lights)), want, rtol=2e-5, atol=1e-6)
+    weights = jnp.asarray(np.random.default_rng(5).normal(size=(12, 10, 3)), jnp.float32)
+
+    def objective(evaluate):
+        return lambda p: jnp.sum(weights * evaluate(gb, PointLights(p, jnp.asarray(rgb)))) ** 2
+
+    g_rev = np.asarray(jax.jit(jax.grad(objective(dense)))(jnp.asarray(pos)))
+    g_fwd = np.asarray(jax.jit(jax.jacfwd(objective(tiled)))(jnp.asarray(pos)))
+    assert np.abs(g_rev).max() > 0
+    np.testing.assert_allclose(g_rev, g_fwd, rtol=1e-3, atol=1e-4 * np.abs(g_fwd).max())
+    f = jax.jit(objective(dense))
+    h, e = 1e-3, np.zeros_like(pos)
+    e[1, 2] = h
+    fd = (float(f(jnp.asarray(pos + e, jnp.float32))) - float(f(jnp.asarray(pos - e, jnp.float32)))) / (2 * h)
+    np.testing.assert_allclose(g_rev[1, 2], fd, rtol=2e-2, atol=1e-3 * np.abs(g_rev).max())
+
+
 def test_no_recompile_for_same_light_count(model):
     params, _ = model
     pure = rrf.evaluator(params)

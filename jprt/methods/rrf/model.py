@@ -39,7 +39,7 @@ candidate from scratch to convergence, which costs ~D times more here.
 from __future__ import annotations
 
 import functools
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -53,7 +53,7 @@ from jprt.methods.rrf.features import (ATTRIBUTE_SETS, RRFData, brdf_vector, dat
 from jprt.methods.rrf.fitting import layer_sizes, split_samples, tree_of
 from jprt.methods.rrf.renderer import RENDER_LAYOUTS, raw_thresholds, render_layout
 
-__all__ = ["DEFAULT_CONFIG", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features",
+__all__ = ["DEFAULT_CONFIG", "gradient_evaluator", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features",
            "split_samples", "split_dims", "input_size", "fit", "fit_arrays", "evaluator", "frame_flops", "check_inputs", "example",
            "refit_leaves", "parameter_count", "light_box", "raw_thresholds", "RENDER_LAYOUTS", "render_layout"]
 
@@ -278,6 +278,24 @@ def evaluator(params, config: dict | None = None):
 
     Numerics: not differentiable (builds the float32 run-time program: kd-tree traversal and per-leaf ``jprt.nn.mlp`` tanh networks, covered there; fitting is by LM on the networks).
     """
+    return _evaluator(params, config, renderer.render_frame)
+
+
+def gradient_evaluator(params, config: dict | None = None):
+    """``evaluator``'s function (same arguments, checks and image) by ``renderer.render_dense``,
+    which reverse-mode differentiation goes through (``Method.gradient_evaluator``): for
+    ``jax.grad`` of an objective of the image in the lights (``jprt.design``). A few times slower
+    per frame than ``evaluator``, which is for display.
+
+    Numerics: float32; differentiable in the lights' positions and intensities (reverse and
+    forward mode; the kd-tree leaf of a pixel is piecewise constant in the light, its gradient
+    stopped).
+    """
+    return _evaluator(params, config, renderer.render_dense)
+
+
+def _evaluator(params, config: dict | None, frame: Callable):
+    """``evaluator`` with the frame program ``frame`` (``renderer.render_frame`` or ``render_dense``)."""
     cfg = _cfg(config)
     rc = cfg["render"]
     extrapolation = rc["extrapolation"]
@@ -286,7 +304,7 @@ def evaluator(params, config: dict | None = None):
     material = cfg["data"]["mode"] == "material"
     params = jax.tree_util.tree_map(jnp.asarray, params)
     # params are constants of the program: kd-tree traversal unrolls over the tree's depth
-    render = jax.jit(functools.partial(renderer.render_frame, params, attributes=cfg["model"]["attributes"],
+    render = jax.jit(functools.partial(frame, params, attributes=cfg["model"]["attributes"],
                                        material=material, clamp=extrapolation == "clamp", render=rc))
 
     def evaluate(inputs, lights):
