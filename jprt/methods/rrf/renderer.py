@@ -289,6 +289,23 @@ def raw_thresholds(params) -> np.ndarray:
                     tree.threshold).astype(np.float32)
 
 
+def _frame_inputs(params, gb: dict, light_pos, edit, *, attributes: str, material: bool, clamp: bool):
+    """What both frame programs take from their arguments: the lights (moved onto the trained box
+    with ``clamp``), x of ``features`` without its light columns as a list of (H, W, c) parts in
+    x's column order, the light's columns in x, and each pixel's object (-1 where invalid)."""
+    h, w = gb["object_id"].shape
+    if clamp:
+        light_pos = jnp.clip(light_pos, params["light_lo"][None, :], params["light_hi"][None, :])
+    # the BRDF attributes stay three parts (``brdf_vector``'s columns in its order): XLA's CPU
+    # concatenation along the minor axis of a 512^2 x 7 array alone took 3.7 ms of a 19 ms frame
+    parts = {"position": [gb["position"]], "normal": [gb["normal"]],
+             "view": [jnp.broadcast_to(edit, (h, w, 2)) if material else gb["view"]],
+             "brdf": [gb["diffuse_albedo"], gb["specular_albedo"], gb["roughness"][..., None]]}
+    light_cols = tuple(range(*attribute_columns(attributes, "material" if material else "view")["light"]))
+    shared = [jnp.asarray(q, jnp.float32) for n in ATTRIBUTE_SETS[attributes] if n != "light" for q in parts[n]]
+    return light_pos, shared, light_cols, jnp.where(gb["valid"], gb["object_id"], -1)
+
+
 def render_frame(params, gb: dict, light_pos, light_rgb, edit, *, attributes: str, material: bool,
                  clamp: bool, render: dict):
     """Eq. 9 for every pixel of ``gb`` (``gbuffer_arrays``): sum over lights k of c_k
@@ -299,19 +316,8 @@ def render_frame(params, gb: dict, light_pos, light_rgb, edit, *, attributes: st
 
     Numerics: not differentiable (the float32 run-time program: kd-tree traversal and per-leaf tanh networks, covered by ``jprt.nn.mlp``).
     """
-    h, w = gb["object_id"].shape
-    if clamp:
-        light_pos = jnp.clip(light_pos, params["light_lo"][None, :], params["light_hi"][None, :])
-    # the BRDF attributes stay three parts (``brdf_vector``'s columns in its order): XLA's CPU
-    # concatenation along the minor axis of a 512^2 x 7 array alone took 3.7 ms of a 19 ms frame
-    parts = {"position": [gb["position"]], "normal": [gb["normal"]],
-             "view": [jnp.broadcast_to(edit, (h, w, 2)) if material else gb["view"]],
-             "brdf": [gb["diffuse_albedo"], gb["specular_albedo"], gb["roughness"][..., None]]}
-    names = ATTRIBUTE_SETS[attributes]
-    light_cols = tuple(range(*attribute_columns(attributes, "material" if material else "view")["light"]))
-    # x of ``features`` without its light columns, as (H, W, c) parts: every pixel's own inputs
-    shared = [jnp.asarray(q, jnp.float32) for n in names if n != "light" for q in parts[n]]
-    obj = jnp.where(gb["valid"], gb["object_id"], -1)
+    light_pos, shared, light_cols, obj = _frame_inputs(params, gb, light_pos, edit, attributes=attributes,
+                                                       material=material, clamp=clamp)
     tile, chunk = render_layout(render)
     return _predict_tiles(params, shared, light_pos, light_rgb, obj, light_cols=light_cols, tile=tile,
                           chunk=chunk, clamp=bool(render["clamp_inputs"]),
@@ -350,16 +356,11 @@ def render_dense(params, gb: dict, light_pos, light_rgb, edit, *, attributes: st
     except on the leaves' boundaries, where the image jumps from one leaf's network to the next.
     """
     h, w = gb["object_id"].shape
-    if clamp:
-        light_pos = jnp.clip(light_pos, params["light_lo"][None, :], params["light_hi"][None, :])
-    parts = {"position": [gb["position"]], "normal": [gb["normal"]],
-             "view": [jnp.broadcast_to(edit, (h, w, 2)) if material else gb["view"]],
-             "brdf": [gb["diffuse_albedo"], gb["specular_albedo"], gb["roughness"][..., None]]}
-    names = ATTRIBUTE_SETS[attributes]
-    lc0, lc1 = attribute_columns(attributes, "material" if material else "view")["light"]
-    shared = jnp.concatenate([jnp.asarray(q, jnp.float32).reshape(h * w, -1)
-                              for n in names if n != "light" for q in parts[n]], axis=-1)
-    obj = jnp.where(gb["valid"], gb["object_id"], -1).reshape(-1)
+    light_pos, shared, light_cols, obj = _frame_inputs(params, gb, light_pos, edit, attributes=attributes,
+                                                       material=material, clamp=clamp)
+    lc0, lc1 = light_cols[0], light_cols[-1] + 1
+    shared = jnp.concatenate([q.reshape(h * w, -1) for q in shared], axis=-1)
+    obj = obj.reshape(-1)
     leaves = params["leaves"]
     nonnegative = bool(render["nonnegative"])
     out = jnp.zeros((h * w, light_rgb.shape[-1]), jnp.float32)
