@@ -116,26 +116,110 @@ def _peer(args, folder: str, objective_path: str, pb, true_p, start: dict, diago
             "speedup": seconds_to / rep["design_s"], "speedup_is_lower_bound": not reached}
 
 
-def _speed(inverse: dict, summary: dict) -> dict:
+def _speed(inverse: dict, scenes: dict) -> dict:
     """jprt's design against Mitsuba's inverse rendering to the same verified objective, per
-    problem; the fit's time and the number of designs after which fitting has paid for itself."""
+    problem ("scene/k_lights"); each scene's fit time and the number of designs after which
+    fitting has paid for itself."""
     rows = {}
-    fit = float(summary.get("train_s") or 0.0) + float(summary.get("dataset_s") or 0.0)
     for name, r in inverse.items():
+        model = scenes.get(name.split("/")[0], {}).get("model", {})
+        fit = float(model.get("fit_s") or 0.0) + float(model.get("dataset_s") or 0.0)
         peer = r["mitsuba"]
         saved = peer["seconds_to_jprt_objective"] - r["design_s"]
         rows[name] = {"jprt_design_s": r["design_s"], "mitsuba_s": peer["seconds_to_jprt_objective"],
                       "speedup": peer["speedup"], "speedup_is_lower_bound": peer["speedup_is_lower_bound"],
-                      "break_even_designs": (fit / saved) if saved > 0 else None}
-    return {"per_problem": rows, "fit_s": fit, "target": "jprt at least 20x faster (fit excluded)",
+                      "fit_s": fit, "break_even_designs": (fit / saved) if saved > 0 else None}
+    return {"per_problem": rows, "target": "jprt at least 20x faster (fit excluded)",
             "met": bool(rows) and all(v["speedup"] >= 20 for v in rows.values())}
+
+
+def _inverse(args, folder: str, pb, lo, hi, diagonal: float, rng, work: str) -> dict:
+    """Inverse lighting of 1 and 3 hidden white point lights (``design.design_run`` from lights in
+    the box's middle at half the intensity), each against the peer (``_peer``)."""
+    from scipy.optimize import linear_sum_assignment
+
+    from jprt import design
+
+    inverse = {}
+    for k in (1, 3):
+        true_p = lo + (hi - lo) * rng.uniform(0.15, 0.85, (k, 3))
+        true_i = np.ones((k, 3))
+        path = _image_objective(work, _target(pb, (true_p, true_i), args.target_spp, 2 + k))
+        start = {"position": lo + (hi - lo) * rng.uniform(0.3, 0.7, (k, 3)), "intensity": np.full((k, 3), 0.5)}
+        rep = design.design_run(folder, path, lights=k, size=args.size, steps=args.steps, start=start,
+                                learning_rate=args.learning_rate,
+                                verify_spp=args.target_spp, seed=args.seed, progress=False)
+        found = np.asarray(rep["found"]["position"])
+        cost = np.linalg.norm(found[:, None] - true_p[None], axis=-1)
+        rows, cols = linear_sum_assignment(cost)
+        ratio = np.asarray(rep["found"]["intensity"])[rows] / true_i[cols]
+        peer = _peer(args, folder, path, pb, true_p, start, diagonal, rep, lo, hi)
+        inverse[f"{k}_lights"] = {
+            "hidden": {"position": true_p.tolist(), "intensity": true_i.tolist()},
+            "found": rep["found"], "start": rep["start"],
+            "position_error_fraction": (cost[rows, cols] / diagonal).tolist(),
+            "intensity_ratio": ratio.mean(axis=1).tolist(),
+            "model_objective": rep["model_objective"], "verified_objective": rep["verified_objective"],
+            "design_s": rep["design_s"], "verify_s": rep["verify_s"], "steps": rep["steps"],
+            "position_within_3_percent": bool(np.all(cost[rows, cols] / diagonal <= 0.03)),
+            "intensity_within_10_percent": bool(np.all(np.abs(ratio - 1.0) <= 0.10)),
+            "mitsuba": peer,
+            "verified_within_1_2x_of_mitsuba": bool(rep["verified_objective"] <= 1.2 * peer["verified_objective"])}
+        print(f"  Mitsuba's inverse rendering: verified {peer['verified_objective']:.4g} after {peer['seconds']:.1f} s; "
+              f"reached jprt's verified objective: {peer['reached_jprt']}, speed-up {peer['speedup']:.1f}x", flush=True)
+        print(f"{k} hidden lights: position error {np.round(cost[rows, cols] / diagonal, 4)} of the diagonal, "
+              f"intensity x{np.round(ratio.mean(axis=1), 3)}, objective model {rep['model_objective']:.4g} / "
+              f"Mitsuba {rep['verified_objective']:.4g}, {rep['design_s']:.1f} s", flush=True)
+    return inverse
+
+
+def _irradiance_targets(args, folder: str, pb, lo, hi, rng, work: str, objects: int = 2) -> dict:
+    """Bounds on the mean irradiance of named objects that a lighting is known to meet: two hidden
+    point lights rendered by Mitsuba (``--target-spp``); the ``objects`` objects the frame shows
+    most of (diffuse albedo above 0.05) get, alternately, min = 0.9 x and max = 1.1 x their
+    irradiance there. The design starts from two other lights at a quarter of the intensity and
+    is verified on Mitsuba's render of what it found (``design_run``): every bound met or not."""
+    from jprt import design
+
+    names = list(pb.session.handle.object_names())
+    gb = pb.gbuffer
+    ids = np.asarray(gb.object_id)[np.asarray(gb.valid, bool)]
+    albedo = np.asarray(gb.diffuse_albedo).mean(axis=-1)[np.asarray(gb.valid, bool)]
+    counts = {i: int(np.sum((ids == i) & (albedo > 0.05))) for i in np.unique(ids) if 0 <= i < len(names)}
+    chosen = [names[i] for i, _ in sorted(counts.items(), key=lambda t: -t[1])[:objects]]
+    probe = design.load_objective({"objects": [{"name": n, "min": 1.0} for n in chosen]}, names)
+    masks = design.object_masks(probe, gb.object_id, names, gb.valid)
+    hidden = (lo + (hi - lo) * rng.uniform(0.15, 0.85, (2, 3)), np.ones((2, 3)))
+    _, means = design.rendered_terms(pb.session.handle, pb.camera, gb, probe, masks, hidden[0], hidden[1],
+                                     spp=args.target_spp, seed=7, means=True)
+    spec = {"objects": []}
+    for i, n in enumerate(chosen):
+        e = means[f"{n}.irradiance"]
+        spec["objects"].append({"name": n, "quantity": "irradiance", **({"min": 0.9 * e} if i % 2 == 0
+                                                                        else {"max": 1.1 * e})})
+    path = os.path.join(work, "irradiance_objective.json")
+    with open(path, "w") as f:
+        json.dump(spec, f)
+    start = {"position": lo + (hi - lo) * rng.uniform(0.3, 0.7, (2, 3)), "intensity": np.full((2, 3), 0.25)}
+    rep = design.design_run(folder, path, lights=2, size=args.size, steps=args.steps, start=start,
+                            learning_rate=args.learning_rate, verify_spp=args.target_spp, seed=args.seed,
+                            progress=False)
+    print(f"irradiance targets on {chosen}: every bound met on Mitsuba's render: {rep['bounds_met_verified']} "
+          f"({ {k: round(v['verified_mean'], 4) for k, v in rep['bounds'].items()} })", flush=True)
+    return {"objective": spec, "hidden": {"position": hidden[0].tolist(), "intensity": hidden[1].tolist()},
+            "start": rep["start"], "found": rep["found"], "bounds": rep["bounds"],
+            "bounds_met_verified": rep["bounds_met_verified"], "design_s": rep["design_s"],
+            "verify_spp": rep["verify_spp"], "target": "every bound met on the Mitsuba verification render"}
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--run", default=None, help="an RRF run folder (default: fit the demo preset)")
+    parser.add_argument("--name", default="cornell_box", help="the scene's key in the results")
+    parser.add_argument("--merge", action="store_true",
+                        help="update this scene's entries of an existing --out file, keep the others")
     parser.add_argument("--size", type=int, default=64)
-    parser.add_argument("--configs", type=int, default=5, help="gradient-check configurations")
+    parser.add_argument("--configs", type=int, default=5, help="gradient-check configurations (0: none)")
     parser.add_argument("--spp", type=int, default=1024, help="Mitsuba's spp for the finite differences")
     parser.add_argument("--target-spp", type=int, default=1024, help="Mitsuba's spp for the hidden lights' renders")
     parser.add_argument("--steps", type=int, default=300, help="jprt's design steps")
@@ -180,64 +264,44 @@ def main() -> int:
         print(f"gradient check {c}: cosine {g['cosine']:.4f} (seed against seed {g['cosine_seeds']:.4f}, "
               f"noise {g['noise']:.3f})", flush=True)
 
-    # inverse lighting: 1 and 3 hidden lights
-    from scipy.optimize import linear_sum_assignment
-
-    inverse = {}
-    for k in (1, 3):
-        true_p = lo + (hi - lo) * rng.uniform(0.15, 0.85, (k, 3))
-        true_i = np.ones((k, 3))
-        path = _image_objective(work, _target(pb, (true_p, true_i), args.target_spp, 2 + k))
-        start = {"position": lo + (hi - lo) * rng.uniform(0.3, 0.7, (k, 3)), "intensity": np.full((k, 3), 0.5)}
-        rep = design.design_run(folder, path, lights=k, size=args.size, steps=args.steps, start=start,
-                                learning_rate=args.learning_rate,
-                                verify_spp=args.target_spp, seed=args.seed, progress=False)
-        found = np.asarray(rep["found"]["position"])
-        cost = np.linalg.norm(found[:, None] - true_p[None], axis=-1)
-        rows, cols = linear_sum_assignment(cost)
-        ratio = np.asarray(rep["found"]["intensity"])[rows] / true_i[cols]
-        peer = _peer(args, folder, path, pb, true_p, start, diagonal, rep, lo, hi)
-        inverse[f"{k}_lights"] = {
-            "hidden": {"position": true_p.tolist(), "intensity": true_i.tolist()},
-            "found": rep["found"], "start": rep["start"],
-            "position_error_fraction": (cost[rows, cols] / diagonal).tolist(),
-            "intensity_ratio": ratio.mean(axis=1).tolist(),
-            "model_objective": rep["model_objective"], "verified_objective": rep["verified_objective"],
-            "design_s": rep["design_s"], "verify_s": rep["verify_s"], "steps": rep["steps"],
-            "position_within_3_percent": bool(np.all(cost[rows, cols] / diagonal <= 0.03)),
-            "intensity_within_10_percent": bool(np.all(np.abs(ratio - 1.0) <= 0.10)),
-            "mitsuba": peer,
-            "verified_within_1_2x_of_mitsuba": bool(rep["verified_objective"] <= 1.2 * peer["verified_objective"])}
-        print(f"  Mitsuba's inverse rendering: verified {peer['verified_objective']:.4g} after {peer['seconds']:.1f} s; "
-              f"reached jprt's verified objective: {peer['reached_jprt']}, speed-up {peer['speedup']:.1f}x", flush=True)
-        print(f"{k} hidden lights: position error {np.round(cost[rows, cols] / diagonal, 4)} of the diagonal, "
-              f"intensity x{np.round(ratio.mean(axis=1), 3)}, objective model {rep['model_objective']:.4g} / "
-              f"Mitsuba {rep['verified_objective']:.4g}, {rep['design_s']:.1f} s", flush=True)
-
-    result = {
-        "model": {"method": "rrf", "run": folder, "config_hash": summary.get("config_hash"),
-                  "fit_s": summary.get("train_s"), "dataset_s": summary.get("dataset_s")},
-        "frame": [args.size, args.size], "scene_diagonal": diagonal,
-        "light_region": {"lo": lo.tolist(), "hi": hi.tolist()},
-        "gradient_check": {"spp": args.spp, "configurations": checks,
-                           "cosine_min": float(min(c["cosine"] for c in checks)),
-                           "target": "cosine >= 0.9 per configuration",
-                           "met": bool(all(c["cosine"] >= 0.9 for c in checks))},
-        "inverse_lighting": {"cornell_box": inverse, "target": "position error <= 3 % of the scene's size per "
-                             "light, intensity within 10 %"},
-        "speed": _speed(inverse, summary),
-        "not_run": NOT_RUN, "total_s": time.perf_counter() - t0,
-    }
+    inverse = _inverse(args, folder, pb, lo, hi, diagonal, rng, work)
+    targets = _irradiance_targets(args, folder, pb, lo, hi, rng, work)
+    model = {"method": "rrf", "run": os.path.relpath(folder, ROOT), "config_hash": summary.get("config_hash"),
+             "fit_s": summary.get("train_s"), "dataset_s": summary.get("dataset_s")}
+    scene = {"model": model, "frame": [args.size, args.size], "scene_diagonal": diagonal,
+             "light_region": {"lo": lo.tolist(), "hi": hi.tolist()}, "seconds": time.perf_counter() - t0}
+    result = {"scenes": {}, "gradient_check": None, "inverse_lighting": {}, "irradiance_targets": {},
+              "not_run": dict(NOT_RUN)}
+    if args.merge and os.path.exists(args.out):
+        with open(args.out) as f:
+            old = json.load(f)
+        result.update({k: old[k] for k in result if k in old})
+    result["scenes"][args.name] = scene
+    if checks:
+        result["gradient_check"] = {"scene": args.name, "spp": args.spp, "configurations": checks,
+                                    "cosine_min": float(min(c["cosine"] for c in checks)),
+                                    "target": "cosine >= 0.9 per configuration",
+                                    "met": bool(all(c["cosine"] >= 0.9 for c in checks))}
+    result["inverse_lighting"][args.name] = inverse
+    result["inverse_lighting"]["target"] = ("position error <= 3 % of the scene's size per light, intensity "
+                                            "within 10 %")
+    result["irradiance_targets"][args.name] = targets
+    result["not_run"].pop(args.name, None)
+    result["speed"] = _speed({f"{s}/{k}": v for s, rows in result["inverse_lighting"].items()
+                              if isinstance(rows, dict) for k, v in rows.items() if isinstance(v, dict)},
+                             result["scenes"])
     command = "python benchmarks/design.py" + "".join(
         f" --{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "out" and v is not None
-        and v != parser.get_default(k))
+        and v is not False and v != parser.get_default(k)).replace(" --merge True", " --merge")
     write_benchmark(args.out, result, command,
                     notes="gradient check: parameters are each light's position (world units) and log intensity "
                           "scale; finite differences central, step 0.01 of the scene's diagonal (position) and "
                           "0.05 (log scale), Mitsuba full radiance (direct + indirect) along the G-buffer's pixel-centre "
                           "rays; noise = |g_seed1 - g_seed2| / |g_seed1 + g_seed2|. Inverse lighting: image "
                           "objective (relative squared error of the full image), Adam with cosine decay, visibility "
-                          "traced every 10 steps; position error over the scene's bounding-box diagonal.")
+                          "traced every 10 steps; position error over the scene's bounding-box diagonal. Irradiance "
+                          "targets: bounds a hidden lighting meets on Mitsuba's render (min 0.9 x, max 1.1 x its "
+                          "means), designed from another start and checked on Mitsuba's render of the result.")
     return 0
 
 

@@ -54,6 +54,7 @@ from jprt.progress import bar as progress_bar
 __all__ = ["ObjectiveError", "ImageTarget", "ObjectTarget", "Objective", "load_objective", "object_masks",
            "objective_terms", "LightParams", "to_params", "from_params", "point_direct", "irradiance_from",
            "point_visibility", "DesignResult", "design", "design_frame", "rendered_terms", "gradient_check",
+           "object_means", "bounds_report",
            "Problem", "POINT_METHODS", "measurement_points", "load_problem", "design_run", "EnvironmentResult",
            "environment_transfer", "environment_frame", "design_environment", "ENVIRONMENT_METHODS", "OBJECTIVE_KEYS", "QUANTITIES"]
 
@@ -250,10 +251,7 @@ def objective_terms(objective: Objective, masks, full, indirect, irradiance, int
         t = jnp.asarray(im.target)
         denom = jnp.maximum(jnp.sum(w[..., None] * t * t), 1e-30)
         terms["image"] = im.weight * jnp.sum(w[..., None] * jnp.square(pred - t)) / denom
-    for i, target in enumerate(objective.objects):
-        field = irradiance if target.quantity == "irradiance" else full
-        m = jnp.asarray(masks[i])
-        mean = jnp.sum(m[..., None] * field) / (3.0 * jnp.sum(m))
+    for target, mean in zip(objective.objects, object_means(objective, masks, full, irradiance).values()):
         v = 0.0
         if target.min is not None:
             v = v + jnp.square(jnp.maximum(target.min - mean, 0.0) / target.min)
@@ -263,6 +261,36 @@ def objective_terms(objective: Objective, masks, full, indirect, irradiance, int
     if objective.power_penalty > 0:
         terms["power"] = objective.power_penalty * jnp.sum(intensity) / max(float(reference_power), 1e-30)
     return terms
+
+
+def object_means(objective: Objective, masks, full, irradiance) -> dict:
+    """{"name.quantity": mean} of each object target of ``objective``: its pixels' (``masks``)
+    mean ``irradiance`` or ``full`` radiance over pixels and RGB, the number its bounds are on
+    (JAX scalars; ``objective_terms`` takes its gradient through them).
+
+    Numerics: not differentiable on its own (masked means; ``objective_terms``' float32 case covers them).
+    """
+    out = {}
+    for i, target in enumerate(objective.objects):
+        field = irradiance if target.quantity == "irradiance" else full
+        m = jnp.asarray(masks[i])
+        out[f"{target.name}.{target.quantity}"] = jnp.sum(m[..., None] * field) / (3.0 * jnp.sum(m))
+    return out
+
+
+def bounds_report(objective: Objective, means: dict) -> dict:
+    """Each object target's bounds beside a frame's ``means`` (``object_means``, as floats):
+    {"name.quantity": {"mean", "min", "max", "met"}}; ``met`` when the mean is within both bounds.
+
+    Numerics: not differentiable (a report).
+    """
+    out = {}
+    for target in objective.objects:
+        key = f"{target.name}.{target.quantity}"
+        mean = float(means[key])
+        out[key] = {"mean": mean, "min": target.min, "max": target.max,
+                    "met": bool((target.min is None or mean >= target.min) and (target.max is None or mean <= target.max))}
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -598,10 +626,10 @@ def design_frame(gbuffer, indirect_fn: Callable, *, glossy: bool = True) -> Call
 
 
 def rendered_terms(handle, camera, gbuffer, objective: Objective, masks, position, intensity, *, spp: int,
-                   seed: int = 0, reference_power: float = 1.0) -> dict:
+                   seed: int = 0, reference_power: float = 1.0, means: bool = False):
     """``objective_terms`` on Mitsuba's render of point lights (``position``, ``intensity`` (K, 3))
     at ``camera`` (``_terms_on_render``); the direct irradiance is the lights' (exact for point
-    lights, with traced visibility).
+    lights, with traced visibility). With ``means``: (terms, the objects' ``object_means`` there).
 
     Numerics: not differentiable (Mitsuba renders).
     """
@@ -613,17 +641,19 @@ def rendered_terms(handle, camera, gbuffer, objective: Objective, masks, positio
 
     return _terms_on_render(handle, camera, gbuffer, objective, masks,
                             PointLights.create(np.asarray(position, np.float32), np.asarray(intensity, np.float32)),
-                            e_direct, np.asarray(intensity), spp=spp, seed=seed, reference_power=reference_power)
+                            e_direct, np.asarray(intensity), spp=spp, seed=seed, reference_power=reference_power,
+                            means=means)
 
 
 def _terms_on_render(handle, camera, gbuffer, objective: Objective, masks, lighting, e_direct: Callable, power, *,
-                     spp: int, seed: int, reference_power: float) -> dict:
+                     spp: int, seed: int, reference_power: float, means: bool = False):
     """``objective_terms`` on Mitsuba's render of ``lighting`` at ``camera`` (``spp``, ``seed``;
     full and indirect along the pixel-centre rays the G-buffer traces,
     ``jprt.render.images.centre_rays``; invalid G-buffer pixels 0). Irradiance there is
     ``e_direct()`` (the design's own direct irradiance, asked for only when an object term needs
     it) plus the render's indirect radiance read as irradiance (``irradiance_from``); ``power``:
-    the lighting's intensity (K, 3) or scale (1, 3) for the power penalty."""
+    the lighting's intensity (K, 3) or scale (1, 3) for the power penalty. With ``means``:
+    (terms, {"name.quantity": the object's mean there} (``object_means``))."""
     from jprt.render import images
 
     handle.set_lighting(lighting)
@@ -634,7 +664,10 @@ def _terms_on_render(handle, camera, gbuffer, objective: Objective, masks, light
     irr = 0.0 * full
     if objective.objects:
         irr = np.asarray(e_direct()) + np.asarray(irradiance_from(ind, gbuffer.diffuse_albedo))
-    return {k: float(v) for k, v in objective_terms(objective, masks, full, ind, irr, power, reference_power).items()}
+    terms = {k: float(v) for k, v in objective_terms(objective, masks, full, ind, irr, power, reference_power).items()}
+    if not means:
+        return terms
+    return terms, {k: float(v) for k, v in object_means(objective, masks, full, irr).items()}
 
 
 def gradient_check(handle, camera, gbuffer, frame_fn: Callable, objective: Objective, masks, position, intensity,
@@ -1027,9 +1060,14 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
                     progress=progress)
     # verification: Mitsuba under the found lights, the objective on its render
     t0 = time.perf_counter()
-    verified = rendered_terms(handle, pb.camera, gb, pb.objective, pb.masks, result.position, result.intensity,
-                              spp=int(verify_spp), seed=int(seed) + 101, reference_power=float(np.sum(inten0)))
+    verified, verified_means = rendered_terms(handle, pb.camera, gb, pb.objective, pb.masks, result.position,
+                                              result.intensity, spp=int(verify_spp), seed=int(seed) + 101,
+                                              reference_power=float(np.sum(inten0)), means=True)
     verify_s = time.perf_counter() - t0
+    pos, inten = (jnp.asarray(a, jnp.float32) for a in (result.position, result.intensity))
+    vis = jax.tree_util.tree_map(jnp.asarray, pb.visibility(result.position))
+    full, _, irr = pb.frame(pos, inten, vis)
+    model_means = object_means(pb.objective, pb.masks, full, irr)
     return {"run": os.path.abspath(folder), "method": pb.session.method.name,
             "objective": os.path.abspath(objective_path),
             "frame": list(np.shape(gb.valid)), "light_region": {"lo": lo.tolist(), "hi": hi.tolist()},
@@ -1039,7 +1077,7 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
             "history": result.history.tolist(), "model_terms": result.terms,
             "model_objective": float(sum(result.terms.values())), "verified_terms": verified,
             "verified_objective": float(sum(verified.values())), "verify_spp": int(verify_spp),
-            "verify_s": verify_s,
+            "verify_s": verify_s, **_bounds(pb.objective, model_means, verified_means),
             "direct": "analytic point lights (diffuse + GGX) with Mitsuba shadow rays every "
                       f"{int(visibility_every)} steps, held constant between"}
 
@@ -1062,11 +1100,12 @@ def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, st
     t0 = time.perf_counter()
     found = np.asarray(cubemap.rotate_cubemap_y(cube, result.angle), np.float64) * result.scale.reshape(1, 1, 1, 3)
     gb = pb.gbuffer
-    verified = _terms_on_render(pb.session.handle, pb.camera, gb, pb.objective, pb.masks,
-                                EnvMap.create(render_equirect(found.astype(np.float32))),
-                                lambda: np.einsum("hwj,jc->hwc", pb.transfer, found.reshape(-1, 3)),
-                                result.scale.reshape(1, 3), spp=int(verify_spp), seed=int(seed) + 101,
-                                reference_power=3.0)
+    verified, verified_means = _terms_on_render(
+        pb.session.handle, pb.camera, gb, pb.objective, pb.masks, EnvMap.create(render_equirect(found.astype(np.float32))),
+        lambda: np.einsum("hwj,jc->hwc", pb.transfer, found.reshape(-1, 3)), result.scale.reshape(1, 3),
+        spp=int(verify_spp), seed=int(seed) + 101, reference_power=3.0, means=True)
+    full, _, irr = pb.frame(jnp.asarray(found, jnp.float32))
+    model_means = object_means(pb.objective, pb.masks, full, irr)
     return {"run": os.path.abspath(folder), "method": pb.session.method.name,
             "objective": os.path.abspath(objective_path), "frame": list(np.shape(gb.valid)), "environment": name,
             "found": {"rotation_deg": float(np.degrees(result.angle)), "scale": result.scale.tolist()},
@@ -1074,5 +1113,19 @@ def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, st
             "model_terms": model_terms, "model_objective": float(sum(model_terms.values())),
             "verified_terms": verified, "verified_objective": float(sum(verified.values())),
             "verify_spp": int(verify_spp), "verify_s": time.perf_counter() - t0,
+            **_bounds(pb.objective, model_means, verified_means),
             "direct": "the map's direct light through a traced transfer at the cube's face size (diffuse; visibility "
                       "per texel direction, one ray)"}
+
+
+def _bounds(objective: Objective, model_means: dict, verified_means: dict) -> dict:
+    """The report's object bounds: each target's bounds and mean on the model's frame and on the
+    verification render (``bounds_report``), and whether every bound is met on the render."""
+    if not objective.objects:
+        return {}
+    on_model = bounds_report(objective, {k: float(v) for k, v in model_means.items()})
+    on_render = bounds_report(objective, verified_means)
+    return {"bounds": {k: {"min": v["min"], "max": v["max"], "model_mean": on_model[k]["mean"],
+                           "verified_mean": v["mean"], "met_on_model": on_model[k]["met"], "met_verified": v["met"]}
+                       for k, v in on_render.items()},
+            "bounds_met_verified": all(v["met"] for v in on_render.values())}

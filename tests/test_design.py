@@ -203,6 +203,14 @@ def test_jprt_design_on_a_test_preset_rrf_writes_a_verified_report(tmp_path, fit
     assert len(report["history"]) == 6 and np.all(np.isfinite(report["history"]))
     assert set(report["verified_terms"]) == set(report["model_terms"]) == {"floor.irradiance", "back.irradiance"}
     assert np.isfinite(report["verified_objective"]) and report["visibility_updates"] >= 1
+    # each bound beside the objects' means: the hinge terms recomputed from the reported means
+    for side in ("model", "verified"):
+        for key, b in report["bounds"].items():
+            low = (max(b["min"] - b[f"{side}_mean"], 0.0) / b["min"]) ** 2 if b["min"] is not None else 0.0
+            high = (max(b[f"{side}_mean"] - b["max"], 0.0) / b["max"]) ** 2 if b["max"] is not None else 0.0
+            assert low + high == pytest.approx(report[f"{side}_terms"][key], rel=1e-4, abs=1e-9)
+            assert b[f"met_{side}" if side == "verified" else "met_on_model"] == (low + high == 0.0)
+    assert report["bounds_met_verified"] == all(b["met_verified"] for b in report["bounds"].values())
 
 
 @pytest.mark.parametrize("name", ["datadriven", "mrt"])
