@@ -240,6 +240,27 @@ def test_the_analytic_direct_light_at_measurement_points_is_mitsubas(name, fitte
     assert close.all(axis=-1).mean() >= 0.98, close.all(axis=-1).mean()
 
 
+@pytest.mark.parametrize("name", ["datadriven", "mrt"])
+def test_a_design_through_a_measurement_point_model_takes_finite_reverse_mode_steps(name, fitted_preset, tmp_path):
+    """The design's step is ``jax.value_and_grad`` through the method's evaluator of the direct
+    radiance at its points: finite, and the objective it reports is the model's at the end."""
+    from jprt.runner import save_fit
+
+    m, config, dataset, result = fitted_preset(name)
+    run = save_fit(str(tmp_path / "run"), name, config, result.params)
+    from jprt.render.scenes import SceneHandle
+    from jprt.runner import method_config
+
+    names = list(SceneHandle(method_config(m, config)["scene"]).object_names())
+    obj = _write(tmp_path, {"objects": [{"name": names[0], "min": 5.0}]}, "first.json")
+    pb = design.load_problem(run, obj, size=8, progress=False)
+    pos0 = pb.lo + (pb.hi - pb.lo) * 0.5
+    res = design.design(pb.frame, pb.objective, pb.masks, pos0[None], np.full((1, 3), 0.1), pb.lo, pb.hi,
+                        visibility_fn=pb.visibility, steps=4, progress=False)
+    assert np.all(np.isfinite(res.history)) and np.all(np.isfinite(res.position))
+    assert res.history[-1] < res.history[0]  # 4 steps of Adam up a hinge below its bound lower it
+
+
 def _sky(face):
     """A smooth, asymmetric sky: brighter above and towards +X, warm (its rotation is visible)."""
     from jprt.sphere import cubemap
