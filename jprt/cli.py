@@ -274,6 +274,11 @@ def _design(args) -> int:
                   f"{', '.join(f'{v:.4g}' for v in i)}")
     print(f"objective: model {report['model_objective']:.4g}, Mitsuba at {report['verify_spp']} spp "
           f"{report['verified_objective']:.4g} (design {report['design_s']:.1f} s, verification {report['verify_s']:.1f} s)")
+    for key, b in report.get("bounds", {}).items():
+        within = " and ".join(x for x in (f">= {b['min']:.4g}" if b["min"] is not None else "",
+                                          f"<= {b['max']:.4g}" if b["max"] is not None else "") if x)
+        print(f"{key} {within}: model {b['model_mean']:.4g}, Mitsuba {b['verified_mean']:.4g} "
+              f"({'met' if b['met_verified'] else 'MISSED'} on the render)")
     if args.out:
         with open(args.out, "w") as f:
             json.dump(report, f, indent=1)
