@@ -941,8 +941,10 @@ class SceneHandle:
 
     def scene_dict(self) -> dict:
         """A copy of the scene's Mitsuba dict without sensor, integrator or jprt lights (what
-        ``set_lighting`` builds on): callers add their own emitters and sensor to it."""
-        return dict(self._base)
+        ``set_lighting`` builds on): callers add their own emitters and sensor to it (a scene
+        file's own camera, which the scene keeps as its first sensor, is left out: it would be
+        the sensor a render of the dict uses)."""
+        return {k: v for k, v in self._base.items() if k != "jprt_sensor"}
 
     def shapes(self) -> list:
         """The scene's shapes in object-id order."""

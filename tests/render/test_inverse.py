@@ -73,3 +73,26 @@ def test_bad_arguments_are_refused(handle):
         SphereLights(handle, camera, np.zeros((5, 4, 3)), count=1, radius=0.01)
     with pytest.raises(ValueError, match="radius > 0"):
         SphereLights(handle, camera, np.zeros((4, 4, 3)), count=1, radius=0.0)
+
+
+def test_a_scene_file_with_its_own_camera_renders_at_the_asked_one(mi, tmp_path):
+    """A scene file keeps its own camera as the scene's first sensor; the peer's scene is built
+    from ``scene_dict``, which leaves it out, so the image is the asked camera's (the file's
+    1280 x 720 sensor took its place on the staircase)."""
+    from jprt.inputs import Camera
+    from jprt.render.inverse import SphereLights
+    from jprt.render.scenes import SceneHandle
+
+    path = tmp_path / "room.xml"
+    path.write_text("""<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="50"/>
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="24"/></film></sensor>
+  <shape type="rectangle" id="floor"><bsdf type="diffuse"/></shape>
+</scene>""")
+    handle = SceneHandle({"name": "xml", "path": str(path), "keep_emitters": False})
+    assert not any(isinstance(v, mi.Sensor) for v in handle.scene_dict().values())
+    camera = Camera((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 40.0, 6, 6)
+    peer = SphereLights(handle, camera, np.ones((6, 6, 3), np.float32), count=1, radius=0.05, spp=2)
+    image = peer.image(np.array([[0.0, 0.0, 0.5]]), np.ones((1, 3)))
+    assert image.shape == (6, 6, 3) and np.abs(image).max() > 0
