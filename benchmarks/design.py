@@ -122,6 +122,8 @@ def _speed(inverse: dict, scenes: dict) -> dict:
     fitting has paid for itself."""
     rows = {}
     for name, r in inverse.items():
+        if not isinstance(r.get("mitsuba"), dict):  # the peer not run on this problem
+            continue
         model = scenes.get(name.split("/")[0], {}).get("model", {})
         fit = float(model.get("fit_s") or 0.0) + float(model.get("dataset_s") or 0.0)
         peer = r["mitsuba"]
@@ -153,7 +155,7 @@ def _inverse(args, folder: str, pb, lo, hi, diagonal: float, rng, work: str) -> 
         cost = np.linalg.norm(found[:, None] - true_p[None], axis=-1)
         rows, cols = linear_sum_assignment(cost)
         ratio = np.asarray(rep["found"]["intensity"])[rows] / true_i[cols]
-        peer = _peer(args, folder, path, pb, true_p, start, diagonal, rep, lo, hi)
+        peer = _peer(args, folder, path, pb, true_p, start, diagonal, rep, lo, hi) if args.peer_steps != 0 else None
         inverse[f"{k}_lights"] = {
             "hidden": {"position": true_p.tolist(), "intensity": true_i.tolist()},
             "found": rep["found"], "start": rep["start"],
@@ -163,10 +165,13 @@ def _inverse(args, folder: str, pb, lo, hi, diagonal: float, rng, work: str) -> 
             "design_s": rep["design_s"], "verify_s": rep["verify_s"], "steps": rep["steps"],
             "position_within_3_percent": bool(np.all(cost[rows, cols] / diagonal <= 0.03)),
             "intensity_within_10_percent": bool(np.all(np.abs(ratio - 1.0) <= 0.10)),
-            "mitsuba": peer,
-            "verified_within_1_2x_of_mitsuba": bool(rep["verified_objective"] <= 1.2 * peer["verified_objective"])}
-        print(f"  Mitsuba's inverse rendering: verified {peer['verified_objective']:.4g} after {peer['seconds']:.1f} s; "
-              f"reached jprt's verified objective: {peer['reached_jprt']}, speed-up {peer['speedup']:.1f}x", flush=True)
+            "mitsuba": peer if peer is not None else "not run (--peer-steps 0)",
+            "verified_within_1_2x_of_mitsuba": None if peer is None else
+            bool(rep["verified_objective"] <= 1.2 * peer["verified_objective"])}
+        if peer is not None:
+            print(f"  Mitsuba's inverse rendering: verified {peer['verified_objective']:.4g} after {peer['seconds']:.1f} "
+                  f"s; reached jprt's verified objective: {peer['reached_jprt']}, speed-up {peer['speedup']:.1f}x",
+                  flush=True)
         print(f"{k} hidden lights: position error {np.round(cost[rows, cols] / diagonal, 4)} of the diagonal, "
               f"intensity x{np.round(ratio.mean(axis=1), 3)}, objective model {rep['model_objective']:.4g} / "
               f"Mitsuba {rep['verified_objective']:.4g}, {rep['design_s']:.1f} s", flush=True)
@@ -183,10 +188,7 @@ def _irradiance_targets(args, folder: str, pb, lo, hi, rng, work: str, objects: 
 
     names = list(pb.session.handle.object_names())
     gb = pb.gbuffer
-    ids = np.asarray(gb.object_id)[np.asarray(gb.valid, bool)]
-    albedo = np.asarray(gb.diffuse_albedo).mean(axis=-1)[np.asarray(gb.valid, bool)]
-    counts = {i: int(np.sum((ids == i) & (albedo > 0.05))) for i in np.unique(ids) if 0 <= i < len(names)}
-    chosen = [names[i] for i, _ in sorted(counts.items(), key=lambda t: -t[1])[:objects]]
+    chosen = _largest_objects(pb, names, objects)
     probe = design.load_objective({"objects": [{"name": n, "min": 1.0} for n in chosen]}, names)
     masks = design.object_masks(probe, gb.object_id, names, gb.valid)
     hidden = (lo + (hi - lo) * rng.uniform(0.15, 0.85, (2, 3)), np.ones((2, 3)))
@@ -212,6 +214,95 @@ def _irradiance_targets(args, folder: str, pb, lo, hi, rng, work: str, objects: 
             "verify_spp": rep["verify_spp"], "target": "every bound met on the Mitsuba verification render"}
 
 
+def _environment_run(scene: str) -> tuple[str, dict]:
+    """SH PRT fitted on the scene file ``scene`` lit through its ceiling opening, at the sizes
+    ``experiments/real_scenes.py`` gives it on real interiors (nothing chosen here), saved as a run
+    folder (``jprt.runner.save_fit``) under results/design_sh_prt/<scene>; with the dataset's and
+    the fit's seconds."""
+    from jprt.experiment import load_experiment
+    from jprt.methods import REGISTRY
+    from jprt.methods.scene_file import scene_config
+    from jprt.render.sampling import scene_regions
+    from jprt.runner import save_fit
+
+    real = load_experiment(os.path.join(ROOT, "experiments", "real_scenes.py")).CONFIG
+    dark = {"name": "xml", "path": os.path.abspath(scene), "keep_emitters": False}
+    desc = {**dark, "opening": real["environment"]["opening"]}
+    cfg = scene_config("sh_prt", desc, scene_regions(dark), real["sh_prt"])
+    m = REGISTRY["sh_prt"]
+    t0 = time.perf_counter()
+    dataset = m.make_dataset(desc, cfg, progress=False)
+    t1 = time.perf_counter()
+    result = m.fit(dataset, cfg)
+    t2 = time.perf_counter()
+    stem = os.path.basename(os.path.dirname(os.path.abspath(scene)))
+    folder = save_fit(os.path.join(ROOT, "results", "design_sh_prt", stem), "sh_prt", cfg, result.params)
+    with open(os.path.join(folder, "summary.json")) as f:
+        summary = json.load(f)
+    return folder, {**summary, "dataset_s": t1 - t0, "train_s": t2 - t1}
+
+
+def _environment_targets(args, folder: str, env: str, rng, work: str, objects: int = 2) -> dict:
+    """Bounds on the mean irradiance of named objects that a turn and scale of the map ``env`` is
+    known to meet: the map turned by a hidden angle and scaled by a hidden factor, rendered by
+    Mitsuba (``design.rendered_environment_terms``, ``--target-spp``); the ``objects`` objects the
+    frame shows most of (diffuse albedo above 0.05) get, alternately, min = 0.9 x and max = 1.1 x
+    their irradiance there. The design starts from the map as it is (angle 0, scale 1) and is
+    verified on Mitsuba's render of what it found (``design_run``)."""
+    from jprt import design
+
+    probe_path = os.path.join(work, "environment_probe.json")
+    summary, _ = _check(folder)
+    names = _object_names(summary)
+    with open(probe_path, "w") as f:
+        json.dump({"objects": [{"name": names[0], "min": 1.0}]}, f)
+    pb = design.load_problem(folder, probe_path, size=args.size, env=env, progress=False)
+    chosen = _largest_objects(pb, names, objects)
+    with open(probe_path, "w") as f:
+        json.dump({"objects": [{"name": n, "min": 1.0} for n in chosen]}, f)
+    pb = design.load_problem(folder, probe_path, size=args.size, env=env, progress=False)
+    angle, scale = float(rng.uniform(np.pi / 3, 5 * np.pi / 3)), np.full(3, 1.5)
+    _, means = design.rendered_environment_terms(pb, angle, scale, spp=args.target_spp, seed=7, means=True)
+    spec = {"objects": [{"name": n, "quantity": "irradiance",
+                         **({"min": 0.9 * means[f"{n}.irradiance"]} if i % 2 == 0
+                            else {"max": 1.1 * means[f"{n}.irradiance"]})} for i, n in enumerate(chosen)]}
+    path = os.path.join(work, "environment_objective.json")
+    with open(path, "w") as f:
+        json.dump(spec, f)
+    rep = design.design_run(folder, path, size=args.size, steps=args.steps, learning_rate=args.learning_rate,
+                            verify_spp=args.target_spp, seed=args.seed, env=env, progress=False)
+    print(f"environment targets on {chosen}: every bound met on Mitsuba's render: {rep['bounds_met_verified']} "
+          f"({ {k: round(v['verified_mean'], 4) for k, v in rep['bounds'].items()} })", flush=True)
+    return {"objective": spec, "environment": os.path.basename(env),
+            "hidden": {"rotation_deg": float(np.degrees(angle)), "scale": scale.tolist()},
+            "found": rep["found"], "bounds": rep["bounds"], "bounds_met_verified": rep["bounds_met_verified"],
+            "design_s": rep["design_s"], "verify_spp": rep["verify_spp"],
+            "target": "every bound met on the Mitsuba verification render"}
+
+
+def _check(folder: str):
+    from jprt.view import check_run_folder
+
+    return check_run_folder(folder)
+
+
+def _object_names(summary: dict) -> list:
+    from jprt.render.scenes import SceneHandle
+
+    return list(SceneHandle(summary["scene"]).object_names())
+
+
+def _largest_objects(pb, names: list, count: int) -> list:
+    """The ``count`` objects with the most valid pixels of diffuse albedo above 0.05 in the
+    problem's frame (the objects whose irradiance the frame can read)."""
+    gb = pb.gbuffer
+    valid = np.asarray(gb.valid, bool)
+    ids = np.asarray(gb.object_id)[valid]
+    albedo = np.asarray(gb.diffuse_albedo).mean(axis=-1)[valid]
+    counts = {int(i): int(np.sum((ids == i) & (albedo > 0.05))) for i in np.unique(ids) if 0 <= i < len(names)}
+    return [names[i] for i, _ in sorted(counts.items(), key=lambda t: -t[1])[:count]]
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--run", default=None, help="an RRF run folder (default: fit the demo preset)")
@@ -229,12 +320,19 @@ def main() -> int:
                         help="Mitsuba inverse rendering: each light's sphere radius over the scene's diagonal")
     parser.add_argument("--peer-every", type=int, default=25, help="Mitsuba inverse rendering: verify every N steps")
     parser.add_argument("--peer-steps", type=int, default=None,
-                        help="Mitsuba inverse rendering: Adam steps (default twice --steps: its gradients are noisy)")
+                        help="Mitsuba inverse rendering: Adam steps (default twice --steps: its gradients are noisy; 0: "
+                             "no peer)")
+    parser.add_argument("--environment", default=None, metavar="SCENE_FILE",
+                        help="irradiance targets through an environment-lit model instead: SH PRT fitted on this "
+                             "scene file through its ceiling opening (or the environment-lit --run)")
+    parser.add_argument("--env", default=None, help="the environment map file the design turns and scales "
+                        "(default: the first held-out map of experiments/real_scenes.py)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=os.path.join(HERE, "results", "design.json"))
     args = parser.parse_args()
+    if args.environment:
+        return _environment_main(args, parser)
     from jprt import design
-    from jprt.eval import write_benchmark
     from jprt.render.setup import mitsuba
 
     mitsuba()
@@ -270,12 +368,7 @@ def main() -> int:
              "fit_s": summary.get("train_s"), "dataset_s": summary.get("dataset_s")}
     scene = {"model": model, "frame": [args.size, args.size], "scene_diagonal": diagonal,
              "light_region": {"lo": lo.tolist(), "hi": hi.tolist()}, "seconds": time.perf_counter() - t0}
-    result = {"scenes": {}, "gradient_check": None, "inverse_lighting": {}, "irradiance_targets": {},
-              "not_run": dict(NOT_RUN)}
-    if args.merge and os.path.exists(args.out):
-        with open(args.out) as f:
-            old = json.load(f)
-        result.update({k: old[k] for k in result if k in old})
+    result = _merged(args)
     result["scenes"][args.name] = scene
     if checks:
         result["gradient_check"] = {"scene": args.name, "spp": args.spp, "configurations": checks,
@@ -283,10 +376,59 @@ def main() -> int:
                                     "target": "cosine >= 0.9 per configuration",
                                     "met": bool(all(c["cosine"] >= 0.9 for c in checks))}
     result["inverse_lighting"][args.name] = inverse
+    result["irradiance_targets"][args.name] = targets
+    _write(args, parser, result)
+    return 0
+
+
+def _environment_main(args, parser) -> int:
+    """``--environment``: SH PRT on the scene file (or the environment-lit ``--run``) and the
+    irradiance targets through it (``_environment_targets``), merged into ``--out`` like a scene."""
+    from jprt.render.setup import mitsuba
+
+    mitsuba()
+    t0 = time.perf_counter()
+    if args.run:
+        folder, summary = _run_folder(args)
+    else:
+        folder, summary = _environment_run(args.environment)
+    env = args.env
+    if env is None:
+        from jprt.experiment import load_experiment
+
+        first = load_experiment(os.path.join(ROOT, "experiments", "real_scenes.py")).CONFIG["environment"]["maps"][0]
+        env = os.path.join(ROOT, "..", "shared", "assets", "envmaps", f"{first}.hdr")
+    work = tempfile.mkdtemp(prefix="jprt_design_")
+    targets = _environment_targets(args, folder, env, np.random.default_rng(args.seed), work)
+    result = _merged(args)
+    model = {"method": summary.get("method"), "run": os.path.relpath(folder, ROOT),
+             "config_hash": summary.get("config_hash"), "fit_s": summary.get("train_s"),
+             "dataset_s": summary.get("dataset_s")}
+    result["scenes"][args.name] = {"model": model, "frame": [args.size, args.size],
+                                   "seconds": time.perf_counter() - t0}
+    result["irradiance_targets"][args.name] = targets
+    _write(args, parser, result)
+    return 0
+
+
+def _merged(args) -> dict:
+    """The results to write: empty, or with ``--merge`` those of ``--out`` as they are."""
+    result = {"scenes": {}, "gradient_check": None, "inverse_lighting": {}, "irradiance_targets": {},
+              "not_run": dict(NOT_RUN)}
+    if args.merge and os.path.exists(args.out):
+        with open(args.out) as f:
+            old = json.load(f)
+        result.update({k: old[k] for k in result if k in old})
+    result["not_run"].pop(args.name, None)
+    return result
+
+
+def _write(args, parser, result: dict) -> None:
+    """``result`` with its speed table (``_speed``) to ``--out``, with the command that made it."""
+    from jprt.eval import write_benchmark
+
     result["inverse_lighting"]["target"] = ("position error <= 3 % of the scene's size per light, intensity "
                                             "within 10 %")
-    result["irradiance_targets"][args.name] = targets
-    result["not_run"].pop(args.name, None)
     result["speed"] = _speed({f"{s}/{k}": v for s, rows in result["inverse_lighting"].items()
                               if isinstance(rows, dict) for k, v in rows.items() if isinstance(v, dict)},
                              result["scenes"])
@@ -302,7 +444,6 @@ def main() -> int:
                           "traced every 10 steps; position error over the scene's bounding-box diagonal. Irradiance "
                           "targets: bounds a hidden lighting meets on Mitsuba's render (min 0.9 x, max 1.1 x its "
                           "means), designed from another start and checked on Mitsuba's render of the result.")
-    return 0
 
 
 if __name__ == "__main__":

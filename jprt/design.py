@@ -54,7 +54,7 @@ from jprt.progress import bar as progress_bar
 __all__ = ["ObjectiveError", "ImageTarget", "ObjectTarget", "Objective", "load_objective", "object_masks",
            "objective_terms", "LightParams", "to_params", "from_params", "point_direct", "irradiance_from",
            "point_visibility", "DesignResult", "design", "design_frame", "rendered_terms", "gradient_check",
-           "object_means", "bounds_report",
+           "object_means", "bounds_report", "rendered_environment_terms",
            "Problem", "POINT_METHODS", "measurement_points", "load_problem", "design_run", "EnvironmentResult",
            "environment_transfer", "environment_frame", "design_environment", "ENVIRONMENT_METHODS", "OBJECTIVE_KEYS", "QUANTITIES"]
 
@@ -1088,9 +1088,7 @@ def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, st
     and scale 1), then render the found map with Mitsuba (``jprt.render.lights.EnvMap`` of its
     equirect) and evaluate the objective there (``_terms_on_render``; the direct irradiance is the
     traced transfer's, T L)."""
-    from jprt.render.lights import EnvMap
     from jprt.sphere import cubemap
-    from jprt.sphere.envmap import render_equirect
 
     name, cube = next(iter(pb.environments.items()))
     optimise = ("rotation", "scale") if optimise is None else optimise
@@ -1098,12 +1096,10 @@ def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, st
                                 optimise=optimise, progress=progress)
     model_terms = result.terms
     t0 = time.perf_counter()
-    found = np.asarray(cubemap.rotate_cubemap_y(cube, result.angle), np.float64) * result.scale.reshape(1, 1, 1, 3)
     gb = pb.gbuffer
-    verified, verified_means = _terms_on_render(
-        pb.session.handle, pb.camera, gb, pb.objective, pb.masks, EnvMap.create(render_equirect(found.astype(np.float32))),
-        lambda: np.einsum("hwj,jc->hwc", pb.transfer, found.reshape(-1, 3)), result.scale.reshape(1, 3),
-        spp=int(verify_spp), seed=int(seed) + 101, reference_power=3.0, means=True)
+    verified, verified_means = rendered_environment_terms(pb, result.angle, result.scale, spp=int(verify_spp),
+                                                          seed=int(seed) + 101, means=True)
+    found = np.asarray(cubemap.rotate_cubemap_y(cube, result.angle), np.float64) * result.scale.reshape(1, 1, 1, 3)
     full, _, irr = pb.frame(jnp.asarray(found, jnp.float32))
     model_means = object_means(pb.objective, pb.masks, full, irr)
     return {"run": os.path.abspath(folder), "method": pb.session.method.name,
@@ -1116,6 +1112,31 @@ def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, st
             **_bounds(pb.objective, model_means, verified_means),
             "direct": "the map's direct light through a traced transfer at the cube's face size (diffuse; visibility "
                       "per texel direction, one ray)"}
+
+
+def rendered_environment_terms(pb: Problem, angle: float, scale, *, spp: int, seed: int = 0, means: bool = False):
+    """``objective_terms`` on Mitsuba's render of an environment problem's map (``load_problem``
+    with ``env``) turned by ``angle`` (radians) about +Y and scaled by ``scale`` (3,) per channel
+    (``_terms_on_render``: the map as a ``jprt.render.lights.EnvMap`` of its equirect; the
+    direct irradiance is the traced transfer's, T L). With ``means``: (terms, the objects'
+    ``object_means`` there).
+
+    Numerics: not differentiable (Mitsuba renders).
+    """
+    from jprt.render.lights import EnvMap
+    from jprt.sphere import cubemap
+    from jprt.sphere.envmap import render_equirect
+
+    if pb.kind != "environment":
+        raise ValueError("rendered_environment_terms takes an environment problem (load_problem of an "
+                         f"environment-lit run); this one places {pb.kind} lights")
+    scale = np.asarray(scale, np.float64).reshape(1, 3)
+    cube = next(iter(pb.environments.values()))
+    found = np.asarray(cubemap.rotate_cubemap_y(cube, float(angle)), np.float64) * scale.reshape(1, 1, 1, 3)
+    return _terms_on_render(pb.session.handle, pb.camera, pb.gbuffer, pb.objective, pb.masks,
+                            EnvMap.create(render_equirect(found.astype(np.float32))),
+                            lambda: np.einsum("hwj,jc->hwc", pb.transfer, found.reshape(-1, 3)), scale,
+                            spp=int(spp), seed=int(seed), reference_power=3.0, means=means)
 
 
 def _bounds(objective: Objective, model_means: dict, verified_means: dict) -> dict:
