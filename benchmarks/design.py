@@ -411,6 +411,13 @@ def _environment_main(args, parser) -> int:
     return 0
 
 
+def _command(args, parser) -> str:
+    """The command line that reproduces this run (the options that differ from their defaults)."""
+    return "python benchmarks/design.py" + "".join(
+        f" --{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "out" and v is not None
+        and v is not False and v != parser.get_default(k)).replace(" --merge True", " --merge")
+
+
 def _merged(args) -> dict:
     """The results to write: empty, or with ``--merge`` those of ``--out`` as they are."""
     result = {"scenes": {}, "gradient_check": None, "inverse_lighting": {}, "irradiance_targets": {},
@@ -432,9 +439,10 @@ def _write(args, parser, result: dict) -> None:
     result["speed"] = _speed({f"{s}/{k}": v for s, rows in result["inverse_lighting"].items()
                               if isinstance(rows, dict) for k, v in rows.items() if isinstance(v, dict)},
                              result["scenes"])
-    command = "python benchmarks/design.py" + "".join(
-        f" --{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "out" and v is not None
-        and v is not False and v != parser.get_default(k)).replace(" --merge True", " --merge")
+    command = _command(args, parser)
+    result["scenes"][args.name]["command"] = command  # each scene's own run (--merge keeps the others')
+    if result.get("gradient_check") and result["gradient_check"].get("scene") == args.name and args.configs:
+        result["gradient_check"]["command"] = command
     write_benchmark(args.out, result, command,
                     notes="gradient check: parameters are each light's position (world units) and log intensity "
                           "scale; finite differences central, step 0.01 of the scene's diagonal (position) and "
