@@ -67,12 +67,15 @@ INTROS: dict[str, dict] = {
     },
     "design": {
         "title": "Lighting design through a fitted model",
-        "intro": "Lights placed by gradient descent through RRF's evaluator on the Cornell box, checked against "
-                 "Mitsuba: the model's gradient of an image objective against central finite differences of "
-                 "Mitsuba renders at random light configurations (with the two seeds' disagreement as the noise "
-                 "level), and hidden point lights recovered from Mitsuba renders of them (position error over the "
-                 "scene's diagonal, intensity ratio, the objective on the model and on Mitsuba's verification "
-                 "render). What is not measured yet is listed with the reason. See "
+        "intro": "Lights placed by gradient descent through a fitted model, checked against Mitsuba, per scene "
+                 "(`scenes`, each with the command of its own run): the model's gradient of an image objective "
+                 "against central finite differences of Mitsuba renders (Cornell box; the two seeds' "
+                 "disagreement is the noise level); hidden point lights recovered from Mitsuba renders of them "
+                 "through RRF (position error over the scene's diagonal, intensity ratio, the objective on the "
+                 "model and on Mitsuba's verification render, and Mitsuba's own inverse rendering from the same "
+                 "start where it was run); bounds on objects' irradiance that a hidden lighting meets, designed "
+                 "and checked on Mitsuba's render (point lights through RRF; an environment's turn and scale "
+                 "through SH PRT on the living room); the speed-up to the same verified objective. See "
                  "[Lighting design](../design.md).",
         "make": "python benchmarks/design.py",
     },
