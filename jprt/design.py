@@ -268,7 +268,7 @@ def object_means(objective: Objective, masks, full, irradiance) -> dict:
     mean ``irradiance`` or ``full`` radiance over pixels and RGB, the number its bounds are on
     (JAX scalars; ``objective_terms`` takes its gradient through them).
 
-    Numerics: not differentiable on its own (masked means; ``objective_terms``' float32 case covers them).
+    Numerics: not differentiable (masked means of a frame; ``objective_terms``' float32 case differentiates through them).
     """
     out = {}
     for i, target in enumerate(objective.objects):

@@ -287,9 +287,10 @@ def gradient_evaluator(params, config: dict | None = None):
     ``jax.grad`` of an objective of the image in the lights (``jprt.design``). A few times slower
     per frame than ``evaluator``, which is for display.
 
-    Numerics: float32; differentiable in the lights' positions and intensities (reverse and
-    forward mode; the kd-tree leaf of a pixel is piecewise constant in the light, its gradient
-    stopped).
+    The image is differentiable in the lights' positions and intensities, in reverse and forward
+    mode (a pixel's kd-tree leaf is piecewise constant in the light; its gradient is stopped).
+
+    Numerics: not differentiable (builds the float32 program; its gradient is checked against forward mode and a central difference in tests/methods/test_rrf.py).
     """
     return _evaluator(params, config, renderer.render_dense)
 

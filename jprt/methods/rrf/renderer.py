@@ -352,8 +352,10 @@ def render_dense(params, gb: dict, light_pos, light_rgb, edit, *, attributes: st
     frame, which is for display. Same arguments and result as ``render_frame`` (the tanh is
     XLA's, not the rational one: within 3e-7).
 
-    Numerics: float32; differentiable in ``light_pos`` and ``light_rgb`` (reverse and forward mode)
-    except on the leaves' boundaries, where the image jumps from one leaf's network to the next.
+    Differentiable in ``light_pos`` and ``light_rgb`` (reverse and forward mode) except on the
+    leaves' boundaries, where the image jumps from one leaf's network to the next.
+
+    Numerics: not differentiable (the float32 gradient program of per-leaf ``jprt.nn.mlp`` networks, covered there; its gradient is checked in tests/methods/test_rrf.py).
     """
     h, w = gb["object_id"].shape
     light_pos, shared, light_cols, obj = _frame_inputs(params, gb, light_pos, edit, attributes=attributes,
