@@ -224,8 +224,9 @@ def _irradiance_targets(args, folder: str, pb, lo, hi, rng, work: str, objects: 
 def _environment_run(scene: str) -> tuple[str, dict]:
     """SH PRT fitted on the scene file ``scene`` lit through its ceiling opening, at the sizes
     ``experiments/real_scenes.py`` gives it on real interiors (nothing chosen here), saved as a run
-    folder (``jprt.runner.save_fit``) under results/design_sh_prt/<scene>; with the dataset's and
-    the fit's seconds."""
+    folder (``jprt.runner.save_fit``) under results/design_sh_prt/<scene>; with the seconds
+    ``make_dataset`` and the fit took (``make_dataset`` reads its cache when an earlier run baked
+    the same dataset: then ``dataset_s`` is that read, not the bake)."""
     from jprt.experiment import load_experiment
     from jprt.methods import REGISTRY
     from jprt.methods.scene_file import scene_config
@@ -259,12 +260,9 @@ def _environment_targets(args, folder: str, env: str, rng, work: str, objects: i
     from jprt import design
 
     probe_path = os.path.join(work, "environment_probe.json")
-    summary, _ = _check(folder)
-    names = _object_names(summary)
-    with open(probe_path, "w") as f:
-        json.dump({"objects": [{"name": names[0], "min": 1.0}]}, f)
-    pb = design.load_problem(folder, probe_path, size=args.size, env=env, progress=False)
-    chosen = _largest_objects(pb, names, objects)
+    pb = design.load_problem(folder, _image_objective(work, np.zeros((args.size, args.size, 3), np.float32)),
+                             size=args.size, env=env, progress=False)
+    chosen = _largest_objects(pb, list(pb.session.handle.object_names()), objects)
     with open(probe_path, "w") as f:
         json.dump({"objects": [{"name": n, "min": 1.0} for n in chosen]}, f)
     pb = design.load_problem(folder, probe_path, size=args.size, env=env, progress=False)
@@ -285,18 +283,6 @@ def _environment_targets(args, folder: str, env: str, rng, work: str, objects: i
             "found": rep["found"], "bounds": rep["bounds"], "bounds_met_verified": rep["bounds_met_verified"],
             "design_s": rep["design_s"], "verify_spp": rep["verify_spp"],
             "target": "every bound met on the Mitsuba verification render"}
-
-
-def _check(folder: str):
-    from jprt.view import check_run_folder
-
-    return check_run_folder(folder)
-
-
-def _object_names(summary: dict) -> list:
-    from jprt.render.scenes import SceneHandle
-
-    return list(SceneHandle(summary["scene"]).object_names())
 
 
 def _largest_objects(pb, names: list, count: int) -> list:
@@ -378,10 +364,14 @@ def main() -> int:
     result = _merged(args)
     result["scenes"][args.name] = scene
     if checks:
-        result["gradient_check"] = {"scene": args.name, "spp": args.spp, "configurations": checks,
-                                    "cosine_min": float(min(c["cosine"] for c in checks)),
-                                    "target": "cosine >= 0.9 per configuration",
-                                    "met": bool(all(c["cosine"] >= 0.9 for c in checks))}
+        check = {"scene": args.name, "spp": args.spp, "configurations": checks,
+                 "cosine_min": float(min(c["cosine"] for c in checks)), "target": "cosine >= 0.9 per configuration",
+                 "met": bool(all(c["cosine"] >= 0.9 for c in checks))}
+        other = result.get("gradient_check") or {}
+        if other.get("scene") not in (None, args.name):  # another scene's check stays where it is
+            scene["gradient_check"] = check
+        else:
+            result["gradient_check"] = check
     result["inverse_lighting"][args.name] = inverse
     result["irradiance_targets"][args.name] = targets
     _write(args, parser, result)
@@ -414,6 +404,7 @@ def _environment_main(args, parser) -> int:
     result["scenes"][args.name] = {"model": model, "frame": [args.size, args.size],
                                    "seconds": time.perf_counter() - t0}
     result["irradiance_targets"][args.name] = targets
+    result["inverse_lighting"].pop(args.name, None)  # a point-light run of the same name is not this model's
     _write(args, parser, result)
     return 0
 

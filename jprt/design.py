@@ -205,6 +205,10 @@ def load_objective(source, object_names: Sequence[str], *, shape: tuple | None =
             raise ObjectiveError(f"{where} ({obj}): min {lo} is above max {hi}")
         if lo == 0.0:
             lo = None  # a lower bound of 0 holds for any light
+        twin = next((j for j, t in enumerate(objects) if (t.name, t.quantity) == (obj, quantity)), None)
+        if twin is not None:
+            raise ObjectiveError(f"{where} repeats objects[{twin}] ({obj}, {quantity}): give its min and max in "
+                                 "one entry")
         objects.append(ObjectTarget(obj, quantity, lo, hi, _number(f"{where}.weight", entry.get("weight", 1.0))))
     penalty = _number(f"{name}: power_penalty", spec.get("power_penalty", 0.0))
     if image is None and not objects:
@@ -454,7 +458,7 @@ def _light_map(p0: LightParams, optimise: Sequence[str], lo, hi) -> Callable:
     free_u = "position" in optimise
     free_power, free_colour = "power" in optimise, "colour" in optimise
     # the starting values as NumPy constants of the traced step (closed-over device arrays gave the
-    # jitted forward-mode step garbage values here, run to run)
+    # jitted step of an earlier, forward-mode loop garbage values here, run to run)
     s0 = np.asarray(p0.log_intensity)
     level0, tint0 = s0.mean(axis=-1, keepdims=True), s0 - s0.mean(axis=-1, keepdims=True)
     u0 = np.asarray(p0.u)
@@ -1099,6 +1103,7 @@ def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, st
     gb = pb.gbuffer
     verified, verified_means = rendered_environment_terms(pb, result.angle, result.scale, spp=int(verify_spp),
                                                           seed=int(seed) + 101, means=True)
+    verify_s = time.perf_counter() - t0
     found = np.asarray(cubemap.rotate_cubemap_y(cube, result.angle), np.float64) * result.scale.reshape(1, 1, 1, 3)
     full, _, irr = pb.frame(jnp.asarray(found, jnp.float32))
     model_means = object_means(pb.objective, pb.masks, full, irr)
@@ -1108,7 +1113,7 @@ def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, st
             "steps": int(steps), "design_s": result.seconds, "history": result.history.tolist(),
             "model_terms": model_terms, "model_objective": float(sum(model_terms.values())),
             "verified_terms": verified, "verified_objective": float(sum(verified.values())),
-            "verify_spp": int(verify_spp), "verify_s": time.perf_counter() - t0,
+            "verify_spp": int(verify_spp), "verify_s": verify_s,
             **_bounds(pb.objective, model_means, verified_means),
             "direct": "the map's direct light through a traced transfer at the cube's face size (diffuse; visibility "
                       "per texel direction, one ray)"}

@@ -32,6 +32,8 @@ def _write(tmp_path, spec, name="objective.json"):
     ({"objects": [{"name": "floor"}]}, "needs a 'min' or a 'max'"),
     ({"objects": [{"name": "floor", "min": 1.0, "quantity": "flux"}]}, "quantity must be one of irradiance, radiance"),
     ({"objects": [{"name": "floor", "mn": 1.0}]}, "unknown key 'mn'"),
+    ({"objects": [{"name": "floor", "min": 1.0}, {"name": "back", "max": 2.0}, {"name": "floor", "max": 3.0}]},
+     "objects[2] repeats objects[0] (floor, irradiance): give its min and max in one entry"),
     ({"object": []}, "unknown key 'object'"),
     ({}, "nothing to optimise"),
     ({"image": {"quantity": "full"}}, "needs a 'path'"),

@@ -940,10 +940,10 @@ class SceneHandle:
         return look_at(origin, target, fov=fov, width=width or 256, height=height or 256)
 
     def scene_dict(self) -> dict:
-        """A copy of the scene's Mitsuba dict without sensor, integrator or jprt lights (what
-        ``set_lighting`` builds on): callers add their own emitters and sensor to it (a scene
-        file's own camera, which the scene keeps as its first sensor, is left out: it would be
-        the sensor a render of the dict uses)."""
+        """A copy of the scene's Mitsuba dict without sensor, integrator or jprt lights: callers
+        add their own emitters and sensor to it. (``set_lighting`` builds on the same dict with a
+        scene file's own camera kept as the scene's first sensor; here it is left out, since it
+        would be the sensor a render of the dict uses.)"""
         return {k: v for k, v in self._base.items() if k != "jprt_sensor"}
 
     def shapes(self) -> list:
