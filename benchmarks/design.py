@@ -76,12 +76,35 @@ def _target(problem, lights, spp: int, seed: int) -> np.ndarray:
     return np.where(np.asarray(problem.gbuffer.valid, bool)[..., None], full, 0.0).astype(np.float32)
 
 
+def _objective_file(folder: str, spec: dict, name: str = "objective.json") -> str:
+    """``spec`` written as the objective file ``folder``/``name``; its path."""
+    path = os.path.join(folder, name)
+    with open(path, "w") as f:
+        json.dump(spec, f)
+    return path
+
+
 def _image_objective(folder: str, target: np.ndarray) -> str:
     np.save(os.path.join(folder, "target.npy"), target)
-    path = os.path.join(folder, "objective.json")
-    with open(path, "w") as f:
-        json.dump({"image": {"path": "target.npy", "quantity": "full"}}, f)
-    return path
+    return _objective_file(folder, {"image": {"path": "target.npy", "quantity": "full"}})
+
+
+def _bounds_met_by(means: dict, chosen: list) -> dict:
+    """An objective file's spec of bounds a lighting with object ``means`` meets: the objects
+    ``chosen`` get, alternately, min = 0.9 x and max = 1.1 x their mean irradiance there."""
+    return {"objects": [{"name": n, "quantity": "irradiance",
+                         **({"min": 0.9 * means[f"{n}.irradiance"]} if i % 2 == 0
+                            else {"max": 1.1 * means[f"{n}.irradiance"]})} for i, n in enumerate(chosen)]}
+
+
+def _bounds_result(label: str, chosen: list, spec: dict, rep: dict) -> dict:
+    """The benchmark's entry for a bounds design (``design_run``'s report ``rep``), printed in one
+    line."""
+    print(f"{label} on {chosen}: every bound met on Mitsuba's render: {rep['bounds_met_verified']} "
+          f"({ {k: round(v['verified_mean'], 4) for k, v in rep['bounds'].items()} })", flush=True)
+    return {"objective": spec, "found": rep["found"], "bounds": rep["bounds"],
+            "bounds_met_verified": rep["bounds_met_verified"], "design_s": rep["design_s"],
+            "verify_spp": rep["verify_spp"], "target": "every bound met on the Mitsuba verification render"}
 
 
 def _peer(args, folder: str, objective_path: str, pb, true_p, start: dict, diagonal: float, rep: dict, lo, hi) -> dict:
@@ -201,24 +224,14 @@ def _irradiance_targets(args, folder: str, pb, lo, hi, rng, work: str, objects: 
     hidden = (lo + (hi - lo) * rng.uniform(0.15, 0.85, (2, 3)), np.ones((2, 3)))
     _, means = design.rendered_terms(pb.session.handle, pb.camera, gb, probe, masks, hidden[0], hidden[1],
                                      spp=args.target_spp, seed=7, means=True)
-    spec = {"objects": []}
-    for i, n in enumerate(chosen):
-        e = means[f"{n}.irradiance"]
-        spec["objects"].append({"name": n, "quantity": "irradiance", **({"min": 0.9 * e} if i % 2 == 0
-                                                                        else {"max": 1.1 * e})})
-    path = os.path.join(work, "irradiance_objective.json")
-    with open(path, "w") as f:
-        json.dump(spec, f)
+    spec = _bounds_met_by(means, chosen)
+    path = _objective_file(work, spec, "irradiance_objective.json")
     start = {"position": lo + (hi - lo) * rng.uniform(0.3, 0.7, (2, 3)), "intensity": np.full((2, 3), 0.25)}
     rep = design.design_run(folder, path, lights=2, size=args.size, steps=args.steps, start=start,
                             learning_rate=args.learning_rate, verify_spp=args.target_spp, seed=args.seed,
                             progress=False)
-    print(f"irradiance targets on {chosen}: every bound met on Mitsuba's render: {rep['bounds_met_verified']} "
-          f"({ {k: round(v['verified_mean'], 4) for k, v in rep['bounds'].items()} })", flush=True)
-    return {"objective": spec, "hidden": {"position": hidden[0].tolist(), "intensity": hidden[1].tolist()},
-            "start": rep["start"], "found": rep["found"], "bounds": rep["bounds"],
-            "bounds_met_verified": rep["bounds_met_verified"], "design_s": rep["design_s"],
-            "verify_spp": rep["verify_spp"], "target": "every bound met on the Mitsuba verification render"}
+    return {**_bounds_result("irradiance targets", chosen, spec, rep),
+            "hidden": {"position": hidden[0].tolist(), "intensity": hidden[1].tolist()}, "start": rep["start"]}
 
 
 def _environment_run(scene: str) -> tuple[str, dict]:
@@ -259,30 +272,19 @@ def _environment_targets(args, folder: str, env: str, rng, work: str, objects: i
     verified on Mitsuba's render of what it found (``design_run``)."""
     from jprt import design
 
-    probe_path = os.path.join(work, "environment_probe.json")
     pb = design.load_problem(folder, _image_objective(work, np.zeros((args.size, args.size, 3), np.float32)),
                              size=args.size, env=env, progress=False)
     chosen = _largest_objects(pb, list(pb.session.handle.object_names()), objects)
-    with open(probe_path, "w") as f:
-        json.dump({"objects": [{"name": n, "min": 1.0} for n in chosen]}, f)
-    pb = design.load_problem(folder, probe_path, size=args.size, env=env, progress=False)
+    probe = _objective_file(work, {"objects": [{"name": n, "min": 1.0} for n in chosen]}, "environment_probe.json")
+    pb = design.load_problem(folder, probe, size=args.size, env=env, progress=False)
     angle, scale = float(rng.uniform(np.pi / 3, 5 * np.pi / 3)), np.full(3, 1.5)
     _, means = design.rendered_environment_terms(pb, angle, scale, spp=args.target_spp, seed=7, means=True)
-    spec = {"objects": [{"name": n, "quantity": "irradiance",
-                         **({"min": 0.9 * means[f"{n}.irradiance"]} if i % 2 == 0
-                            else {"max": 1.1 * means[f"{n}.irradiance"]})} for i, n in enumerate(chosen)]}
-    path = os.path.join(work, "environment_objective.json")
-    with open(path, "w") as f:
-        json.dump(spec, f)
+    spec = _bounds_met_by(means, chosen)
+    path = _objective_file(work, spec, "environment_objective.json")
     rep = design.design_run(folder, path, size=args.size, steps=args.steps, learning_rate=args.learning_rate,
                             verify_spp=args.target_spp, seed=args.seed, env=env, progress=False)
-    print(f"environment targets on {chosen}: every bound met on Mitsuba's render: {rep['bounds_met_verified']} "
-          f"({ {k: round(v['verified_mean'], 4) for k, v in rep['bounds'].items()} })", flush=True)
-    return {"objective": spec, "environment": os.path.basename(env),
-            "hidden": {"rotation_deg": float(np.degrees(angle)), "scale": scale.tolist()},
-            "found": rep["found"], "bounds": rep["bounds"], "bounds_met_verified": rep["bounds_met_verified"],
-            "design_s": rep["design_s"], "verify_spp": rep["verify_spp"],
-            "target": "every bound met on the Mitsuba verification render"}
+    return {**_bounds_result("environment targets", chosen, spec, rep), "environment": os.path.basename(env),
+            "hidden": {"rotation_deg": float(np.degrees(angle)), "scale": scale.tolist()}}
 
 
 def _largest_objects(pb, names: list, count: int) -> list:

@@ -438,7 +438,8 @@ def point_visibility(handle, gbuffer, position) -> np.ndarray:
 class DesignResult(NamedTuple):
     """What ``design`` found: ``position``, ``intensity`` (K, 3) float64, ``history`` (steps,)
     objective per step (with the visibility of that step), ``terms`` {name: value} at the end,
-    ``seconds`` the loop's wall time, ``visibility_updates`` how often visibility was traced."""
+    ``seconds`` the loop's wall time, ``visibility_updates`` how often visibility was traced,
+    ``means`` the object targets' means at the end (``object_means``, floats)."""
 
     position: np.ndarray
     intensity: np.ndarray
@@ -446,6 +447,7 @@ class DesignResult(NamedTuple):
     terms: dict
     seconds: float
     visibility_updates: int
+    means: dict | None = None
 
 
 def _light_map(p0: LightParams, optimise: Sequence[str], lo, hi) -> Callable:
@@ -505,18 +507,19 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
 
     def loss(frames, inten):
         terms = objective_terms(objective, masks, *frames, inten, reference)
-        return sum(terms.values()), terms
+        return sum(terms.values()), (terms, object_means(objective, masks, frames[0], frames[2]))
 
     def refresh(params):
         if visibility_fn is None:
             return {"pixels": jnp.ones((1, 1, int(np.shape(position)[0])), jnp.float32)}
         return jax.tree_util.tree_map(jnp.asarray, visibility_fn(np.asarray(lights(params)[0], np.float64)))
 
-    params, history, terms, seconds, updates = _adam(model, loss, p0, steps=steps, learning_rate=learning_rate,
-                                                     refresh=refresh, every=visibility_every, progress=progress)
+    params, history, (terms, means), seconds, updates = _adam(model, loss, p0, steps=steps,
+                                                              learning_rate=learning_rate, refresh=refresh,
+                                                              every=visibility_every, progress=progress)
     pos, inten = lights(params)
     return DesignResult(np.asarray(pos, np.float64), np.asarray(inten, np.float64), history, terms, seconds,
-                        updates if visibility_fn is not None else 0)
+                        updates if visibility_fn is not None else 0, means)
 
 
 class PeerResult(NamedTuple):
@@ -574,13 +577,13 @@ def mitsuba_design(peer, position, intensity, lo, hi, *, steps: int = 200, learn
 
 def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_rate: float, refresh: Callable,
           every: int, progress: bool | None):
-    """Adam on ``objective(*model(params, aux)) -> (value, terms)`` for ``steps`` steps, the rate
+    """Adam on ``objective(*model(params, aux)) -> (value, (terms, means))`` for ``steps`` steps, the rate
     decaying on a cosine to 1 %; ``aux = refresh(params)`` first, every ``every`` steps and at the
     end. ``model(params, aux) -> (frames, lighting)`` (arrays) must be reverse-mode differentiable
     (the problem's evaluator is the method's ``gradient_evaluator`` where it has one): each step
     is one compiled program, the objective's value and its gradient in the parameters
-    (``jax.value_and_grad``) and the update. Returns (params, history, terms at the end, seconds,
-    refreshes)."""
+    (``jax.value_and_grad``) and the update. Returns (params, history, (terms, means) at the end
+    as floats, seconds, refreshes)."""
     import optax
 
     # cosine decay to 1 % of the rate: the last steps settle instead of circling the optimum
@@ -607,9 +610,9 @@ def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_
             bar.set_postfix(objective=f"{history[-1]:.3g}")
     aux = refresh(params)
     refreshes += 1
-    _, terms = jax.jit(lambda p, a: objective(*model(p, a)))(params, aux)
-    return (params, np.asarray(history), {k: float(v) for k, v in terms.items()}, time.perf_counter() - t0,
-            refreshes)
+    _, end = jax.jit(lambda p, a: objective(*model(p, a)))(params, aux)
+    terms, means = ({k: float(v) for k, v in d.items()} for d in end)
+    return params, np.asarray(history), (terms, means), time.perf_counter() - t0, refreshes
 
 
 def design_frame(gbuffer, indirect_fn: Callable, *, glossy: bool = True) -> Callable:
@@ -741,13 +744,15 @@ def gradient_check(handle, camera, gbuffer, frame_fn: Callable, objective: Objec
 
 class EnvironmentResult(NamedTuple):
     """What ``design_environment`` found: ``angle`` (radians about +Y), ``scale`` (3,) per channel,
-    ``history``, ``terms`` at the end, ``seconds``."""
+    ``history``, ``terms`` at the end, ``seconds``, ``means`` the object targets' means at the
+    end (``object_means``, floats)."""
 
     angle: float
     scale: np.ndarray
     history: np.ndarray
     terms: dict
     seconds: float
+    means: dict | None = None
 
 
 def environment_transfer(handle, gbuffer, face: int, *, chunk: int = 64) -> np.ndarray:
@@ -842,11 +847,13 @@ def design_environment(frame_fn: Callable, objective: Objective, masks, cube, *,
 
     def loss(frames, scale_rgb):
         terms = objective_terms(objective, masks, *frames, scale_rgb, reference)
-        return sum(terms.values()), terms
+        return sum(terms.values()), (terms, object_means(objective, masks, frames[0], frames[2]))
 
-    params, history, terms, seconds, _ = _adam(model, loss, p0, steps=steps, learning_rate=learning_rate,
-                                               refresh=lambda p: None, every=max(int(steps), 1), progress=progress)
-    return EnvironmentResult(float(params[0]), np.asarray(lighting(params)[1], np.float64), history, terms, seconds)
+    params, history, (terms, means), seconds, _ = _adam(model, loss, p0, steps=steps, learning_rate=learning_rate,
+                                                        refresh=lambda p: None, every=max(int(steps), 1),
+                                                        progress=progress)
+    return EnvironmentResult(float(params[0]), np.asarray(lighting(params)[1], np.float64), history, terms, seconds,
+                             means)
 
 
 def _region(session) -> tuple[np.ndarray, np.ndarray]:
@@ -1068,10 +1075,6 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
                                               result.intensity, spp=int(verify_spp), seed=int(seed) + 101,
                                               reference_power=float(np.sum(inten0)), means=True)
     verify_s = time.perf_counter() - t0
-    pos, inten = (jnp.asarray(a, jnp.float32) for a in (result.position, result.intensity))
-    vis = jax.tree_util.tree_map(jnp.asarray, pb.visibility(result.position))
-    full, _, irr = pb.frame(pos, inten, vis)
-    model_means = object_means(pb.objective, pb.masks, full, irr)
     return {"run": os.path.abspath(folder), "method": pb.session.method.name,
             "objective": os.path.abspath(objective_path),
             "frame": list(np.shape(gb.valid)), "light_region": {"lo": lo.tolist(), "hi": hi.tolist()},
@@ -1081,7 +1084,7 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
             "history": result.history.tolist(), "model_terms": result.terms,
             "model_objective": float(sum(result.terms.values())), "verified_terms": verified,
             "verified_objective": float(sum(verified.values())), "verify_spp": int(verify_spp),
-            "verify_s": verify_s, **_bounds(pb.objective, model_means, verified_means),
+            "verify_s": verify_s, **_bounds(pb.objective, result.means, verified_means),
             "direct": "analytic point lights (diffuse + GGX) with Mitsuba shadow rays every "
                       f"{int(visibility_every)} steps, held constant between"}
 
@@ -1091,9 +1094,7 @@ def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, st
     """``design_run`` for an environment-lit model: turn and scale the problem's map (from angle 0
     and scale 1), then render the found map with Mitsuba (``jprt.render.lights.EnvMap`` of its
     equirect) and evaluate the objective there (``_terms_on_render``; the direct irradiance is the
-    traced transfer's, T L)."""
-    from jprt.sphere import cubemap
-
+    traced transfer's, T L; ``rendered_environment_terms``)."""
     name, cube = next(iter(pb.environments.items()))
     optimise = ("rotation", "scale") if optimise is None else optimise
     result = design_environment(pb.frame, pb.objective, pb.masks, cube, steps=steps, learning_rate=learning_rate,
@@ -1104,9 +1105,6 @@ def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, st
     verified, verified_means = rendered_environment_terms(pb, result.angle, result.scale, spp=int(verify_spp),
                                                           seed=int(seed) + 101, means=True)
     verify_s = time.perf_counter() - t0
-    found = np.asarray(cubemap.rotate_cubemap_y(cube, result.angle), np.float64) * result.scale.reshape(1, 1, 1, 3)
-    full, _, irr = pb.frame(jnp.asarray(found, jnp.float32))
-    model_means = object_means(pb.objective, pb.masks, full, irr)
     return {"run": os.path.abspath(folder), "method": pb.session.method.name,
             "objective": os.path.abspath(objective_path), "frame": list(np.shape(gb.valid)), "environment": name,
             "found": {"rotation_deg": float(np.degrees(result.angle)), "scale": result.scale.tolist()},
@@ -1114,7 +1112,7 @@ def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, st
             "model_terms": model_terms, "model_objective": float(sum(model_terms.values())),
             "verified_terms": verified, "verified_objective": float(sum(verified.values())),
             "verify_spp": int(verify_spp), "verify_s": verify_s,
-            **_bounds(pb.objective, model_means, verified_means),
+            **_bounds(pb.objective, result.means, verified_means),
             "direct": "the map's direct light through a traced transfer at the cube's face size (diffuse; visibility "
                       "per texel direction, one ray)"}
 
@@ -1149,7 +1147,7 @@ def _bounds(objective: Objective, model_means: dict, verified_means: dict) -> di
     verification render (``bounds_report``), and whether every bound is met on the render."""
     if not objective.objects:
         return {}
-    on_model = bounds_report(objective, {k: float(v) for k, v in model_means.items()})
+    on_model = bounds_report(objective, model_means)
     on_render = bounds_report(objective, verified_means)
     return {"bounds": {k: {"min": v["min"], "max": v["max"], "model_mean": on_model[k]["mean"],
                            "verified_mean": v["mean"], "met_on_model": on_model[k]["met"], "met_verified": v["met"]}
