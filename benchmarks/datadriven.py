@@ -22,7 +22,7 @@ KEYS = ("rmse", "projection_rmse", "relative_rmse", "rmse_by_basis", "projection
         "rmse_by_basis_linear_mean", "projection_rmse_by_basis_linear_mean", "ratio_64_linear_mean",
         "rmse_sh_prt", "rmse_out_of_scenario", "rmse_sh_prt_out_of_scenario", "bake_s", "render_train_s", "fit_s",
         "ratio_64_norm_mean", "rmse_by_basis_norm_mean", "projection_rmse_by_basis_norm_mean",
-        "transfer_us", "frame_ms", "frame_resolution", "frame_flops", "matmul_peak_gflops", "flops_fraction_of_peak",
+        "transfer_us", "frame_ms", "frame_resolution", "frame_flops", "matmul_peak_gflops", "roofline", "flops_fraction_of_peak",
         "frame_ms_camera", "frame_resolution_camera", "frame_flops_camera", "flops_fraction_of_peak_camera",
         "equal_error_spp", "pathtrace_ms_equal_error", "speedup_equal_error", "speedup_equal_error_with_direct",
         "indirect_rmse", "p999_abs_error", "direct_measure_ms", "model_bytes", "lambda", "lambda_sweep", "points_sweep",

@@ -24,7 +24,7 @@ KEYS = ("texel_rmse", "projection_rmse", "projection_relative_rmse", "projection
         "rmse_no_block_enrichment", "rmse_no_interface_enrichment",
         "rmse_by_feedback", "vector_irradiance_rmse", "volume_sh_relative_rmse", "volume_sh_relative_rmse_within_only", "frame_ms_by_blocks",
         "frame_ms_slope", "tbr_build_s", "tbr_build_s_by_blocks", "flops_by_blocks", "matmul_f32_gflops",
-        "flops_fraction_of_peak", "frame_ms", "frame_resolution", "equal_error_spp", "pathtrace_ms_equal_error",
+        "roofline", "flops_fraction_of_peak", "frame_ms", "frame_resolution", "equal_error_spp", "pathtrace_ms_equal_error",
         "speedup_equal_error", "pathtrace_curve", "pathtrace_note", "precompute_s", "model_bytes_per_block_type",
         "model_bytes", "indirect_rmse", "indirect_rel_rmse", "dataset_s", "train_s")
 

@@ -2,6 +2,11 @@
 ../shared/assets/scenes, every number read from the run's report.json.
 
     python benchmarks/real_scenes.py            # hours on a 2-core CPU (references until their noise is small)
+    python benchmarks/real_scenes.py --scene living-room/scene.xml --merge   # one scene, the others kept
+
+``--scene`` runs one scene file of the experiment's list (the others' entries of ``--out`` are
+kept with ``--merge``; each scene records the command and config hash that measured it, and
+``missing`` lists the experiment's scenes the file has no entry for yet).
 
 Per scene and method: per judged object (>= 1 % of a view, not purely specular, not an emitter)
 the relative RMSE of the indirect light with the references' own noise removed, the raw score and
@@ -13,8 +18,10 @@ the target (every judged object <= 0.35 and their mean <= 0.25, noise removed) a
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
+import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -22,7 +29,7 @@ ROOT = os.path.dirname(HERE)
 #: per-method keys copied from the report as they are
 METHOD_KEYS = ("lighting", "worst_rel_rmse", "worst_rel_rmse_noise_removed", "mean_rel_rmse_noise_removed",
                "target_met", "frame_ms", "frame_flops", "frame_flops_source", "flops_fraction_of_peak",
-               "speedup_vs_reference_render", "frame_resolution", "dataset_s", "fit_s", "grouped_objects",
+               "speedup_vs_reference_render", "roofline", "frame_resolution", "dataset_s", "fit_s", "grouped_objects",
                "skipped_objects", "failed")
 
 
@@ -57,10 +64,25 @@ def summary(report: dict) -> dict:
     return result
 
 
+def merged(old: dict | None, new: dict, scenes: list[str]) -> dict:
+    """``new`` (a ``summary``) with the scene entries of ``old`` that ``new`` does not measure
+    (``--merge``); ``missing``: the stems of ``scenes`` without an entry; ``target_met_everywhere``
+    over the entries present (False while any is missing)."""
+    out = dict(new)
+    out["scenes"] = {**({} if old is None else old.get("scenes", {})), **new["scenes"]}
+    stems = [os.path.basename(os.path.dirname(s)) for s in scenes]
+    out["missing"] = [s for s in stems if s not in out["scenes"]]
+    out["target_met_everywhere"] = not out["missing"] and all(
+        "failed" not in e and all(m.get("target_met") for m in e["methods"].values()) for e in out["scenes"].values())
+    return out
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--preset", default=None)
     parser.add_argument("--set", action="append", default=[], help="config override KEY=VALUE (as jprt run)")
+    parser.add_argument("--scene", default=None, help="run only this scene file (relative to the assets folder)")
+    parser.add_argument("--merge", action="store_true", help="keep --out's entries of the scenes not run")
     parser.add_argument("--out", default=os.path.join(HERE, "results", "real_scenes.json"))
     args = parser.parse_args()
     sys.path.insert(0, ROOT)
@@ -68,10 +90,21 @@ def main() -> int:
     from jprt.eval import write_benchmark
 
     module = load_experiment(os.path.join(ROOT, "experiments", "real_scenes.py"))
-    report = module.main(resolve_config(module, args.set, args.preset))
+    every = resolve_config(module, args.set, args.preset)["scenes"]
+    extra = [f"scenes=[{json.dumps(args.scene)}]"] if args.scene else []
+    report = module.main(resolve_config(module, args.set + extra, args.preset))
     command = "python benchmarks/real_scenes.py" + (f" --preset {args.preset}" if args.preset else "") + "".join(
-        f" --set '{s}'" for s in args.set)
-    write_benchmark(args.out, summary(report), command,
+        f" --set '{s}'" for s in args.set) + (f" --scene {args.scene}" if args.scene else "") + (
+        " --merge" if args.merge else "")
+    result = summary(report)
+    for entry in result["scenes"].values():  # each scene says what measured it (--merge keeps others')
+        entry.update({"command": command, "config_hash": report["config_hash"], "date": time.strftime("%Y-%m-%d"),
+                      "run_total_s": report["total_s"], "matmul_peak_gflops": report["matmul_peak_gflops"]})
+    old = None
+    if args.merge and os.path.exists(args.out):
+        with open(args.out) as f:
+            old = json.load(f)
+    write_benchmark(args.out, merged(old, result, every), command,
                     notes="relative RMSE = ||prediction - reference|| / ||reference|| over an object's pixels in every "
                           "held-out view and lighting (linear HDR indirect light, Mitsuba full minus direct along the "
                           "pixel-centre rays the methods' G-buffers read); an object darker than 0.1 of its images' RMS "

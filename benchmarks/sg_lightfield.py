@@ -23,7 +23,7 @@ KEYS = ("fit_log_l2", "fit_s", "midpoint_log_l2", "midpoints", "log_l2_by_lobes"
         "reference_noise_psnr",
         "psnr_env_we", "psnr_env_reflected_visibility", "psnr_env_no_visibility", "psnr_env_we_raw",
         "psnr_env_quadrature",
-        "env_fit_log_l2", "env_texels", "env_map", "frame_ms", "frame_resolution", "frame_ms_by_resolution",
+        "env_fit_log_l2", "env_texels", "env_map", "roofline", "frame_ms", "frame_resolution", "frame_ms_by_resolution",
         "equal_error_spp", "pathtrace_ms_equal_error", "pathtrace_curve", "speedup_equal_error", "pathtrace_note",
         "bytes_per_texel", "psnr_delta_fp16", "psnr_indirect_fp32_lobes", "texels", "texels_inside",
         "texels_pushed", "capture_s", "train_s", "model_bytes")

@@ -24,7 +24,7 @@ ROOT = os.path.dirname(HERE)
 KEYS = ("psnr_indirect_far", "psnr_full_far", "ssim_indirect_far", "ssim_full_far", "psnr_indirect_near",
         "psnr_full_near", "ssim_indirect_near", "psnr_indirect_far_baseline", "psnr_full_far_baseline",
         "psnr_indirect_near_baseline", "psnr_indirect_far_by_k", "rmse_indirect_far", "rmse_indirect_far_baseline",
-        "frame_ms", "frame_resolution", "frame_ms_by_resolution", "model_bytes", "train_s", "train_s_source",
+        "roofline", "frame_ms", "frame_resolution", "frame_ms_by_resolution", "model_bytes", "train_s", "train_s_source",
         "equal_error_spp", "pathtrace_ms_equal_error", "pathtrace_rmse_by_spp", "speedup_equal_error", "pathtrace_note",
         "gt_transport_rel_err_by_k", "gt_transport_rel_err_all", "gt_transport_truncation_by_k",
         "gt_transport_noise_floor", "gt_transport_parseval_err", "gt_transport_mean_ratio", "gt_transport_setup",

@@ -296,6 +296,25 @@ def test_real_scenes_one_method_failing_keeps_the_others(mi, tmp_path, monkeypat
     assert len(entry["cameras"]) == 2 and entry["cameras"][0] != entry["cameras"][1]
 
 
+
+def test_real_scenes_benchmark_merges_scenes_and_names_the_missing():
+    """``benchmarks/real_scenes.py --scene X --merge`` keeps the other scenes' entries, and the
+    file is never "met everywhere" while a scene of the experiment has no entry or failed."""
+    import importlib.util
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    spec = importlib.util.spec_from_file_location("bench_real_scenes", os.path.join(root, "benchmarks", "real_scenes.py"))
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    met = {"methods": {"rrf": {"target_met": True}}}
+    scenes = ["a/scene.xml", "b/scene.xml"]
+    first = bench.merged(None, {"scenes": {"a": met}}, scenes)
+    assert first["missing"] == ["b"] and first["target_met_everywhere"] is False
+    both = bench.merged(first, {"scenes": {"b": met}}, scenes)
+    assert set(both["scenes"]) == {"a", "b"} and both["missing"] == [] and both["target_met_everywhere"] is True
+    again = bench.merged(both, {"scenes": {"b": {"failed": "RuntimeError: x"}}}, scenes)
+    assert again["scenes"]["a"] == met and again["target_met_everywhere"] is False
+
 #: A closed grey room with a white box and a point-lit ceiling opening's worth of height.
 _SMALL_ROOM = """<scene version="3.0.0">
   <bsdf type="diffuse" id="grey"><rgb name="reflectance" value="0.5"/></bsdf>
