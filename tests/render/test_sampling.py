@@ -28,3 +28,44 @@ def test_degenerate_and_bad_boxes():
         latin_hypercube(np.random.default_rng(0), 4, [0, 1], [1, 0])
     with pytest.raises(ValueError, match="at least one"):
         latin_hypercube(np.random.default_rng(0), 0, [0], [1])
+
+
+#: Two rooms side by side, a solid wall between them; the file's camera stands in the left one
+#: and looks at its back wall. The scene's bounds (its light box) span both.
+_TWO_ROOMS = """<scene version="3.0.0">
+  <sensor type="perspective"><float name="fov" value="60"/>
+    <transform name="to_world"><lookat origin="-2, 1, 1.8" target="-2, 1, -2" up="0, 1, 0"/></transform></sensor>
+  <shape type="cube" id="left"><transform name="to_world"><scale x="1.9" y="1.5" z="2"/><translate x="-2" y="1.5"/>
+    </transform><bsdf type="diffuse"/><boolean name="flip_normals" value="true"/></shape>
+  <shape type="cube" id="right"><transform name="to_world"><scale x="1.9" y="1.5" z="2"/><translate x="2" y="1.5"/>
+    </transform><bsdf type="diffuse"/><boolean name="flip_normals" value="true"/></shape>
+</scene>"""
+
+
+@pytest.mark.mitsuba
+def test_lights_drawn_for_a_file_light_what_its_camera_sees(mi, tmp_path, monkeypatch):
+    """In a file whose light box spans a room the camera does not see, every light free_lights
+    draws lights at least MIN_LIT_FRACTION of the camera's view (none lands in the other room);
+    with the rule off, the same draw puts lights there; the built-in scenes have no such view."""
+    from jprt.render import sampling
+    from jprt.render.scenes import SceneHandle
+
+    path = tmp_path / "two_rooms.xml"
+    path.write_text(_TWO_ROOMS)
+    desc = {"name": "xml", "path": str(path), "keep_emitters": False}
+    regions = sampling.scene_regions(desc)
+    lo, hi = regions["light_lo"], regions["light_hi"]
+    assert lo[0] < -1 and hi[0] > 1  # the box spans both rooms
+
+    def draw():
+        rng = np.random.default_rng(0)
+        return sampling.free_lights(desc, sampling.latin_hypercube(rng, 12, lo, hi), lo, hi, rng)
+
+    lights = draw()
+    handle = SceneHandle(desc)
+    lit = sampling.lit_fraction(handle, lights)
+    assert np.all(lights[:, 0] < -0.1) and lit.min() >= sampling.MIN_LIT_FRACTION
+    assert sampling.lit_fraction(handle, [[2.0, 2.0, 0.0]])[0] == 0.0  # the right room lights none of it
+    monkeypatch.setattr(sampling, "MIN_LIT_FRACTION", 0.0)
+    assert np.any(draw()[:, 0] > 0.1)
+    assert sampling.lit_fraction(SceneHandle({"name": "cornell_box", "area_light": False}), [[0, 1, 0]]) is None

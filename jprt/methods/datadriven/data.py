@@ -124,6 +124,10 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
             "candidates": cfg["points"]["candidates"], "seed_points": cfg["points"]["seed"],
             "point_objects": list(cfg["points"]["objects"]), "lights": cfg["lights"],
             "data": dcfg}
+    if desc.get("name") == "xml":  # a file's lights must light its camera's view (sampling.free_lights' rule)
+        from jprt.render.sampling import LIGHT_RULE
+
+        spec["light_rule"] = LIGHT_RULE
 
     def build() -> dict:
         return _render(desc, cfg, progress, ray)
@@ -134,6 +138,7 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
 
 def _render(desc: dict, cfg: dict, progress: bool | None, ray: bool | None = None) -> dict:
     from jprt.render import lightmap
+    from jprt.render.sampling import MIN_LIT_FRACTION, lit_fraction
     from jprt.render.scenes import SceneHandle
 
     dcfg = cfg["data"]
@@ -142,7 +147,10 @@ def _render(desc: dict, cfg: dict, progress: bool | None, ray: bool | None = Non
     handle = SceneHandle(desc)
 
     def accept(position):
-        return bool(lightmap.free_positions(handle, position, clearance=float(cfg["lights"]["clearance"]))[0])
+        if not lightmap.free_positions(handle, position, clearance=float(cfg["lights"]["clearance"]))[0]:
+            return False
+        lit = lit_fraction(handle, position)  # None for a scene without a camera of its own
+        return lit is None or bool(lit[0] >= MIN_LIT_FRACTION)
 
     train = random_lights(rng, dcfg["n_train"], cfg["lights"], accept)
     # held-out lights from their own stream: the same test set for any n_train

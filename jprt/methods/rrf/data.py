@@ -84,6 +84,10 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
             spec["data"].pop(key)
     if mode == "view":
         spec["data"].pop("material")
+    if regions_from == "scene bounds":  # lights drawn by free_lights: its rule is part of the data
+        from jprt.render.sampling import LIGHT_RULE
+
+        spec["light_rule"] = LIGHT_RULE
 
     def build() -> dict:
         t0 = time.perf_counter()
