@@ -165,6 +165,18 @@ def _speed(inverse: dict, scenes: dict) -> dict:
             "met_on": sorted(rows), "not_measured": sorted(no_peer)}
 
 
+def _hidden_positions(pb, lo, hi, rng, k: int, margin: float = 0.15) -> np.ndarray:
+    """``k`` hidden light positions uniform in the light box less ``margin`` of it on each side,
+    each drawn again there while it is inside geometry, touches a surface or (in a scene file)
+    lights too little of what the file's camera sees (``jprt.render.sampling.free_lights``, the
+    rule every training and held-out light follows)."""
+    from jprt.render.sampling import free_lights
+
+    mid_lo, mid_hi = lo + margin * (hi - lo), hi - margin * (hi - lo)
+    positions = lo + (hi - lo) * rng.uniform(margin, 1.0 - margin, (k, 3))
+    return free_lights(pb.session.handle.description, positions, mid_lo, mid_hi, rng)
+
+
 def _inverse(args, folder: str, pb, lo, hi, diagonal: float, rng, work: str) -> dict:
     """Inverse lighting of 1 and 3 hidden white point lights (``design.design_run`` from lights in
     the box's middle at half the intensity), each against the peer (``_peer``)."""
@@ -174,7 +186,7 @@ def _inverse(args, folder: str, pb, lo, hi, diagonal: float, rng, work: str) -> 
 
     inverse = {}
     for k in (1, 3):
-        true_p = lo + (hi - lo) * rng.uniform(0.15, 0.85, (k, 3))
+        true_p = _hidden_positions(pb, lo, hi, rng, k)
         true_i = np.ones((k, 3))
         path = _image_objective(work, _target(pb, (true_p, true_i), args.target_spp, 2 + k))
         start = {"position": lo + (hi - lo) * rng.uniform(0.3, 0.7, (k, 3)), "intensity": np.full((k, 3), 0.5)}
@@ -221,7 +233,7 @@ def _irradiance_targets(args, folder: str, pb, lo, hi, rng, work: str, objects: 
     chosen = _largest_objects(pb, names, objects)
     probe = design.load_objective({"objects": [{"name": n, "min": 1.0} for n in chosen]}, names)
     masks = design.object_masks(probe, gb.object_id, names, gb.valid)
-    hidden = (lo + (hi - lo) * rng.uniform(0.15, 0.85, (2, 3)), np.ones((2, 3)))
+    hidden = (_hidden_positions(pb, lo, hi, rng, 2), np.ones((2, 3)))
     _, means = design.rendered_terms(pb.session.handle, pb.camera, gb, probe, masks, hidden[0], hidden[1],
                                      spp=args.target_spp, seed=7, means=True)
     spec = _bounds_met_by(means, chosen)
@@ -343,7 +355,7 @@ def main() -> int:
     rng = np.random.default_rng(args.seed)
 
     # gradient check: the image objective of one hidden light, at random configurations
-    hidden = (lo + (hi - lo) * rng.uniform(0.2, 0.8, (1, 3)), np.ones((1, 3)))
+    hidden = (_hidden_positions(pb, lo, hi, rng, 1, margin=0.2), np.ones((1, 3)))
     pb = design.load_problem(folder, _image_objective(work, _target(pb, hidden, args.target_spp, 1)),
                              size=args.size, progress=False)
     checks = []
