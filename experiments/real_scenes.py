@@ -95,9 +95,9 @@ CONFIG = {
                               "lighting_levels": 2},
                     "train": {"steps": 1500, "pixels": 256, "wavelets": 300, "objective": "paper",
                               "fine_penalty": 0.0, "fine_levels": 2, "seed": 0}, "render": {"k": 64}},
-    # SH PRT: order 4 and 256 spp per transfer texel, chosen on cornell_box_picture (worst / mean
-    # 0.335 / 0.257 at order 3 and 64 spp, 0.302 / 0.181 here; order 5 no better) and validated on
-    # living-room (0.725 / 0.391 -> 0.703 / 0.345)
+    # SH PRT: sh.order the SH order (order^2 coefficients), sh.spp the path samples per transfer
+    # texel; order 4 and 256 spp chosen on cornell_box_picture, validated on living-room
+    # (CHANGELOG.md, 2026-12-05)
     "sh_prt": {"lightmap": {"resolution": 96}, "sh": {"order": 4, "spp": 256, "env_height": 32}},
     "output": {"dir": "results/real_scenes"},
 }
