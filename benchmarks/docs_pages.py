@@ -117,7 +117,7 @@ INTROS: dict[str, dict] = {
                  "relative RMSE of the indirect light per object over the held-out lightings, the "
                  "references' own noise, each prediction's mean over the reference's, and the path "
                  "tracer's cost. See [Your own scene](../own-scene.md) for the protocol.",
-        "make": "python benchmarks/real_scenes.py",
+        "make": "python benchmarks/real_scenes.py (one scene: --scene X --merge)",
     },
     "rrf_cornell": {
         "title": "Radiance Regression Functions (Cornell box)",
