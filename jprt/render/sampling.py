@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["latin_hypercube", "check_box", "scene_regions", "free_lights", "lit_fraction", "REGION_KEYS",
+__all__ = ["latin_hypercube", "check_box", "scene_regions", "free_lights", "view_points", "lit_fraction",
+           "serves_view", "REGION_KEYS",
            "CORNELL_REGIONS", "MIN_LIT_FRACTION", "LIGHT_RULE"]
 
 
@@ -105,23 +106,36 @@ MIN_LIT_FRACTION = 0.05
 LIGHT_RULE = 2
 
 
-def lit_fraction(handle, positions, size: int = 32) -> np.ndarray | None:
-    """(K,) the share of the points a scene file's own camera sees (a ``size`` x ``size``
-    G-buffer of its pixel-centre rays) that a point light at each of ``positions`` lights
-    directly: the surface faces it and nothing is in between. None for a scene without a camera of
-    its own (the built-in scenes), where there is no view to serve."""
+def view_points(handle, size: int = 32) -> tuple[np.ndarray, np.ndarray] | None:
+    """The points a scene file's own camera sees (a ``size`` x ``size`` G-buffer of its
+    pixel-centre rays): (ray origins just off each surface, (N, 3); the surfaces' normals, facing
+    the camera). None for a scene without a camera of its own (the built-in scenes), where there
+    is no view to serve."""
     from jprt.render.gbuffer import gbuffer
-    from jprt.render.lightmap import intersect, ray_offset
+    from jprt.render.lightmap import ray_offset
 
     if handle.description.get("name") != "xml" or not handle.scene.sensors():
         return None
     g = gbuffer(handle, handle.default_camera(size, size))
     valid = np.asarray(g.valid).reshape(-1)
-    if not valid.any():
-        return np.zeros(len(np.atleast_2d(positions)))
     points = np.asarray(g.position, np.float64).reshape(-1, 3)[valid]
     normals = np.asarray(g.normal, np.float64).reshape(-1, 3)[valid]
-    origins = points + ray_offset(handle) * normals
+    return points + ray_offset(handle) * normals, normals
+
+
+def lit_fraction(handle, positions, size: int = 32, view=None) -> np.ndarray | None:
+    """(K,) the share of the points a scene file's own camera sees (``view_points``; ``view``:
+    those points, computed once by a caller that asks many times) that a point light at each of
+    ``positions`` lights directly: the surface faces it and nothing is in between. None for a
+    scene without a camera of its own."""
+    from jprt.render.lightmap import intersect
+
+    view = view_points(handle, size) if view is None else view
+    if view is None:
+        return None
+    origins, normals = view
+    if not len(origins):
+        return np.zeros(len(np.atleast_2d(positions)))
     out = []
     for light in np.asarray(positions, np.float64).reshape(-1, 3):
         to_light = light[None] - origins
@@ -131,6 +145,15 @@ def lit_fraction(handle, positions, size: int = 32) -> np.ndarray | None:
         t = np.where(np.array(si.is_valid(), bool).reshape(-1), np.array(si.t, np.float64).reshape(-1), np.inf)
         out.append(float(np.mean((np.sum(d * normals, axis=1) > 0) & (t > dist * (1.0 - 1e-4)))))
     return np.array(out)
+
+
+def serves_view(handle, positions, view) -> np.ndarray:
+    """(K,) bool: a point light at each of ``positions`` lights at least ``MIN_LIT_FRACTION`` of
+    ``view`` (``view_points`` of ``handle``; every light serves when it is None)."""
+    positions = np.asarray(positions, np.float64).reshape(-1, 3)
+    if view is None:
+        return np.ones(len(positions), bool)
+    return lit_fraction(handle, positions, view=view) >= MIN_LIT_FRACTION
 
 
 def free_lights(scene, lights: np.ndarray, light_lo, light_hi, rng, tries: int = 50) -> np.ndarray:
@@ -147,12 +170,11 @@ def free_lights(scene, lights: np.ndarray, light_lo, light_hi, rng, tries: int =
     clearance = 0.02 * float(np.max(np.asarray(box.max) - np.asarray(box.min)))
     lo, hi = np.asarray(light_lo, np.float64), np.asarray(light_hi, np.float64)
     lights = np.array(lights, np.float64)
+    view = view_points(handle)
     for _ in range(tries):
         bad = ~free_positions(handle, lights, clearance=clearance)
         if not bad.all():
-            lit = lit_fraction(handle, lights[~bad])
-            if lit is not None:
-                bad[np.flatnonzero(~bad)[lit < MIN_LIT_FRACTION]] = True
+            bad[~bad] = ~serves_view(handle, lights[~bad], view)
         if not bad.any():
             return lights
         lights[bad] = lo + (hi - lo) * rng.random((int(bad.sum()), 3))

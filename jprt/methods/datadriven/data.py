@@ -138,7 +138,7 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
 
 def _render(desc: dict, cfg: dict, progress: bool | None, ray: bool | None = None) -> dict:
     from jprt.render import lightmap
-    from jprt.render.sampling import MIN_LIT_FRACTION, lit_fraction
+    from jprt.render.sampling import serves_view, view_points
     from jprt.render.scenes import SceneHandle
 
     dcfg = cfg["data"]
@@ -146,11 +146,11 @@ def _render(desc: dict, cfg: dict, progress: bool | None, ray: bool | None = Non
     rng = np.random.default_rng(int(dcfg["seed"]))
     handle = SceneHandle(desc)
 
+    view = view_points(handle)  # None for a scene without a camera of its own
+
     def accept(position):
-        if not lightmap.free_positions(handle, position, clearance=float(cfg["lights"]["clearance"]))[0]:
-            return False
-        lit = lit_fraction(handle, position)  # None for a scene without a camera of its own
-        return lit is None or bool(lit[0] >= MIN_LIT_FRACTION)
+        return bool(lightmap.free_positions(handle, position, clearance=float(cfg["lights"]["clearance"]))[0]
+                    and serves_view(handle, position, view)[0])
 
     train = random_lights(rng, dcfg["n_train"], cfg["lights"], accept)
     # held-out lights from their own stream: the same test set for any n_train
