@@ -25,14 +25,9 @@ which ``atlas_gbuffer`` evaluates for a camera. ``Atlas`` holds only NumPy array
 objects), so methods take it as data.
 
 Radiance at surface points (texel centres, measurement points) is traced as rays that start a
-small distance ``eps`` above the point and point back at it; ``images.radiance_rays`` does the
-path tracing, so the direct / indirect split is the same as for images. Direct light is traced
-along the geometric normal. A texel's indirect light (``indirect_at_points``, what the lightmap
-methods store) is the outgoing radiance averaged over view directions drawn cosine-weighted about
-the normal: a view-independent lightmap can hold one value per texel, and on a glossy receiver the
-radiance along the normal alone is the mirror image of whatever lies straight above it (a ceiling
-opening's sky is direct light, so a glossy floor below it looks dark along its normal and bright
-at the grazing angles a camera sees it from). On a diffuse surface both are the same.
+small distance ``eps`` above the point along its geometric normal and point back at it: for a
+diffuse surface that returns the outgoing radiance at the point; ``images.radiance_rays`` does
+the path tracing, so the direct / indirect split is the same as for images.
 """
 
 from __future__ import annotations
@@ -57,20 +52,12 @@ __all__ = [
     "radiance_at_points",
     "direct_at_points",
     "indirect_at_points",
-    "view_directions",
-    "TEXEL_RADIANCE",
-    "VIEW_DIRECTIONS",
     "incident_delta_lights",
     "free_positions",
     "enclosing_objects",
 ]
 
 _GUTTER = 2  # texels between charts
-
-#: What ``indirect_at_points`` returns per point; caches of texel radiance carry it in their key.
-TEXEL_RADIANCE = "indirect, cosine-weighted average over view directions"
-#: Stratified view directions per point that ``indirect_at_points`` averages over (fewer if spp is).
-VIEW_DIRECTIONS = 16
 
 
 class Atlas(NamedTuple):
@@ -795,48 +782,12 @@ def direct_at_points(handle: SceneHandle, lighting, position, normal) -> np.ndar
     return np.asarray(total, np.float32)
 
 
-def view_directions(normal, count: int, seed: int = 0) -> np.ndarray:
-    """``count`` outgoing directions (S, count, 3) per unit normal (S, 3), cosine-weighted about it
-    and stratified in cos^2 (stratum i of ``count``, jittered; azimuths on a golden-ratio sequence
-    with a random offset per point), in the orthonormal frame of Duff et al. 2017."""
-    n = np.asarray(normal, np.float64)
-    rng = np.random.default_rng([int(seed), 104729])
-    k = int(count)
-    u = (np.arange(k)[None, :] + rng.random((n.shape[0], k))) / k  # cos^2 of the polar angle, stratified
-    phi = 2.0 * np.pi * np.mod(np.arange(k)[None, :] * 0.6180339887498949 + rng.random((n.shape[0], 1)), 1.0)
-    r = np.sqrt(u)
-    local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - u, 0.0))], axis=-1)
-    sign = np.where(n[:, 2] >= 0.0, 1.0, -1.0)
-    a = -1.0 / (sign + n[:, 2])
-    b = n[:, 0] * n[:, 1] * a
-    t = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=-1)
-    bt = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=-1)
-    return local[..., :1] * t[:, None] + local[..., 1:2] * bt[:, None] + local[..., 2:] * n[:, None]
-
-
-def indirect_at_points(handle: SceneHandle, position, normal, *, spp: int, seed: int = 0,
-                       view: str = "average") -> np.ndarray:
-    """Indirect outgoing radiance (S, 3) at surface points: full minus direct with equal seeds.
-
-    ``view="average"`` (the lightmap methods' texel value, ``TEXEL_RADIANCE``): averaged over
-    ``min(VIEW_DIRECTIONS, spp)`` view directions per point drawn cosine-weighted about the normal
-    (``view_directions``), ceil(spp / directions) samples along each; its expectation is the
-    radiant exitance over pi, equal to the radiance along the normal on a diffuse surface.
-    ``view="normal"``: along the normal only.
-    """
+def indirect_at_points(handle: SceneHandle, position, normal, *, spp: int, seed: int = 0) -> np.ndarray:
+    """Indirect outgoing radiance (S, 3) at surface points: full minus direct with equal seeds."""
     position = np.asarray(position, np.float64)
     normal = np.asarray(normal, np.float64)
     eps = ray_offset(handle)
-    if view == "normal":
-        return images.indirect_rays(handle, position + eps * normal, -normal, spp=spp, seed=seed).indirect
-    if view != "average":
-        raise ValueError(f"view must be 'average' or 'normal', got {view!r}")
-    k = max(1, min(VIEW_DIRECTIONS, int(spp)))
-    per = -(-int(spp) // k)
-    w = view_directions(normal, k, seed).reshape(-1, 3)
-    origin = np.repeat(position + eps * normal, k, axis=0)
-    out = images.indirect_rays(handle, origin, -w, spp=per, seed=seed).indirect
-    return out.reshape(-1, k, 3).mean(axis=1)
+    return images.indirect_rays(handle, position + eps * normal, -normal, spp=spp, seed=seed).indirect
 
 
 def incident_delta_lights(handle: SceneHandle, point, lighting: Lighting) -> tuple[np.ndarray, np.ndarray]:

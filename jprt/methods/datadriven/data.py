@@ -113,14 +113,14 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
     if desc.get("area_light") or desc.get("keep_emitters"):
         raise ValueError("the data-driven scenario supplies the lights: use a scene without emitters of its own "
                          "(area_light=False, or keep_emitters=False for XML)")
-    from jprt.render.lightmap import ATLAS_FORMAT, TEXEL_RADIANCE
+    from jprt.render.lightmap import ATLAS_FORMAT
 
     dcfg = cfg["data"]
     for key in ("n_train", "n_test", "spp", "test_spp"):
         if int(dcfg[key]) < (0 if key == "n_test" else 1):
             raise ValueError(f"data.{key} must be positive, got {dcfg[key]}")
     spec = {"format": 1, "scene": desc, "objects": list(cfg["objects"]), "lightmap": cfg["lightmap"],
-            "atlas_format": ATLAS_FORMAT, "texel_radiance": TEXEL_RADIANCE,
+            "atlas_format": ATLAS_FORMAT,
             "candidates": cfg["points"]["candidates"], "seed_points": cfg["points"]["seed"],
             "point_objects": list(cfg["points"]["objects"]), "lights": cfg["lights"],
             "data": dcfg}

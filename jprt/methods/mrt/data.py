@@ -118,7 +118,6 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
                  progress: bool | None = None) -> MRTData:
     """Render ``data.n_test`` held-out lightings of a ``blocks`` scene (default:
     ``config['scene']``) at its texels, cached under ``$JPRT_CACHE/mrt/<hash>.npz``."""
-    from jprt.render import lightmap
     from jprt.render.scenes import describe
 
     cfg = resolve(DEFAULT_CONFIG, config)
@@ -130,8 +129,7 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
     if int(dcfg["n_test"]) < 1 or int(dcfg["test_spp"]) < 1:
         raise ValueError(f"data.n_test and data.test_spp must be positive, got {dcfg['n_test']}, {dcfg['test_spp']}")
     t = int(cfg["dictionary"]["texels"])
-    spec = {"format": 1, "scene": desc, "texels": t, "lights": cfg["lights"], "data": dcfg,
-            "texel_radiance": lightmap.TEXEL_RADIANCE}
+    spec = {"format": 1, "scene": desc, "texels": t, "lights": cfg["lights"], "data": dcfg}
     if desc["name"] != "blocks":
         spec["proxy"] = cfg["proxy"]
 

@@ -75,8 +75,7 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
         raise ValueError(f"sh.check_maps must be >= 0, got {n_check}")
     # the self-check's maps are an entry of their own (``_check``): the bake's key is what it was
     spec = {"format": 1, "scene": desc, "objects": list(cfg["objects"]), "lightmap": cfg["lightmap"],
-            "sh": {k: v for k, v in cfg["sh"].items() if k != "check_maps"}, "atlas_format": lightmap.ATLAS_FORMAT,
-            "texel_radiance": lightmap.TEXEL_RADIANCE}
+            "sh": {k: v for k, v in cfg["sh"].items() if k != "check_maps"}, "atlas_format": lightmap.ATLAS_FORMAT}
 
     def build() -> dict:
         t0 = time.perf_counter()
