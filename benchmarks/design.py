@@ -97,13 +97,32 @@ def _bounds_met_by(means: dict, chosen: list) -> dict:
                             else {"max": 1.1 * means[f"{n}.irradiance"]})} for i, n in enumerate(chosen)]}
 
 
+_MACHINE: dict = {}
+
+
+def _step_speed(rep: dict) -> dict:
+    """A design's step judged against this machine: ms per step (the loop's wall time over its
+    steps, visibility refreshes included) and its roofline (``jprt.eval.roofline_of``: XLA's
+    FLOPs and bytes of one compiled step; the f32 matmul rate and the triad bandwidth measured
+    once in this process)."""
+    from jprt import eval as jeval
+
+    if not _MACHINE:
+        _MACHINE.update(matmul_gflops=jeval.matmul_peak_gflops(), bandwidth_gbs=jeval.stream_bandwidth_gbs())
+    ms = 1e3 * rep["design_s"] / max(int(rep["steps"]), 1)
+    cost = rep.get("step_cost") or {}
+    roof = jeval.roofline_of(cost.get("flops"), cost.get("bytes"), frame_ms=ms,
+                             peak_gflops=_MACHINE["matmul_gflops"], bandwidth_gbs=_MACHINE["bandwidth_gbs"])
+    return {"step_ms": ms, "roofline": roof["roofline"]}
+
+
 def _bounds_result(label: str, chosen: list, spec: dict, rep: dict) -> dict:
     """The benchmark's entry for a bounds design (``design_run``'s report ``rep``), printed in one
     line."""
     print(f"{label} on {chosen}: every bound met on Mitsuba's render: {rep['bounds_met_verified']} "
           f"({ {k: round(v['verified_mean'], 4) for k, v in rep['bounds'].items()} })", flush=True)
     return {"objective": spec, "found": rep["found"], "bounds": rep["bounds"],
-            "bounds_met_verified": rep["bounds_met_verified"], "design_s": rep["design_s"],
+            "bounds_met_verified": rep["bounds_met_verified"], "design_s": rep["design_s"], **_step_speed(rep),
             "verify_spp": rep["verify_spp"], "target": "every bound met on the Mitsuba verification render"}
 
 
@@ -204,7 +223,7 @@ def _inverse(args, folder: str, pb, lo, hi, diagonal: float, rng, work: str) -> 
             "position_error_fraction": (cost[rows, cols] / diagonal).tolist(),
             "intensity_ratio": ratio.mean(axis=1).tolist(),
             "model_objective": rep["model_objective"], "verified_objective": rep["verified_objective"],
-            "design_s": rep["design_s"], "verify_s": rep["verify_s"], "steps": rep["steps"],
+            "design_s": rep["design_s"], "verify_s": rep["verify_s"], "steps": rep["steps"], **_step_speed(rep),
             "position_within_3_percent": bool(np.all(cost[rows, cols] / diagonal <= 0.03)),
             "intensity_within_10_percent": bool(np.all(np.abs(ratio - 1.0) <= 0.10)),
             "mitsuba": peer if peer is not None else "not run (--peer-steps 0)",

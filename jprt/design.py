@@ -439,7 +439,8 @@ class DesignResult(NamedTuple):
     """What ``design`` found: ``position``, ``intensity`` (K, 3) float64, ``history`` (steps,)
     objective per step (with the visibility of that step), ``terms`` {name: value} at the end,
     ``seconds`` the loop's wall time, ``visibility_updates`` how often visibility was traced,
-    ``means`` the object targets' means at the end (``object_means``, floats)."""
+    ``means`` the object targets' means at the end (``object_means``, floats), ``step_cost``
+    XLA's count of one step ({"flops", "bytes"}, ``jprt.eval.xla_cost``)."""
 
     position: np.ndarray
     intensity: np.ndarray
@@ -448,6 +449,7 @@ class DesignResult(NamedTuple):
     seconds: float
     visibility_updates: int
     means: dict | None = None
+    step_cost: dict | None = None
 
 
 def _light_map(p0: LightParams, optimise: Sequence[str], lo, hi) -> Callable:
@@ -514,12 +516,12 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
             return {"pixels": jnp.ones((1, 1, int(np.shape(position)[0])), jnp.float32)}
         return jax.tree_util.tree_map(jnp.asarray, visibility_fn(np.asarray(lights(params)[0], np.float64)))
 
-    params, history, (terms, means), seconds, updates = _adam(model, loss, p0, steps=steps,
+    params, history, (terms, means), seconds, updates, cost = _adam(model, loss, p0, steps=steps,
                                                               learning_rate=learning_rate, refresh=refresh,
                                                               every=visibility_every, progress=progress)
     pos, inten = lights(params)
     return DesignResult(np.asarray(pos, np.float64), np.asarray(inten, np.float64), history, terms, seconds,
-                        updates if visibility_fn is not None else 0, means)
+                        updates if visibility_fn is not None else 0, means, cost)
 
 
 class PeerResult(NamedTuple):
@@ -583,7 +585,8 @@ def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_
     (the problem's evaluator is the method's ``gradient_evaluator`` where it has one): each step
     is one compiled program, the objective's value and its gradient in the parameters
     (``jax.value_and_grad``) and the update. Returns (params, history, (terms, means) at the end
-    as floats, seconds, refreshes)."""
+    as floats, seconds, refreshes, XLA's count of one step: ``jprt.eval.xla_cost``, compiled
+    again after the loop, outside ``seconds``)."""
     import optax
 
     # cosine decay to 1 % of the rate: the last steps settle instead of circling the optimum
@@ -612,7 +615,10 @@ def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_
     refreshes += 1
     _, end = jax.jit(lambda p, a: objective(*model(p, a)))(params, aux)
     terms, means = ({k: float(v) for k, v in d.items()} for d in end)
-    return params, np.asarray(history), (terms, means), time.perf_counter() - t0, refreshes
+    seconds = time.perf_counter() - t0
+    from jprt.eval import xla_cost
+
+    return params, np.asarray(history), (terms, means), seconds, refreshes, xla_cost(step, params, state, aux)
 
 
 def design_frame(gbuffer, indirect_fn: Callable, *, glossy: bool = True) -> Callable:
@@ -745,7 +751,7 @@ def gradient_check(handle, camera, gbuffer, frame_fn: Callable, objective: Objec
 class EnvironmentResult(NamedTuple):
     """What ``design_environment`` found: ``angle`` (radians about +Y), ``scale`` (3,) per channel,
     ``history``, ``terms`` at the end, ``seconds``, ``means`` the object targets' means at the
-    end (``object_means``, floats)."""
+    end (``object_means``, floats), ``step_cost`` XLA's count of one step (as ``DesignResult``)."""
 
     angle: float
     scale: np.ndarray
@@ -753,6 +759,7 @@ class EnvironmentResult(NamedTuple):
     terms: dict
     seconds: float
     means: dict | None = None
+    step_cost: dict | None = None
 
 
 def environment_transfer(handle, gbuffer, face: int, *, chunk: int = 64) -> np.ndarray:
@@ -849,11 +856,11 @@ def design_environment(frame_fn: Callable, objective: Objective, masks, cube, *,
         terms = objective_terms(objective, masks, *frames, scale_rgb, reference)
         return sum(terms.values()), (terms, object_means(objective, masks, frames[0], frames[2]))
 
-    params, history, (terms, means), seconds, _ = _adam(model, loss, p0, steps=steps, learning_rate=learning_rate,
-                                                        refresh=lambda p: None, every=max(int(steps), 1),
-                                                        progress=progress)
+    params, history, (terms, means), seconds, _, cost = _adam(model, loss, p0, steps=steps,
+                                                              learning_rate=learning_rate, refresh=lambda p: None,
+                                                              every=max(int(steps), 1), progress=progress)
     return EnvironmentResult(float(params[0]), np.asarray(lighting(params)[1], np.float64), history, terms, seconds,
-                             means)
+                             means, cost)
 
 
 def _region(session) -> tuple[np.ndarray, np.ndarray]:
@@ -1080,7 +1087,8 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
             "frame": list(np.shape(gb.valid)), "light_region": {"lo": lo.tolist(), "hi": hi.tolist()},
             "start": {"position": pos0.tolist(), "intensity": inten0.tolist()},
             "found": {"position": result.position.tolist(), "intensity": result.intensity.tolist()},
-            "steps": int(steps), "design_s": result.seconds, "visibility_updates": result.visibility_updates,
+            "steps": int(steps), "design_s": result.seconds, "step_cost": result.step_cost,
+            "visibility_updates": result.visibility_updates,
             "history": result.history.tolist(), "model_terms": result.terms,
             "model_objective": float(sum(result.terms.values())), "verified_terms": verified,
             "verified_objective": float(sum(verified.values())), "verify_spp": int(verify_spp),
@@ -1108,7 +1116,8 @@ def _design_environment_run(pb: Problem, folder: str, objective_path: str, *, st
     return {"run": os.path.abspath(folder), "method": pb.session.method.name,
             "objective": os.path.abspath(objective_path), "frame": list(np.shape(gb.valid)), "environment": name,
             "found": {"rotation_deg": float(np.degrees(result.angle)), "scale": result.scale.tolist()},
-            "steps": int(steps), "design_s": result.seconds, "history": result.history.tolist(),
+            "steps": int(steps), "design_s": result.seconds, "step_cost": result.step_cost,
+            "history": result.history.tolist(),
             "model_terms": model_terms, "model_objective": float(sum(model_terms.values())),
             "verified_terms": verified, "verified_objective": float(sum(verified.values())),
             "verify_spp": int(verify_spp), "verify_s": verify_s,

@@ -26,7 +26,7 @@ from jprt.metrics import error_map, tonemap
 
 __all__ = ["set_rmse", "object_scores", "noise_removed", "DARK_OBJECT_SCALE", "HeldOut", "SCORES", "SUMMARY_SCORES",
            "score_images", "score_held_out", "optional_metric", "time_call", "interleaved_times", "xla_flops",
-           "xla_cost", "matmul_peak_gflops", "stream_bandwidth_gbs", "roofline", "PathTracer", "EqualErrorCurve",
+           "xla_cost", "matmul_peak_gflops", "stream_bandwidth_gbs", "roofline", "roofline_of", "PathTracer", "EqualErrorCurve",
            "equal_error_spp", "side_by_side", "plot_series"]
 
 
@@ -354,8 +354,16 @@ def roofline(jitted: Callable, *args, frame_ms: float, peak_gflops: float | None
     ("compute" or "memory": which of the two is the smaller), ``fraction_of_roofline`` =
     achieved / attainable}. None where nothing counts (no FLOP or byte count)."""
     cost = xla_cost(jitted, *args)
-    flops = cost["flops"] if flops is None else float(flops)
-    moved = cost["bytes"] if frame_bytes is None else float(frame_bytes)
+    return roofline_of(cost["flops"] if flops is None else float(flops),
+                       cost["bytes"] if frame_bytes is None else float(frame_bytes), frame_ms=frame_ms,
+                       peak_gflops=peak_gflops, bandwidth_gbs=bandwidth_gbs)
+
+
+def roofline_of(flops: float | None, moved: float | None, *, frame_ms: float, peak_gflops: float | None = None,
+                bandwidth_gbs: float | None = None) -> dict:
+    """``roofline``'s report from counts already known: ``flops`` and bytes ``moved`` per call
+    (e.g. ``xla_cost`` of a program compiled elsewhere) taking ``frame_ms``; the matmul rate and
+    the triad bandwidth measured now unless given."""
     peak = matmul_peak_gflops() if peak_gflops is None else float(peak_gflops)
     bandwidth = stream_bandwidth_gbs() if bandwidth_gbs is None else float(bandwidth_gbs)
     rate = None if flops is None else flops / (frame_ms * 1e-3) / 1e9

@@ -147,6 +147,9 @@ def test_design_finds_the_known_optimum_of_a_synthetic_linear_model():
     np.testing.assert_allclose(result.position, true_pos, atol=0.01 * np.linalg.norm(hi - lo))
     np.testing.assert_allclose(result.intensity, true_int, rtol=0.02)
     assert np.all(result.position >= lo) and np.all(result.position <= hi)
+    # one step's count for the benchmark's roofline: a 16 x 16 frame's forward and backward pass
+    # and the update do more than one multiply-add per pixel, and read more than the frame once
+    assert result.step_cost["flops"] > 16 * 16 * 3 and result.step_cost["bytes"] > 16 * 16 * 3 * 4
 
 
 def test_visibility_is_traced_by_mitsuba(mi):
