@@ -107,10 +107,50 @@ def _dielectric_f0(eta: np.ndarray) -> np.ndarray:
 _WARNED: set = set()
 
 
-def read_materials(handle: SceneHandle, si, valid, n: int) -> dict:
+#: ``read_materials`` gathers each shape's hits into a batch of their own above this many (shapes
+#: hit x hits): below it the fixed cost per shape outweighs the passes saved (timed on staircase,
+#: living-room and veach-bidir, CHANGELOG 2026-12-05 evening).
+GATHER_ABOVE = 4_000_000
+
+
+def read_materials(handle: SceneHandle, si, valid, n: int, object_id: np.ndarray | None = None) -> dict:
     """Per hit of a surface interaction batch ``si`` (``valid`` (n,) its hits): the Lambert + GGX
     parameters of the BSDF hit (module docstring): {"diffuse_albedo" (n, 3), "specular_albedo"
-    (n, 3), "roughness" (n,) GGX alpha in [0, 1]}, zero where there is no hit."""
+    (n, 3), "roughness" (n,) GGX alpha in [0, 1]}, zero where there is no hit.
+
+    ``object_id`` (n,) (the shape index of each hit, -1 for none) lets each shape's BSDF be read
+    at its own hits only (gathered into a batch of their own) when the shapes hit times the hits
+    exceed ``GATHER_ABOVE``: one pass over the hits instead of one per shape over all of them,
+    plus a fixed cost per shape. Same values either way."""
+    mi = handle.mi
+    valid_np = np.array(valid, dtype=bool).reshape(n)
+    out = {"diffuse_albedo": np.zeros((n, 3), np.float32), "specular_albedo": np.zeros((n, 3), np.float32),
+           "roughness": np.zeros(n, np.float32)}
+    if object_id is not None:
+        object_id = np.asarray(object_id).reshape(n)
+        order = np.argsort(object_id, kind="stable")
+        ids, starts = np.unique(object_id[order], return_index=True)
+        if np.count_nonzero(ids >= 0) * n <= GATHER_ABOVE:
+            object_id = None
+    if object_id is not None:
+        import drjit as dr
+
+        shapes = handle.shapes()
+        for k, idx in zip(ids, np.split(order, starts[1:])):
+            if k < 0 or shapes[int(k)].bsdf() is None:
+                continue
+            sub = dr.gather(type(si), si, mi.UInt32(idx.astype(np.uint32)))
+            m = _read_shapes(handle, sub, mi.Bool(np.ones(idx.size, bool)), int(idx.size), [shapes[int(k)]])
+            for key in out:
+                out[key][idx] = m[key]
+        for key in out:
+            out[key][~valid_np] = 0.0
+        return out
+    return _read_shapes(handle, si, valid, n, handle.shapes())
+
+
+def _read_shapes(handle: SceneHandle, si, valid, n: int, shapes) -> dict:
+    """``read_materials`` of the hits of ``si`` on ``shapes`` (each shape's hits: ``si.shape`` equal to it)."""
     import warnings
 
     mi = handle.mi
@@ -164,7 +204,7 @@ def read_materials(handle: SceneHandle, si, valid, n: int) -> dict:
         a = np.array(bsdf.eval_diffuse_reflectance(si, active), dtype=np.float32)
         return (a.T if a.ndim == 2 else a).reshape(n, 3), zero3, one
 
-    for k, shape in enumerate(handle.shapes()):
+    for shape in shapes:
         active = valid & (si.shape == mi.ShapePtr(shape))
         hit = np.array(active, dtype=bool).reshape(n)
         if not hit.any() or shape.bsdf() is None:
@@ -224,7 +264,7 @@ def _hits(handle: SceneHandle, ray, n: int) -> dict:
     valid_np = np.array(valid, dtype=bool).reshape(n)
     mask = valid_np[:, None]
     object_np = np.array(object_id, dtype=np.int32).reshape(n)
-    materials = read_materials(handle, si, valid, n)
+    materials = read_materials(handle, si, valid, n, object_np)
 
     def unit(a):
         norm = np.linalg.norm(a, axis=-1, keepdims=True)

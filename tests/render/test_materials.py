@@ -158,3 +158,32 @@ def test_rough_plastic(mi, tmp_path):
       <rgb name="diffuse_reflectance" value="0.5, 0.3, 0.2"/><boolean name="nonlinear" value="false"/></bsdf>"""))
     np.testing.assert_allclose(gb.specular_albedo[0], ((1.48959 - 1) / (1.48959 + 1)) ** 2, rtol=1e-4)
     assert np.median(rel) < 0.12 and np.percentile(rel, 90) < 0.25
+
+
+def test_reading_each_shapes_hits_apart_gives_the_same_materials(mi, tmp_path, monkeypatch):
+    """Above ``GATHER_ABOVE`` each shape's BSDF is read at its own hits, gathered: the same values
+    as reading every shape at every hit, textured shapes and misses included."""
+    from jprt.render import gbuffer as G
+    from jprt.render.scenes import SceneHandle
+
+    _write_texture(mi, tmp_path / "albedo.exr", 3, 1, 0.1, 0.9)
+    path = tmp_path / "shapes.xml"
+    path.write_text(f"""<scene version="3.0.0">
+  <shape type="rectangle"><bsdf type="diffuse"><texture type="bitmap" name="reflectance">
+    <string name="filename" value="{tmp_path / 'albedo.exr'}"/></texture></bsdf></shape>
+  <shape type="sphere"><point name="center" x="0" y="0" z="1"/><float name="radius" value="0.3"/>
+    <bsdf type="roughconductor"><float name="alpha" value="0.3"/></bsdf></shape>
+  <shape type="cube"><transform name="to_world"><scale value="0.2"/><translate x="0.6" y="0.6" z="0.5"/></transform>
+    <bsdf type="roughplastic"><rgb name="diffuse_reflectance" value="0.2, 0.5, 0.7"/></bsdf></shape>
+</scene>""")
+    rng = np.random.default_rng(0)
+    origins = np.column_stack([rng.uniform(-1.5, 1.5, (4000, 2)), np.full(4000, 3.0)])
+    directions = np.tile([0.0, 0.0, -1.0], (4000, 1))
+    handle = SceneHandle({"name": "xml", "path": str(path)})
+    every = G.gbuffer_rays(handle, origins, directions)
+    monkeypatch.setattr(G, "GATHER_ABOVE", 0)
+    apart = G.gbuffer_rays(handle, origins, directions)
+    assert set(np.unique(every.object_id)) == {-1, 0, 1, 2}
+    for field in ("diffuse_albedo", "specular_albedo", "roughness"):
+        np.testing.assert_array_equal(getattr(apart, field), getattr(every, field))
+    assert np.ptp(every.diffuse_albedo[every.object_id == 0], axis=0).max() > 0.1  # the texture is read per hit
