@@ -118,10 +118,11 @@ def read_materials(handle: SceneHandle, si, valid, n: int, object_id: np.ndarray
     parameters of the BSDF hit (module docstring): {"diffuse_albedo" (n, 3), "specular_albedo"
     (n, 3), "roughness" (n,) GGX alpha in [0, 1]}, zero where there is no hit.
 
-    ``object_id`` (n,) (the shape index of each hit, -1 for none) lets each shape's BSDF be read
-    at its own hits only (gathered into a batch of their own) when the shapes hit times the hits
-    exceed ``GATHER_ABOVE``: one pass over the hits instead of one per shape over all of them,
-    plus a fixed cost per shape. Same values either way."""
+    ``object_id`` (n,) (the shape index of each hit, -1 for none) limits the reads to the shapes
+    hit (a file of many meshes and a small batch: a pass per shape of the file otherwise), and
+    when the shapes hit times the hits exceed ``GATHER_ABOVE`` each shape's BSDF is read at its
+    own hits only (gathered into a batch of their own): one pass over the hits instead of one per
+    shape over all of them, plus a fixed cost per shape. Same values either way."""
     mi = handle.mi
     valid_np = np.array(valid, dtype=bool).reshape(n)
     out = {"diffuse_albedo": np.zeros((n, 3), np.float32), "specular_albedo": np.zeros((n, 3), np.float32),
@@ -130,9 +131,8 @@ def read_materials(handle: SceneHandle, si, valid, n: int, object_id: np.ndarray
         object_id = np.asarray(object_id).reshape(n)
         order = np.argsort(object_id, kind="stable")
         ids, starts = np.unique(object_id[order], return_index=True)
-        if np.count_nonzero(ids >= 0) * n <= GATHER_ABOVE:
-            object_id = None
-    if object_id is not None:
+        if np.count_nonzero(ids >= 0) * n <= GATHER_ABOVE:  # only the shapes hit, each at every hit
+            return _read_shapes(handle, si, valid, n, [handle.shapes()[int(k)] for k in ids if k >= 0])
         import drjit as dr
 
         shapes = handle.shapes()

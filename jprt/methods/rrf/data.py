@@ -308,6 +308,17 @@ def _balanced(gb, origins, directions, n: int, rng, floor: int = 0):
     return origins[keep], directions[keep]
 
 
+def _gbuffers(handle, batches) -> list:
+    """``gbuffer_rays`` of each (origins, directions) batch, traced as one batch (a G-buffer reads
+    each shape's material once per call: in a file of many meshes, one call per light cost
+    seconds each)."""
+    from jprt.render.gbuffer import gbuffer_rays
+
+    g = gbuffer_rays(handle, np.concatenate([o for o, _ in batches]), np.concatenate([d for _, d in batches]))
+    ends = np.cumsum([len(o) for o, _ in batches])
+    return [type(g)(*(a[e - len(o):e] for a in g)) for (o, _), e in zip(batches, ends)]
+
+
 def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
     from jprt.progress import bar as progress_bar
     from jprt.render import cameras as cams
@@ -327,11 +338,11 @@ def _render_samples(base_desc, setups, lights, data_cfg, rng, progress) -> dict:
     # The same rays for each setup's G-buffer pass; fresh random rays for every (light, setup) pair.
     rays = [[cams.random_rays(cam, n_rays * over, rng) for _ in lights] for _, cam, _ in setups]
     if face_floor > 0:  # every face the candidates see first, the rest uniform
-        rays = [[_face_floor(gbuffer_rays(base, o, d), o, d, n_rays, rng, face_floor) for o, d in per_setup]
-                for per_setup in rays]
+        rays = [[_face_floor(g, o, d, n_rays, rng, face_floor)
+                 for (o, d), g in zip(per_setup, _gbuffers(base, per_setup))] for per_setup in rays]
     elif over > 1:  # keep n_rays of the candidates, balanced over the surfaces they hit
-        rays = [[_balanced(gbuffer_rays(base, o, d), o, d, n_rays, rng, floor) for o, d in per_setup]
-                for per_setup in rays]
+        rays = [[_balanced(g, o, d, n_rays, rng, floor)
+                 for (o, d), g in zip(per_setup, _gbuffers(base, per_setup))] for per_setup in rays]
     out: dict[str, list] = {k: [] for k in ("position", "view", "light", "normal", "brdf", "edit", "object_id",
                                             "direct", "indirect", "pair")}
     bar = progress_bar(total=len(setups) * len(lights), progress=progress, desc="rrf samples", unit="pair", leave=False)
