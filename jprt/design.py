@@ -516,9 +516,9 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
             return {"pixels": jnp.ones((1, 1, int(np.shape(position)[0])), jnp.float32)}
         return jax.tree_util.tree_map(jnp.asarray, visibility_fn(np.asarray(lights(params)[0], np.float64)))
 
-    params, history, (terms, means), seconds, updates, cost = _adam(model, loss, p0, steps=steps,
-                                                              learning_rate=learning_rate, refresh=refresh,
-                                                              every=visibility_every, progress=progress)
+    params, history, (terms, means), seconds, updates, cost = _adam(
+        model, loss, p0, steps=steps, learning_rate=learning_rate, refresh=refresh, every=visibility_every,
+        progress=progress)
     pos, inten = lights(params)
     return DesignResult(np.asarray(pos, np.float64), np.asarray(inten, np.float64), history, terms, seconds,
                         updates if visibility_fn is not None else 0, means, cost)

@@ -26,8 +26,8 @@ from jprt.metrics import error_map, tonemap
 
 __all__ = ["set_rmse", "object_scores", "noise_removed", "DARK_OBJECT_SCALE", "HeldOut", "SCORES", "SUMMARY_SCORES",
            "score_images", "score_held_out", "optional_metric", "time_call", "interleaved_times", "xla_flops",
-           "xla_cost", "matmul_peak_gflops", "stream_bandwidth_gbs", "roofline", "roofline_of", "PathTracer", "EqualErrorCurve",
-           "equal_error_spp", "side_by_side", "plot_series"]
+           "xla_cost", "matmul_peak_gflops", "stream_bandwidth_gbs", "roofline", "roofline_of", "PathTracer",
+           "EqualErrorCurve", "equal_error_spp", "side_by_side", "plot_series"]
 
 
 def set_rmse(predictions: Sequence, references: Sequence, valids: Sequence | None = None) -> float:
