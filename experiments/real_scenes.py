@@ -74,9 +74,8 @@ CONFIG = {
     # maps at neural-wavelet PRT's cube face size, normalised to mean radiance 1
     "environment": {"opening": "ceiling", "maps": ["st_fagans_interior_1k", "potsdamer_platz_1k", "rooitou_park_1k"]},
     # the methods' own sections (their defaults are scene-aware; these are sizes only)
-    # RRF: 128 training lights x 4 views x 192 rays (98k samples), chosen on living-room (16 x 12 x
-    # 256: 0.620 / 0.363; 64 x 6 x 128: 0.401 / 0.273; 128 x 4 x 96: 0.365 / 0.272; 128 x 4 x 192:
-    # 0.341 / 0.234), validated on cornell_box_picture and veach-bidir (CHANGELOG.md, 2026-12-05)
+    # RRF: 128 training lights x 4 views x 192 rays per view and light (98k samples), chosen on
+    # living-room, validated on cornell_box_picture and veach-bidir (the sizes tried: CHANGELOG.md)
     "rrf": {"data": {"n_lights": 128, "n_views": 4, "n_rays": 192, "spp": 256, "min_object_rays": 8},
             "tree": {"max_leaves": 32, "min_samples": 600}, "train": {"max_iters": 30}},
     "datadriven": {"lightmap": {"resolution": 96}, "points": {"candidates": 8192, "count": 512},

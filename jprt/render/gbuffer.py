@@ -123,30 +123,32 @@ def read_materials(handle: SceneHandle, si, valid, n: int, object_id: np.ndarray
     when the shapes hit times the hits exceed ``GATHER_ABOVE`` each shape's BSDF is read at its
     own hits only (gathered into a batch of their own): one pass over the hits instead of one per
     shape over all of them, plus a fixed cost per shape. Same values either way."""
-    mi = handle.mi
-    valid_np = np.array(valid, dtype=bool).reshape(n)
-    out = {"diffuse_albedo": np.zeros((n, 3), np.float32), "specular_albedo": np.zeros((n, 3), np.float32),
-           "roughness": np.zeros(n, np.float32)}
-    if object_id is not None:
-        object_id = np.asarray(object_id).reshape(n)
-        order = np.argsort(object_id, kind="stable")
-        ids, starts = np.unique(object_id[order], return_index=True)
-        if np.count_nonzero(ids >= 0) * n <= GATHER_ABOVE:  # only the shapes hit, each at every hit
-            return _read_shapes(handle, si, valid, n, [handle.shapes()[int(k)] for k in ids if k >= 0])
-        import drjit as dr
+    shapes = handle.shapes()
+    if object_id is None:
+        return _read_shapes(handle, si, valid, n, shapes)
+    object_id = np.asarray(object_id).reshape(n)
+    order = np.argsort(object_id, kind="stable")
+    ids, starts = np.unique(object_id[order], return_index=True)
+    if np.count_nonzero(ids >= 0) * n <= GATHER_ABOVE:  # only the shapes hit, each at every hit
+        return _read_shapes(handle, si, valid, n, [shapes[int(k)] for k in ids if k >= 0])
+    import drjit as dr
 
-        shapes = handle.shapes()
-        for k, idx in zip(ids, np.split(order, starts[1:])):
-            if k < 0 or shapes[int(k)].bsdf() is None:
-                continue
-            sub = dr.gather(type(si), si, mi.UInt32(idx.astype(np.uint32)))
-            m = _read_shapes(handle, sub, mi.Bool(np.ones(idx.size, bool)), int(idx.size), [shapes[int(k)]])
-            for key in out:
-                out[key][idx] = m[key]
+    mi = handle.mi
+    out = _no_materials(n)  # object_id is -1 exactly where nothing is hit: those stay zero
+    for k, idx in zip(ids, np.split(order, starts[1:])):
+        if k < 0 or shapes[int(k)].bsdf() is None:
+            continue
+        sub = dr.gather(type(si), si, mi.UInt32(idx.astype(np.uint32)))
+        m = _read_shapes(handle, sub, mi.Bool(np.ones(idx.size, bool)), int(idx.size), [shapes[int(k)]])
         for key in out:
-            out[key][~valid_np] = 0.0
-        return out
-    return _read_shapes(handle, si, valid, n, handle.shapes())
+            out[key][idx] = m[key]
+    return out
+
+
+def _no_materials(n: int) -> dict:
+    """``read_materials``' fields for ``n`` hits, all zero."""
+    return {"diffuse_albedo": np.zeros((n, 3), np.float32), "specular_albedo": np.zeros((n, 3), np.float32),
+            "roughness": np.zeros(n, np.float32)}
 
 
 def _read_shapes(handle: SceneHandle, si, valid, n: int, shapes) -> dict:
@@ -155,8 +157,7 @@ def _read_shapes(handle: SceneHandle, si, valid, n: int, shapes) -> dict:
 
     mi = handle.mi
     valid_np = np.array(valid, dtype=bool).reshape(n)
-    out = {"diffuse_albedo": np.zeros((n, 3), np.float32), "specular_albedo": np.zeros((n, 3), np.float32),
-           "roughness": np.zeros(n, np.float32)}
+    out = _no_materials(n)
 
     def read(bsdf, active):
         """(diffuse, specular, alpha) of one BSDF at every hit (only ``active`` ones matter)."""
