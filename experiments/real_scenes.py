@@ -120,7 +120,8 @@ PRESETS = {
                              "data": {"spp": 4, "test_spp": 4, "envs_per_view": 1},
                              "model": {"n_levels": 3, "log2_table_size": 8, "n_features": 8, "hidden": 16},
                              "train": {"steps": 20, "pixels": 32, "wavelets": 24}, "render": {"k": 16}},
-             "sh_prt": {"lightmap": {"resolution": 32}, "sh": {"order": 2, "spp": 2, "env_height": 8}}},
+             "sh_prt": {"lightmap": {"resolution": 32},
+                        "sh": {"order": 2, "spp": 2, "env_height": 8, "exit_directions": 8, "exit_spp": 2}}},
 }
 
 

@@ -323,7 +323,12 @@ def relightable_parts(session, out: str, texel_index, fill, materials: dict | No
         files["sh_transfer.exr"] = {"format": "OpenEXR float32, atlas image",
                                     "holds": f"SH transfer vectors (Sloan et al. 2002 Eq. 5) of {n} coefficients: "
                                              "channel cII.C = indirect radiance in colour C under the unit SH light "
-                                             "II; lightmap_C = sum_II cII.C l_II.C"}
+                                             "II; lightmap_C = sum_II cII.C l_II.C"
+                                             + (f" (the radiance along each texel's normal; the "
+                                                f"{np.asarray(params['exit_transfer']).shape[0]} view-dependent "
+                                                "texels' exit transfer is in params/, which relight.js does not "
+                                                "shade)" if np.asarray(params.get("exit_transfer", [])).shape[0]
+                                                else "")}
     elif name == "sg_lightfield":
         axes = np.asarray(params["axes"], np.float32)
         sharp = np.asarray(params["sharpness"], np.float32)
@@ -359,7 +364,10 @@ _PARAM_MEANING = {
                    "fine_index": "candidate index of each fine measurement point", "texel_index": "atlas pixel of "
                    "each texel", "fill_index": "texel each atlas pixel shows", "singular_values": "of the basis SVD"},
     "sh_prt": {"transfer": "transfer vectors (T, n_coefficients, 3)", "texel_index": "atlas pixel of each texel",
-               "fill_index": "texel each atlas pixel shows"},
+               "fill_index": "texel each atlas pixel shows",
+               "exit_transfer": "exit transfer (G, m_view, n_coefficients, 3) of the view-dependent texels: radiance "
+                                "toward w = sum_j Y_j(w) sum_i M_ji l_i (not shaded by relight.js)",
+               "exit_texel": "texel of each exit transfer", "exit_normal": "unit normal of each exit transfer's texel"},
     "sg_lightfield": {"axes": "lobe axes (T, N, 3) float16", "sharpness": "lobe sharpness (T, N) float16",
                       "amplitude": "lobe RGB amplitude (T, N, 3) float16", "irradiance": "texel irradiance (T, 3)",
                       "fill_index": "texel each atlas pixel shows"},

@@ -39,7 +39,7 @@ from jprt.inputs import GBuffer
 from jprt.render.cameras import Camera, check_rays, to_sensor_dict
 from jprt.render.scenes import SceneHandle
 
-__all__ = ["GBuffer", "gbuffer", "gbuffer_rays", "object_materials", "read_materials"]
+__all__ = ["GBuffer", "gbuffer", "gbuffer_rays", "object_materials", "read_materials", "view_dependent_objects"]
 
 
 def _child_objects(obj, mi) -> dict:
@@ -234,6 +234,22 @@ def object_materials(handle: SceneHandle) -> tuple[np.ndarray, np.ndarray, np.nd
         roughness.append(float(m["roughness"][0]))
         has_diffuse.append(bool(m["diffuse_albedo"][0].max() > 0))
     return np.stack(specular).astype(np.float32), np.asarray(roughness, np.float32), np.asarray(has_diffuse)
+
+
+def view_dependent_objects(handle: SceneHandle) -> list[int]:
+    """Ids of the shapes whose material reflects or transmits other than diffusely (a glossy or
+    delta lobe: rough and smooth plastics, conductors, glass), read from Mitsuba's BSDF flags
+    (a ``twosided`` BSDF reports its sides'). Their outgoing indirect light depends on the view
+    direction; a diffuse material's does not. Shapes without a BSDF (emitters only) are not
+    listed."""
+    mi = handle.mi
+    lobes = (mi.BSDFFlags.Glossy, mi.BSDFFlags.DeltaReflection, mi.BSDFFlags.DeltaTransmission)
+    out = []
+    for k, shape in enumerate(handle.shapes()):
+        bsdf = shape.bsdf()
+        if bsdf is not None and any(mi.has_flag(bsdf.flags(), f) for f in lobes):
+            out.append(k)
+    return out
 
 
 def _read_one(handle: SceneHandle, si) -> dict:

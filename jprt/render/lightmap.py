@@ -55,6 +55,7 @@ __all__ = [
     "incident_delta_lights",
     "free_positions",
     "enclosing_objects",
+    "sees_points",
 ]
 
 _GUTTER = 2  # texels between charts
@@ -252,8 +253,10 @@ def _raster_triangles(corners: np.ndarray, res: int, eps: float = 1e-9):
 
 #: Version of ``build_atlas``'s layout: caches of data baked on an atlas (their spec names it)
 #: are rebuilt when it changes. 2: conservative rasterisation (charts thinner than a texel);
-#: 3: raised objects bounded (RAISED_SPAN), growth to the asked density (DENSITY_SLACK).
-ATLAS_FORMAT = 3
+#: 3: raised objects bounded (RAISED_SPAN), growth to the asked density (DENSITY_SLACK);
+#: 4: layouts far wider than their area shrunk (LAYOUT_SLACK), texels that do not see the
+#: scene's views not shown (``build_atlas``'s ``seen_from``).
+ATLAS_FORMAT = 4
 
 #: At most this many planar charts per object (a box has 6); an object with more face planes is unwrapped by xatlas.
 MAX_PLANAR_CHARTS = 16
@@ -429,6 +432,12 @@ ATLAS_GROWTH = 8
 RAISED_SPAN = 2.0
 
 
+#: An object's layout (the bounding boxes of its charts) covers at most this many times its surface
+#: area; a layout that covers more (xatlas charts far smaller than a texel, each padded by gutters:
+#: curtains, foliage) is scaled down to it, so that it does not coarsen every other object's texels.
+LAYOUT_SLACK = 4.0
+
+
 #: The asked resolution promises a texel density: an atlas whose packing (gutters of many small
 #: charts) leaves texels more than this factor larger than a gutter-free packing of the same area
 #: would have at the asked resolution doubles (up to ``ATLAS_GROWTH``).
@@ -455,7 +464,8 @@ def _fit_texel_growing(sizes: np.ndarray, res: int, start: float, n_charts: int,
 
 
 def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None, *, resolution: int = 64,
-                overlap_tol: float = 0.01, eps: float | None = None, min_texels: int = 4) -> Atlas:
+                overlap_tol: float = 0.01, eps: float | None = None, min_texels: int = 4,
+                seen_from="scene") -> Atlas:
     """Lay out a lightmap atlas of ``objects`` (names or ids; None = all) at ``resolution``^2.
 
     Charts (module docstring: the mesh's own UVs, planar charts, or xatlas) are packed at the
@@ -473,6 +483,14 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     than ``DENSITY_SLACK`` x coarser than a gutter-free packing would (a file of many small
     meshes), the atlas doubles its resolution (up to ``ATLAS_GROWTH`` x, with a warning naming the
     size; ``Atlas.resolution`` is the one used).
+
+    ``seen_from``: (K, 3) points the scene is looked at from, "scene" (``jprt.render.sampling.
+    view_region_points``: its view region) or None. A texel that none of them sees (a wall's part
+    behind a cornice or above the ceiling, the floor under a sofa, a face buried in another object)
+    is still baked, but no atlas pixel shows it: ``fill_index`` points its pixels at the nearest
+    texel of the same object that is seen, so a bilinear lookup beside it never blends in light
+    from the other side of a surface (on ``living-room``, a sky-lit band above the cornice bled
+    into the top of the walls: CHANGELOG.md, 2026-12-05).
     """
     import warnings
 
@@ -514,14 +532,21 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     chart_object = np.array([c[0] for c in charts])
     unscaled = np.array([np.ptp(c[2].reshape(-1, 2), axis=0).max() for c in charts])
     object_extent = np.array([unscaled[chart_object == oi].max() for oi in range(len(ids))])
-    scale, texel0 = np.ones(len(ids)), None
+    box = np.array([np.prod(np.ptp(c[2].reshape(-1, 2), axis=0)) for c in charts])
+    object_box = np.bincount(chart_object, weights=box, minlength=len(ids))
+    # a layout wider than LAYOUT_SLACK x its area shrinks to that (its charts then share texels:
+    # the object's light is blurred over its own surface, at the texel density of the others)
+    scale = np.minimum(1.0, np.sqrt(LAYOUT_SLACK * object_area / np.maximum(object_box, 1e-300)))
+    texel0 = None
     for _ in range(4):  # raise the density of objects below min_texels until every one has them
         coords = [c[2] * scale[c[0]] for c in charts]
         lo = np.array([c.reshape(-1, 2).min(0) for c in coords])
         sizes = np.array([c.reshape(-1, 2).max(0) for c in coords]) - lo
         texel, res = _fit_texel_growing(sizes, res, guess * 0.4, len(charts), int(resolution),
                                         ideal=np.sqrt(total) / int(resolution))
-        texels = object_area * scale ** 2 / texel ** 2
+        # texels the object gets: its area's, or what a shrunk layout covers (LAYOUT_SLACK x less
+        # than its box: about its area's at the first packing; conservative rasterisation)
+        texels = np.maximum(object_area, object_box / LAYOUT_SLACK) * scale ** 2 / texel ** 2
         short = texels < 2.0 * int(min_texels)  # rasterised texel centres fall short of the area's count
         # a raised object's layout spans at most RAISED_SPAN x the side of a square of 2 min_texels
         # texels of the first packing (a bound that followed the texel size would feed back): an
@@ -586,9 +611,73 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     lookup = np.full(res * res, -1, np.int64)
     lookup[texel_index] = np.arange(texel_index.size)
     fill_index = lookup[flat_nearest].astype(np.int32)
+    if seen_from is not None:
+        points = _view_points(handle) if isinstance(seen_from, str) else \
+            np.asarray(seen_from, np.float64).reshape(-1, 3)
+        sees = sees_points(handle, position, normal, points)
+        if (~sees).any():
+            fill_index = _show_seeing(fill_index, texel_index, tri_object[t_of], sees, res)
     return Atlas(resolution=res, objects=np.asarray(ids, np.int32), tri_offset=tri_offset, tri_affine=affine,
                  texel_index=texel_index, position=position.astype(np.float32), normal=normal.astype(np.float32),
                  texel_object=tri_object[t_of], fill_index=fill_index, texel_size=float(texel))
+
+
+def _show_seeing(fill_index: np.ndarray, texel_index: np.ndarray, texel_object: np.ndarray, sees: np.ndarray,
+                 res: int) -> np.ndarray:
+    """``fill_index`` with every atlas pixel that shows a texel not seen (``sees`` False) pointed at
+    the nearest texel of the same object that is (within the object's atlas box; an object none of
+    whose texels is seen keeps its own)."""
+    from scipy import ndimage
+
+    fill = fill_index.astype(np.int64).copy()
+    row, col = texel_index // res, texel_index % res
+    pixel_object = texel_object[fill]
+    for obj in np.unique(texel_object[~sees]):
+        mine = texel_object == obj
+        if not (mine & sees).any():
+            continue
+        shows = np.flatnonzero((pixel_object == obj) & ~sees[fill])
+        r0, r1 = min(row[mine].min(), (shows // res).min()), max(row[mine].max(), (shows // res).max()) + 1
+        c0, c1 = min(col[mine].min(), (shows % res).min()), max(col[mine].max(), (shows % res).max()) + 1
+        box = np.ones((r1 - r0, c1 - c0), bool)  # True: not a seeing texel of this object
+        good = np.flatnonzero(mine & sees)
+        box[row[good] - r0, col[good] - c0] = False
+        grid = np.full((r1 - r0, c1 - c0), -1, np.int64)
+        grid[row[good] - r0, col[good] - c0] = good
+        _, (nr, nc) = ndimage.distance_transform_edt(box, return_indices=True)
+        fill[shows] = grid[nr[shows // res - r0, shows % res - c0], nc[shows // res - r0, shows % res - c0]]
+    return fill.astype(np.int32)
+
+
+def _view_points(handle: SceneHandle) -> np.ndarray:
+    from jprt.render.sampling import view_region_points
+
+    return view_region_points(handle)
+
+
+def sees_points(handle: SceneHandle, position, normal, points, *, chunk: int = 1 << 20) -> np.ndarray:
+    """(T,) bool: from each surface point (``position``, ``normal`` (T, 3)), at least one of
+    ``points`` (K, 3) is visible: an unblocked segment from just off the surface on the point's
+    side (either side: a two-sided surface is seen from both; a closed object's inner face only
+    from inside it)."""
+    position = np.asarray(position, np.float64).reshape(-1, 3)
+    normal = np.asarray(normal, np.float64).reshape(-1, 3)
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    eps = ray_offset(handle)
+    out = np.zeros(len(position), bool)
+    per = max(1, chunk // max(len(points), 1))
+    for a in range(0, len(position), per):
+        p, n = np.repeat(position[a:a + per], len(points), axis=0), np.repeat(normal[a:a + per], len(points), axis=0)
+        q = np.tile(points, (min(per, len(position) - a), 1))
+        side = np.where(np.sum((q - p) * n, axis=1) >= 0.0, 1.0, -1.0)[:, None]
+        o = p + side * eps * n
+        d = q - o
+        dist = np.linalg.norm(d, axis=1)
+        d /= np.maximum(dist, 1e-300)[:, None]
+        si = intersect(handle, o, d)
+        t = np.where(np.array(si.is_valid(), bool).reshape(-1), np.array(si.t, np.float64).reshape(-1), np.inf)
+        out[a:a + per] = (t >= dist - eps).reshape(-1, len(points)).any(axis=1)
+    return out
 
 
 # --------------------------------------------------------------------------------------------

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["latin_hypercube", "check_box", "scene_regions", "free_lights", "view_points", "lit_fraction",
-           "serves_view", "REGION_KEYS",
+__all__ = ["latin_hypercube", "check_box", "scene_regions", "view_region_points", "free_lights", "view_points",
+           "lit_fraction", "serves_view", "REGION_KEYS",
            "CORNELL_REGIONS", "MIN_LIT_FRACTION", "LIGHT_RULE"]
 
 
@@ -93,6 +93,21 @@ def scene_regions(scene) -> dict:
         target, fov = centre, 60.0
     return {"light_lo": light_lo.tolist(), "light_hi": light_hi.tolist(), "view_lo": view_lo.tolist(),
             "view_hi": view_hi.tolist(), "view_target": target.tolist(), "fov": fov, "source": "scene bounds"}
+
+
+def view_region_points(handle, n: int = 3) -> np.ndarray:
+    """(K, 3) points the scene is looked at from: an ``n`` x ``n`` x ``n`` grid over the corners
+    and inside of its view region (``scene_regions``; about the file's own camera), less those
+    inside geometry (``jprt.render.lightmap.free_positions``)."""
+    from jprt.render.lightmap import free_positions
+
+    regions = scene_regions(handle.description)
+    lo, hi = np.asarray(regions["view_lo"], np.float64), np.asarray(regions["view_hi"], np.float64)
+    t = np.linspace(0.0, 1.0, int(n))
+    grid = np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3)
+    points = lo + grid * (hi - lo)
+    free = free_positions(handle, points)
+    return points[free] if free.any() else points
 
 
 #: A light drawn for a scene file must light directly at least this share of the points its own

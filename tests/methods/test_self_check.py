@@ -159,14 +159,15 @@ def test_zero_prediction_scores_one(mi, fitted, name):
 
 @pytest.mark.mitsuba
 def test_sh_prt_check_keeps_the_bake_cache_key(mi, fitted):
-    """The held-out maps are an entry of their own: the bake's entry is the one of the spec before
-    ``sh.check_maps`` existed, shared by check_maps 0 and 1, and check_maps 0 renders no check."""
+    """The held-out maps are an entry of their own (and so is the exit transfer): the bake's entry
+    is the one of the spec before ``sh.check_maps`` and the ``sh.exit_*`` keys existed, shared by
+    check_maps 0 and 1, and check_maps 0 renders no check."""
     from jprt import cache
     from jprt.render.lightmap import ATLAS_FORMAT
     from jprt.render.scenes import describe
 
     m, config, dataset, _ = fitted("sh_prt")
-    sh = {k: v for k, v in config["sh"].items() if k != "check_maps"}
+    sh = {k: v for k, v in config["sh"].items() if k != "check_maps" and not k.startswith("exit_")}
     old = {"format": 1, "scene": describe(config["scene"]), "objects": list(config["objects"]),
            "lightmap": config["lightmap"], "sh": sh, "atlas_format": ATLAS_FORMAT}
     assert int(config["sh"]["check_maps"]) >= 1 and "check" in dataset.meta

@@ -293,9 +293,10 @@ def _specks_file(tmp_path) -> str:
 
 def test_an_object_of_almost_no_area_cannot_take_the_atlas_over(mi, tmp_path, monkeypatch):
     """Raising the texel density of an object too small for its texels keeps its charts within
-    a few texels (RAISED_SPAN): the atlas keeps the density the asked resolution promises and the
-    floor gets the texels its area asks at that texel size, the specks some of their own. With no bound (the
-    cap at infinity) the same file's specks take the atlas over (the failure this prevents)."""
+    a few texels (RAISED_SPAN, and LAYOUT_SLACK on the layout it grows to): the atlas keeps the
+    density the asked resolution promises and the floor gets the texels its area asks at that
+    texel size, the specks some of their own. With neither bound (both at infinity) the same
+    file's specks take the atlas over (the failure they prevent)."""
     from jprt.render.scenes import SceneHandle, xml
 
     handle = SceneHandle(xml(_specks_file(tmp_path)))
@@ -307,12 +308,58 @@ def test_an_object_of_almost_no_area_cannot_take_the_atlas_over(mi, tmp_path, mo
     assert counts[names.index("floor")] >= 0.9 * 16.0 / atlas.texel_size ** 2
     assert counts[names.index("specks")] >= 1
     monkeypatch.setattr(lightmap, "RAISED_SPAN", np.inf)
+    monkeypatch.setattr(lightmap, "LAYOUT_SLACK", np.inf)
     try:
         unbounded = lightmap.build_atlas(handle, resolution=32)
     except ValueError:  # no atlas up to ATLAS_GROWTH x fits
         return
     floor = np.asarray(unbounded.texel_object) == names.index("floor")
     assert floor.sum() < 0.1 * counts[names.index("floor")]  # the specks took the atlas over
+
+
+def _foliage_file(tmp_path) -> str:
+    """A 4 x 4 floor and one mesh of 300 separate 2 cm triangles strewn over 2 m (foliage, a
+    curtain's folds: xatlas makes a chart of each, smaller than a texel, each padded by gutters)."""
+    rng = np.random.default_rng(5)
+    lines, faces = [], []
+    for k in range(300):
+        centre = rng.uniform(-1.0, 1.0, 3) + [0.0, 0.0, 1.0]
+        a, b = rng.normal(size=3), rng.normal(size=3)
+        for p in (centre, centre + 0.02 * a / np.linalg.norm(a), centre + 0.02 * b / np.linalg.norm(b)):
+            lines.append("v {:.6f} {:.6f} {:.6f}".format(*p))
+        faces.append(f"f {3 * k + 1} {3 * k + 2} {3 * k + 3}")
+    (tmp_path / "foliage.obj").write_text("\n".join(lines + faces) + "\n")
+    path = tmp_path / "foliage.xml"
+    path.write_text('<scene version="3.0.0"><shape type="rectangle" id="floor"><transform name="to_world">'
+                    '<scale value="2"/></transform></shape>'
+                    '<shape type="obj" id="foliage"><string name="filename" value="foliage.obj"/></shape></scene>')
+    return str(path)
+
+
+def test_a_layout_of_charts_smaller_than_a_texel_keeps_its_share_of_the_atlas(mi, tmp_path, monkeypatch):
+    """A mesh of many separate pieces smaller than a texel (foliage) is laid out as hundreds of
+    charts, each padded by gutters: a layout far wider than its area. It is shrunk to LAYOUT_SLACK
+    x its area, so the floor keeps the texel density its area asks at the asked resolution and
+    the foliage still has texels of its own (its pieces share them). Without the bound the
+    foliage's gutters coarsen the floor's texels several times over (the failure this prevents)."""
+    from jprt.render.scenes import SceneHandle, xml
+
+    handle = SceneHandle(xml(_foliage_file(tmp_path)))
+    names = handle.object_names()
+    floor, foliage = names.index("floor"), names.index("foliage")
+
+    def counts(atlas):
+        return np.bincount(np.asarray(atlas.texel_object), minlength=2)
+
+    alone = lightmap.build_atlas(handle, ["floor"], resolution=64)
+    bounded = lightmap.build_atlas(handle, resolution=64)
+    n = counts(bounded)
+    foliage_area = 300 * 0.5 * 0.02 ** 2  # about: two random unit directions are near orthogonal
+    assert n[floor] >= 0.5 * alone.texel_index.size
+    assert 1 <= n[foliage] <= 4.0 * lightmap.LAYOUT_SLACK * foliage_area / bounded.texel_size ** 2
+    monkeypatch.setattr(lightmap, "LAYOUT_SLACK", np.inf)
+    unbounded = counts(lightmap.build_atlas(handle, resolution=64))
+    assert unbounded[floor] < 0.5 * n[floor]
 
 
 def test_an_atlas_grows_until_its_texels_are_as_fine_as_asked(mi, tmp_path):
@@ -335,3 +382,43 @@ def test_an_atlas_grows_until_its_texels_are_as_fine_as_asked(mi, tmp_path):
     assert atlas.texel_size <= lightmap.DENSITY_SLACK * np.sqrt(total) / 16
     single = SceneHandle(xml(_many_quads_file(tmp_path, 1)))
     assert lightmap.build_atlas(single, resolution=16).resolution == 16
+
+
+def _wall_through_ceiling_file(tmp_path) -> str:
+    """A 2 x 2 room's floor (y = 0) and ceiling (y = 1), and a back wall that runs on up to y = 2
+    (walls modelled taller than the room are common in scene files)."""
+    quads = {"floor": [(-1, 0, -1), (1, 0, -1), (1, 0, 1), (-1, 0, 1)],
+             "ceiling": [(-1, 1, -1), (-1, 1, 1), (1, 1, 1), (1, 1, -1)],
+             "wall": [(-1, 0, -1), (-1, 2, -1), (1, 2, -1), (1, 0, -1)]}
+    body = ""
+    for name, corners in quads.items():
+        (tmp_path / f"{name}.obj").write_text("".join("v {} {} {}\n".format(*c) for c in corners) + "f 1 2 3\nf 1 3 4\n")
+        body += (f'<shape type="obj" id="{name}"><string name="filename" value="{name}.obj"/>'
+                 '<bsdf type="twosided"><bsdf type="diffuse"/></bsdf></shape>')
+    path = tmp_path / "room.xml"
+    path.write_text(f'<scene version="3.0.0">{body}</scene>')
+    return str(path)
+
+
+def test_texels_no_view_sees_are_never_shown(mi, tmp_path):
+    """The back wall's texels above the ceiling are seen from none of the room's view points: they
+    are baked, but no atlas pixel shows them (their pixels show the nearest wall texel below the
+    ceiling), so a bilinear lookup at the top of the wall never blends in light from above the
+    ceiling. Without ``seen_from`` every texel shows itself."""
+    from jprt.render.scenes import SceneHandle, xml
+
+    handle = SceneHandle(xml(_wall_through_ceiling_file(tmp_path)))
+    wall = handle.object_names().index("wall")
+    inside = np.array([[0.0, 0.5, 0.0], [0.5, 0.8, 0.5]])
+    atlas = lightmap.build_atlas(handle, resolution=32, seen_from=inside)
+    on_wall = np.asarray(atlas.texel_object) == wall
+    sees = lightmap.sees_points(handle, atlas.position, atlas.normal, inside)
+    y = np.asarray(atlas.position)[:, 1]
+    assert np.all(sees[on_wall & (y < 0.95)]) and not np.any(sees[on_wall & (y > 1.05)])
+    shown = np.asarray(atlas.fill_index)
+    objects = np.asarray(atlas.texel_object)
+    assert np.all(sees[shown[objects[shown] == wall]])  # no pixel shows a wall texel above the ceiling
+    assert np.all(objects[shown[atlas.texel_index]] == objects)  # a texel's pixel shows its own object
+    plain = lightmap.build_atlas(handle, resolution=32, seen_from=None)
+    np.testing.assert_array_equal(np.asarray(plain.fill_index)[plain.texel_index], np.arange(plain.count))
+    np.testing.assert_array_equal(plain.position, atlas.position)

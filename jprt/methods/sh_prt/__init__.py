@@ -8,7 +8,8 @@ from jprt.methods.sh_prt import data, model
 __all__ = ["METHOD", "PRESETS", "data", "model"]
 
 #: Named config overrides; ``test`` bakes order 2 on a 32^2 atlas in seconds.
-PRESETS = {"test": {"lightmap": {"resolution": 32}, "sh": {"order": 2, "spp": 2, "env_height": 8}}}
+PRESETS = {"test": {"lightmap": {"resolution": 32},
+                    "sh": {"order": 2, "spp": 2, "env_height": 8, "exit_directions": 8, "exit_spp": 2}}}
 
 METHOD = Method.of_package(
     "sh_prt",

@@ -11,6 +11,14 @@ Baking renders each Y_i as an environment map with Mitsuba, its positive and neg
 separately (DESIGN.md: signed emitters are unbiased but much noisier), and gathers indirect light
 at the texels (``jprt.render.lightmap.indirect_at_points``).
 
+A texel of a view-dependent material (glossy or mirror-like, ``jprt.render.gbuffer.
+view_dependent_objects``) also stores Sloan et al.'s glossy transfer (§5) in its exit form: a
+matrix M_ji whose row j is the projection of its indirect outgoing radiance, as a function of the
+view direction w_o, onto SH Y_j(w_o) of order ``sh.exit_order`` under each distant light Y_i, so
+that L_o(w_o) = sum_j Y_j(w_o) sum_i M_ji l_i. The BRDF is in the bake (Mitsuba's), not a zonal
+kernel as in Sloan's §5; the radiance along a texel's normal alone is what a diffuse texel stores,
+and a glossy floor seen at grazing angles is far from it (it mirrors what lies along the view).
+
 Local lights are what classic PRT cannot represent: a point or spot light becomes a delta of
 irradiance E from its direction w_l as seen from one reference point (the asset centre),
 projected as l_i = E Y_i(w_l) (``delta_light_coefficients``). The band limit blurs it and the
@@ -23,6 +31,7 @@ of a lightmap atlas (cached by ``jprt.cache``); ``fit`` only packs them (the bak
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
@@ -47,6 +56,11 @@ DEFAULT_CONFIG = {
         "spp": 64,  # path-traced samples per texel of each bake render
         "env_height": 32,  # the height in pixels of the equirect map each SH function is rendered as
         "seed": 0,  # seed of the bake's renders
+        # Sloan's order of the exit transfer in the view direction at texels of view-dependent
+        # materials (glossy, mirror, glass); 0: every texel stores the radiance along its normal only
+        "exit_order": 3,
+        "exit_directions": 32,  # view directions per such texel (a hemisphere set about its normal)
+        "exit_spp": 16,  # path-traced samples along each of those directions
         # held-out procedural environment maps whose indirect light at every texel is rendered at
         # `spp` for the self-check (data.self_check; one render each, against the bake's
         # 2 (degree + 1)^2 - 1; 0: none). Not part of the bake's cache key
@@ -60,13 +74,19 @@ class SHData(NamedTuple):
 
     Fields:
       atlas: ``jprt.render.lightmap.Atlas`` arrays as a dict.
-      transfer: (T, (degree + 1)^2, 3) transfer vectors of the atlas texels.
-      meta: {"bake_s": seconds, "degree": int}.
+      transfer: (T, (degree + 1)^2, 3) transfer vectors of the atlas texels (radiance along
+        each texel's normal).
+      meta: {"bake_s": seconds, "degree": int, "exit_degree": int (-1: no exit transfer)}.
+      exit_transfer: (G, (exit_degree + 1)^2, (degree + 1)^2, 3) exit transfer matrices of the
+        view-dependent texels (G may be 0).
+      exit_texel: (G,) their texel indices.
     """
 
     atlas: dict
     transfer: np.ndarray
     meta: dict
+    exit_transfer: np.ndarray = np.zeros((0, 1, 1, 3), np.float32)
+    exit_texel: np.ndarray = np.zeros(0, np.int32)
 
 
 def order_to_degree(order: int) -> int:
@@ -112,10 +132,16 @@ def fit(data: SHData, config: dict | None = None) -> FitResult:
     Numerics: not differentiable (a fitting or training procedure).
     """
     resolve(DEFAULT_CONFIG, config)
+    exit_texel = np.asarray(data.exit_texel, np.int32)
     params = {"transfer": np.asarray(data.transfer, np.float32),
               "texel_index": np.asarray(data.atlas["texel_index"], np.int32),
-              "fill_index": np.asarray(data.atlas["fill_index"], np.int32)}
-    return FitResult(params, {"degree": int(data.meta["degree"]), "bake_s": float(data.meta["bake_s"])})
+              "fill_index": np.asarray(data.atlas["fill_index"], np.int32),
+              "exit_transfer": np.asarray(data.exit_transfer, np.float32),
+              "exit_texel": exit_texel,
+              "exit_normal": np.asarray(data.atlas["normal"], np.float32)[exit_texel].reshape(-1, 3)}
+    return FitResult(params, {"degree": int(data.meta["degree"]), "bake_s": float(data.meta["bake_s"]),
+                              "exit_degree": int(data.meta.get("exit_degree", -1)),
+                              "exit_texels": int(exit_texel.size)})
 
 
 def evaluator(params, config: dict | None = None):
@@ -123,19 +149,44 @@ def evaluator(params, config: dict | None = None):
     bilinearly through the G-buffer's atlas ``uv``; invalid pixels 0. ``lighting`` is an
     ``SHLighting`` with at most (degree + 1)^2 coefficients (fewer evaluate a lower order).
 
+    Where the bake holds exit transfer (``params["exit_transfer"]``, view-dependent texels), a
+    pixel whose G-buffer ``view`` lies in front of the texels it reads shades them as
+    sum_j Y_j(view) sum_i M_ji l_i (module docstring; the exit coefficients are looked up
+    bilinearly like the texels, the diffuse texels' share beside them); a pixel without a view
+    (``atlas_inputs``: view 0) or behind them reads the radiance along the texels' normals.
+
     Numerics: not differentiable (builds the float32 run-time program: a lightmap product, linear in the light).
     """
     resolve(DEFAULT_CONFIG, config)
     transfer = jnp.asarray(params["transfer"])
     fill = jnp.asarray(params["fill_index"])
+    exit_transfer = jnp.asarray(params.get("exit_transfer", np.zeros((0, 1, 1, 3), np.float32)))
+    exit_texel = jnp.asarray(params.get("exit_texel", np.zeros(0, np.int32)))
+    exit_normal = jnp.asarray(params.get("exit_normal", np.zeros((0, 3), np.float32)))
+    n_texels = transfer.shape[0]
+    exit_degree = int(round(math.sqrt(exit_transfer.shape[1]))) - 1
 
     @jax.jit
     def evaluate(inputs, lighting):
         c = jnp.asarray(lighting.coefficients, jnp.float32)
         if c.shape[0] > transfer.shape[1]:
             raise ValueError(f"{c.shape[0]} SH coefficients but the transfer holds {transfer.shape[1]}")
+        uv = jnp.asarray(inputs.uv, jnp.float32)
         texels = jnp.einsum("tic,ic->tc", transfer[:, :c.shape[0]], c)
-        image = atlas_lookup(atlas_image(texels, fill), jnp.asarray(inputs.uv, jnp.float32))
+        image = atlas_lookup(atlas_image(texels, fill), uv)
+        if exit_transfer.shape[0]:
+            coeff = jnp.einsum("gjic,ic->gjc", exit_transfer[:, :, :c.shape[0]], c)  # (G, m, 3)
+            m = coeff.shape[1]
+            glossy = jnp.zeros(n_texels, jnp.float32).at[exit_texel].set(1.0)
+            rows = jnp.zeros((n_texels, m * 3 + 3), jnp.float32)
+            rows = rows.at[exit_texel].set(jnp.concatenate([coeff.reshape(-1, m * 3), exit_normal], axis=1))
+            diffuse = atlas_lookup(atlas_image(texels * (1.0 - glossy)[:, None], fill), uv)
+            looked = atlas_lookup(atlas_image(rows, fill), uv)
+            view = jnp.asarray(inputs.view, jnp.float32)
+            y = sh.evaluate(view, exit_degree)  # (H, W, m)
+            exit_image = jnp.einsum("...jc,...j->...c", looked[..., :m * 3].reshape(uv.shape[:-1] + (m, 3)), y)
+            front = jnp.sum(view * looked[..., m * 3:], axis=-1) > 0.0
+            image = jnp.where(front[..., None], diffuse + exit_image, image)
         return jnp.where(jnp.asarray(inputs.valid, bool)[..., None], image, 0.0)
 
     return evaluate
