@@ -657,9 +657,9 @@ def _view_points(handle: SceneHandle) -> np.ndarray:
 
 def sees_points(handle: SceneHandle, position, normal, points, *, chunk: int = 1 << 20) -> np.ndarray:
     """(T,) bool: from each surface point (``position``, ``normal`` (T, 3)), at least one of
-    ``points`` (K, 3) is visible: an unblocked segment from just off the surface on the point's
-    side (either side: a two-sided surface is seen from both; a closed object's inner face only
-    from inside it)."""
+    ``points`` (K, 3) on its normal's side is visible (an unblocked segment from just off the
+    surface). A lightmap texel holds the radiance leaving its normal's side: a view of its other
+    side (a two-sided curtain seen from behind) is not served by it."""
     position = np.asarray(position, np.float64).reshape(-1, 3)
     normal = np.asarray(normal, np.float64).reshape(-1, 3)
     points = np.asarray(points, np.float64).reshape(-1, 3)
@@ -669,14 +669,14 @@ def sees_points(handle: SceneHandle, position, normal, points, *, chunk: int = 1
     for a in range(0, len(position), per):
         p, n = np.repeat(position[a:a + per], len(points), axis=0), np.repeat(normal[a:a + per], len(points), axis=0)
         q = np.tile(points, (min(per, len(position) - a), 1))
-        side = np.where(np.sum((q - p) * n, axis=1) >= 0.0, 1.0, -1.0)[:, None]
-        o = p + side * eps * n
+        o = p + eps * n
         d = q - o
         dist = np.linalg.norm(d, axis=1)
         d /= np.maximum(dist, 1e-300)[:, None]
+        front = np.sum(d * n, axis=1) > 0.0
         si = intersect(handle, o, d)
         t = np.where(np.array(si.is_valid(), bool).reshape(-1), np.array(si.t, np.float64).reshape(-1), np.inf)
-        out[a:a + per] = (t >= dist - eps).reshape(-1, len(points)).any(axis=1)
+        out[a:a + per] = (front & (t >= dist - eps)).reshape(-1, len(points)).any(axis=1)
     return out
 
 
