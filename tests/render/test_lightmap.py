@@ -272,23 +272,28 @@ def test_an_object_without_area_is_left_out_of_the_atlas(mi, tmp_path):
     assert names.index("flat") not in atlas.objects.tolist() and len(atlas.objects) == 2
 
 
-def _specks_file(tmp_path) -> str:
-    """A 4 x 4 floor and one mesh of 40 tiny triangles (1 mm, random orientations) strewn over 2 m:
-    almost no area over a wide layout (xatlas charts, each with its gutter)."""
-    rng = np.random.default_rng(3)
+def _strewn_file(tmp_path, name: str, n: int, size: float, seed: int) -> str:
+    """A 4 x 4 floor and one mesh ``name`` of ``n`` separate triangles of side ``size`` (random
+    orientations) strewn over 2 m: xatlas makes a chart of each, padded by its gutter."""
+    rng = np.random.default_rng(seed)
     lines, faces = [], []
-    for k in range(40):
+    for k in range(n):
         centre = rng.uniform(-1.0, 1.0, 3) + [0.0, 0.0, 1.0]
         a, b = rng.normal(size=3), rng.normal(size=3)
-        for p in (centre, centre + 1e-3 * a / np.linalg.norm(a), centre + 1e-3 * b / np.linalg.norm(b)):
+        for p in (centre, centre + size * a / np.linalg.norm(a), centre + size * b / np.linalg.norm(b)):
             lines.append("v {:.6f} {:.6f} {:.6f}".format(*p))
         faces.append(f"f {3 * k + 1} {3 * k + 2} {3 * k + 3}")
-    (tmp_path / "specks.obj").write_text("\n".join(lines + faces) + "\n")
-    path = tmp_path / "specks.xml"
+    (tmp_path / f"{name}.obj").write_text("\n".join(lines + faces) + "\n")
+    path = tmp_path / f"{name}.xml"
     path.write_text('<scene version="3.0.0"><shape type="rectangle" id="floor"><transform name="to_world">'
                     '<scale value="2"/></transform></shape>'
-                    '<shape type="obj" id="specks"><string name="filename" value="specks.obj"/></shape></scene>')
+                    f'<shape type="obj" id="{name}"><string name="filename" value="{name}.obj"/></shape></scene>')
     return str(path)
+
+
+def _specks_file(tmp_path) -> str:
+    """40 tiny triangles (1 mm): almost no area over a wide layout."""
+    return _strewn_file(tmp_path, "specks", 40, 1e-3, 3)
 
 
 def test_an_object_of_almost_no_area_cannot_take_the_atlas_over(mi, tmp_path, monkeypatch):
@@ -318,22 +323,8 @@ def test_an_object_of_almost_no_area_cannot_take_the_atlas_over(mi, tmp_path, mo
 
 
 def _foliage_file(tmp_path) -> str:
-    """A 4 x 4 floor and one mesh of 300 separate 2 cm triangles strewn over 2 m (foliage, a
-    curtain's folds: xatlas makes a chart of each, smaller than a texel, each padded by gutters)."""
-    rng = np.random.default_rng(5)
-    lines, faces = [], []
-    for k in range(300):
-        centre = rng.uniform(-1.0, 1.0, 3) + [0.0, 0.0, 1.0]
-        a, b = rng.normal(size=3), rng.normal(size=3)
-        for p in (centre, centre + 0.02 * a / np.linalg.norm(a), centre + 0.02 * b / np.linalg.norm(b)):
-            lines.append("v {:.6f} {:.6f} {:.6f}".format(*p))
-        faces.append(f"f {3 * k + 1} {3 * k + 2} {3 * k + 3}")
-    (tmp_path / "foliage.obj").write_text("\n".join(lines + faces) + "\n")
-    path = tmp_path / "foliage.xml"
-    path.write_text('<scene version="3.0.0"><shape type="rectangle" id="floor"><transform name="to_world">'
-                    '<scale value="2"/></transform></shape>'
-                    '<shape type="obj" id="foliage"><string name="filename" value="foliage.obj"/></shape></scene>')
-    return str(path)
+    """300 separate 2 cm triangles (foliage, a curtain's folds: charts smaller than a texel)."""
+    return _strewn_file(tmp_path, "foliage", 300, 0.02, 5)
 
 
 def test_a_layout_of_charts_smaller_than_a_texel_keeps_its_share_of_the_atlas(mi, tmp_path, monkeypatch):
