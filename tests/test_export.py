@@ -208,7 +208,8 @@ def test_lightmap_radiance_is_the_evaluator_at_the_texels(exported, name):
 
 
 def test_relightable_parts_are_the_params(exported):
-    """Each method's textures and buffers hold its params at the atlas's texels."""
+    """Each method's textures and buffers hold its params at the atlas's texels, as the atlas shows
+    them (``fill_index``: a texel no view sees shows the nearest seen texel of its object)."""
     from jprt.export.engine import texel_materials
     from jprt.view import Session
 
@@ -218,12 +219,13 @@ def test_relightable_parts_are_the_params(exported):
         res = int(round(np.sqrt(np.asarray(p["fill_index"]).size)))
         texels = np.asarray(p["texel_index"] if "texel_index" in p else dataset.atlas["texel_index"])
         row, col = texels // res, texels % res
+        shown = np.asarray(p["fill_index"])[texels]  # the texel each texel's atlas pixel shows
         if name == "datadriven":
             channels = io.read_exr(os.path.join(out, "basis.exr"), None)
             basis = np.asarray(p["basis"])
             for i in range(basis.shape[1]):
-                np.testing.assert_array_equal(channels[f"b{i:02d}"][row, col], basis[:, i])
-            np.testing.assert_array_equal(channels["mean"][row, col], np.asarray(p["mean"]))
+                np.testing.assert_array_equal(channels[f"b{i:02d}"][row, col], basis[shown, i])
+            np.testing.assert_array_equal(channels["mean"][row, col], np.asarray(p["mean"])[shown])
             pts = np.fromfile(os.path.join(out, "measurement_points.bin"), "<f4").reshape(-1, 6)
             fine = np.asarray(p["fine_index"])
             np.testing.assert_array_equal(pts[:, :3], np.asarray(dataset.candidates["position"])[fine])
@@ -232,17 +234,18 @@ def test_relightable_parts_are_the_params(exported):
             t = np.asarray(p["transfer"])
             for i in range(t.shape[1]):
                 for c, ch in enumerate("RGB"):
-                    np.testing.assert_array_equal(channels[f"c{i:02d}.{ch}"][row, col], t[:, i, c])
+                    np.testing.assert_array_equal(channels[f"c{i:02d}.{ch}"][row, col], t[shown, i, c])
         elif name == "sg_lightfield":
             channels = io.read_exr(os.path.join(out, "sg_lobes.exr"), None, dtype=np.float16)
             for j in range(np.shape(p["sharpness"])[1]):
-                np.testing.assert_array_equal(channels[f"lobe{j:02d}.S"][row, col], np.asarray(p["sharpness"])[:, j])
+                np.testing.assert_array_equal(channels[f"lobe{j:02d}.S"][row, col],
+                                              np.asarray(p["sharpness"])[shown, j])
                 for c, ch in enumerate("XYZ"):
                     np.testing.assert_array_equal(channels[f"lobe{j:02d}.{ch}"][row, col],
-                                                  np.asarray(p["axes"])[:, j, c])
+                                                  np.asarray(p["axes"])[shown, j, c])
                 for c, ch in enumerate("RGB"):
                     np.testing.assert_array_equal(channels[f"lobe{j:02d}.{ch}"][row, col],
-                                                  np.asarray(p["amplitude"])[:, j, c])
+                                                  np.asarray(p["amplitude"])[shown, j, c])
             # the shading's material at each texel: what the G-buffer reads there (diffuse, specular, roughness)
             mats = np.fromfile(os.path.join(out, "sg_materials.bin"), "<f4").reshape(-1, 7)
             want = texel_materials(Session(run), texels)
