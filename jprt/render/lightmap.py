@@ -530,10 +530,9 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
                       f"({', '.join(f'{k}: {v}' for k, v in sorted(dropped.items()))})", stacklevel=2)
     object_area = np.array([_areas(t).sum() for t in per_object])
     chart_object = np.array([c[0] for c in charts])
-    unscaled = np.array([np.ptp(c[2].reshape(-1, 2), axis=0).max() for c in charts])
-    object_extent = np.array([unscaled[chart_object == oi].max() for oi in range(len(ids))])
-    box = np.array([np.prod(np.ptp(c[2].reshape(-1, 2), axis=0)) for c in charts])
-    object_box = np.bincount(chart_object, weights=box, minlength=len(ids))
+    extent = np.array([np.ptp(c[2].reshape(-1, 2), axis=0) for c in charts])  # (charts, 2) unscaled
+    object_extent = np.array([extent[chart_object == oi].max() for oi in range(len(ids))])
+    object_box = np.bincount(chart_object, weights=extent.prod(axis=1), minlength=len(ids))
     # a layout wider than LAYOUT_SLACK x its area shrinks to that (its charts then share texels:
     # the object's light is blurred over its own surface, at the texel density of the others)
     scale = np.minimum(1.0, np.sqrt(LAYOUT_SLACK * object_area / np.maximum(object_box, 1e-300)))
@@ -612,7 +611,9 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     lookup[texel_index] = np.arange(texel_index.size)
     fill_index = lookup[flat_nearest].astype(np.int32)
     if seen_from is not None:
-        points = _view_points(handle) if isinstance(seen_from, str) else \
+        from jprt.render.sampling import view_region_points
+
+        points = view_region_points(handle) if isinstance(seen_from, str) else \
             np.asarray(seen_from, np.float64).reshape(-1, 3)
         sees = sees_points(handle, position, normal, points)
         if (~sees).any():
@@ -647,12 +648,6 @@ def _show_seeing(fill_index: np.ndarray, texel_index: np.ndarray, texel_object: 
         _, (nr, nc) = ndimage.distance_transform_edt(box, return_indices=True)
         fill[shows] = grid[nr[shows // res - r0, shows % res - c0], nc[shows // res - r0, shows % res - c0]]
     return fill.astype(np.int32)
-
-
-def _view_points(handle: SceneHandle) -> np.ndarray:
-    from jprt.render.sampling import view_region_points
-
-    return view_region_points(handle)
 
 
 def sees_points(handle: SceneHandle, position, normal, points, *, chunk: int = 1 << 20) -> np.ndarray:
