@@ -15,7 +15,7 @@ from jprt.methods.sg_lightfield.environment import ENV_DEFAULTS, ENV_RECEIVERS  
 from jprt.methods.sg_lightfield.model import DEFAULT_CONFIG, SGData, texel_irradiance
 from jprt.progress import say
 
-__all__ = ["make_dataset", "self_check", "TASK_LIGHTINGS", "ENV_RECEIVERS", "ENV_DEFAULTS", "EnvData", "load_environment",
+__all__ = ["make_dataset", "self_check", "check_candidates", "TASK_LIGHTINGS", "ENV_RECEIVERS", "ENV_DEFAULTS", "EnvData", "load_environment",
            "make_environment_dataset"]
 
 #: The shared tasks of experiments/atlas.py relight with lights the bake never saw: a light-field
@@ -53,10 +53,22 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
 CHECK_VIEWS = 4
 
 
+def check_candidates(atlas, flags) -> np.ndarray:
+    """The texels a self-check may draw: captured outside geometry (``flags`` not ``INSIDE``) and
+    shown by the atlas (``fill_index`` of their own pixel is themselves; a texel no view sees
+    shows a seen neighbour, ``lightmap.build_atlas``'s ``seen_from``, so the evaluator never
+    returns its own value)."""
+    from jprt.render.lightfield import INSIDE
+
+    shown = np.asarray(atlas["fill_index"])[np.asarray(atlas["texel_index"])] == np.arange(len(flags))
+    return np.flatnonzero((np.asarray(flags) != INSIDE) & shown)
+
+
 def _check(scene, lf, c: dict, *, cache_dir: str | None, progress: bool | None) -> dict:
     """The self-check's held-out set, cached apart from the light field
     (``$JPRT_CACHE/sg_lightfield_check``): ``capture.check_texels`` texels (at most a tenth of those
-    not inside geometry; drawn with a seed of their own) captured again as the light field is
+    not inside geometry that the atlas shows: a texel no view sees shows a neighbour's value,
+    ``lightmap.build_atlas``'s ``seen_from``; drawn with a seed of their own) captured again as the light field is
     (``capture_block``: same points, size, spp and jitter, other seeds), their materials (the
     G-buffer of a ray from the capture point down the normal: ``ok`` where it hits the texel's own
     object), ``CHECK_VIEWS`` held-out view directions each (uniform over the hemisphere at up to 78
@@ -64,15 +76,15 @@ def _check(scene, lf, c: dict, *, cache_dir: str | None, progress: bool | None) 
     import time
 
     from jprt import cache
-    from jprt.render.lightfield import INSIDE, atlas_digest, capture_block
+    from jprt.render.lightfield import atlas_digest, capture_block
     from jprt.render.scenes import SceneHandle, describe
 
     desc = describe(scene)
     a = lf.atlas
     seed, size, spp, jitter = int(c["seed"]), int(lf.size), int(c["spp"]), bool(c["jitter"])
-    free = np.flatnonzero(np.asarray(lf.flags) != INSIDE)
+    free = check_candidates(a, lf.flags)
     n = min(int(c["check_texels"]), max(1, len(free) // 10), len(free))
-    spec = {"format": 1, "scene": desc, "atlas": atlas_digest(a["position"], a["normal"]), "size": size, "spp": spp,
+    spec = {"format": 2, "scene": desc, "atlas": atlas_digest(a["position"], a["normal"]), "size": size, "spp": spp,
             "seed": seed, "jitter": jitter, "texels": n, "views": CHECK_VIEWS}
 
     def build() -> dict:
