@@ -15,8 +15,8 @@ from jprt.methods.sg_lightfield.environment import ENV_DEFAULTS, ENV_RECEIVERS  
 from jprt.methods.sg_lightfield.model import DEFAULT_CONFIG, SGData, texel_irradiance
 from jprt.progress import say
 
-__all__ = ["make_dataset", "self_check", "check_candidates", "TASK_LIGHTINGS", "ENV_RECEIVERS", "ENV_DEFAULTS", "EnvData", "load_environment",
-           "make_environment_dataset"]
+__all__ = ["make_dataset", "self_check", "check_candidates", "TASK_LIGHTINGS", "ENV_RECEIVERS", "ENV_DEFAULTS",
+           "EnvData", "load_environment", "make_environment_dataset"]
 
 #: The shared tasks of experiments/atlas.py relight with lights the bake never saw: a light-field
 #: texture is baked for its scene's own emitters, so it takes part in none of them.
@@ -67,12 +67,11 @@ def check_candidates(atlas, flags) -> np.ndarray:
 def _check(scene, lf, c: dict, *, cache_dir: str | None, progress: bool | None) -> dict:
     """The self-check's held-out set, cached apart from the light field
     (``$JPRT_CACHE/sg_lightfield_check``): ``capture.check_texels`` texels (at most a tenth of those
-    not inside geometry that the atlas shows: a texel no view sees shows a neighbour's value,
-    ``lightmap.build_atlas``'s ``seen_from``; drawn with a seed of their own) captured again as the light field is
-    (``capture_block``: same points, size, spp and jitter, other seeds), their materials (the
-    G-buffer of a ray from the capture point down the normal: ``ok`` where it hits the texel's own
-    object), ``CHECK_VIEWS`` held-out view directions each (uniform over the hemisphere at up to 78
-    degrees from the normal) and the scene's object names."""
+    not inside geometry that the atlas shows, ``check_candidates``; drawn with a seed of their own)
+    captured again as the light field is (``capture_block``: same points, size, spp and jitter,
+    other seeds), their materials (the G-buffer of a ray from the capture point down the normal:
+    ``ok`` where it hits the texel's own object), ``CHECK_VIEWS`` held-out view directions each
+    (uniform over the hemisphere at up to 78 degrees from the normal) and the scene's object names."""
     import time
 
     from jprt import cache
