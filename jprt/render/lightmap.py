@@ -255,8 +255,9 @@ def _raster_triangles(corners: np.ndarray, res: int, eps: float = 1e-9):
 #: are rebuilt when it changes. 2: conservative rasterisation (charts thinner than a texel);
 #: 3: raised objects bounded (RAISED_SPAN), growth to the asked density (DENSITY_SLACK);
 #: 4: layouts far wider than their area shrunk (LAYOUT_SLACK), texels that do not see the
-#: scene's views not shown (``build_atlas``'s ``seen_from``).
-ATLAS_FORMAT = 4
+#: scene's views not shown (``build_atlas``'s ``seen_from``); 5: a two-sided surface's texels
+#: face the side that sees the views where only one side does (``_orient``'s ``seen_from``).
+ATLAS_FORMAT = 5
 
 #: At most this many planar charts per object (a box has 6); an object with more face planes is unwrapped by xatlas.
 MAX_PLANAR_CHARTS = 16
@@ -490,7 +491,8 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
     is still baked, but no atlas pixel shows it: ``fill_index`` points its pixels at the nearest
     texel of the same object that is seen, so a bilinear lookup beside it never blends in light
     from the other side of a surface (on ``living-room``, a sky-lit band above the cornice bled
-    into the top of the walls: CHANGELOG.md, 2026-12-05).
+    into the top of the walls: CHANGELOG.md, 2026-12-05). The same points orient two-sided
+    surfaces (``_orient``): a texel faces the side that sees them where only one side does.
     """
     import warnings
 
@@ -604,17 +606,19 @@ def build_atlas(handle: SceneHandle, objects: Sequence[str | int] | None = None,
         raise ValueError("the atlas covers no texel centre; raise the resolution")
     t_of = owner[texel_index]
     position = np.einsum("ti,tij->tj", bary_of[texel_index], all_tris[t_of])
-    normal = _orient(handle, tri_object[t_of], position, _geometric_normals(all_tris)[t_of])
-    _, nearest = ndimage.distance_transform_edt((owner < 0).reshape(res, res), return_indices=True)
-    flat_nearest = (nearest[0] * res + nearest[1]).ravel()
-    lookup = np.full(res * res, -1, np.int64)
-    lookup[texel_index] = np.arange(texel_index.size)
-    fill_index = lookup[flat_nearest].astype(np.int32)
+    points = None
     if seen_from is not None:
         from jprt.render.sampling import view_region_points
 
         points = view_region_points(handle) if isinstance(seen_from, str) else \
             np.asarray(seen_from, np.float64).reshape(-1, 3)
+    normal = _orient(handle, tri_object[t_of], position, _geometric_normals(all_tris)[t_of], seen_from=points)
+    _, nearest = ndimage.distance_transform_edt((owner < 0).reshape(res, res), return_indices=True)
+    flat_nearest = (nearest[0] * res + nearest[1]).ravel()
+    lookup = np.full(res * res, -1, np.int64)
+    lookup[texel_index] = np.arange(texel_index.size)
+    fill_index = lookup[flat_nearest].astype(np.int32)
+    if points is not None:
         sees = sees_points(handle, position, normal, points)
         if (~sees).any():
             fill_index = _show_seeing(fill_index, texel_index, tri_object[t_of], sees, res)
@@ -763,11 +767,21 @@ def _hemisphere_directions(n: int = 16) -> np.ndarray:
 
 
 def _hit_objects(handle: SceneHandle, si) -> np.ndarray:
-    """(N,) object id of each hit of a surface-interaction batch, -1 where the ray escaped."""
-    hit = np.full(np.array(si.is_valid(), bool).reshape(-1).shape, -1, np.int64)
-    for k, shape in enumerate(handle.shapes()):
-        hit[np.array(si.shape == handle.mi.ShapePtr(shape), bool).reshape(-1)] = k
-    return hit
+    """(N,) object id of each hit of a surface-interaction batch, -1 where the ray escaped.
+
+    A hit's shape pointer is a Dr.Jit registry id; one table from the scene's shapes' ids to their
+    indices reads every hit at once (comparing the hits with each shape in turn took minutes on a
+    file of 800 shapes)."""
+    import drjit as dr
+
+    mi = handle.mi
+    valid = np.array(si.is_valid(), bool).reshape(-1)
+    raw = np.array(dr.reinterpret_array(mi.UInt32, si.shape), np.int64).reshape(-1)
+    ids = np.array([int(np.array(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape)))[0])
+                    for shape in handle.shapes()], np.int64)
+    table = np.full(int(max(ids.max(initial=0), raw.max(initial=0))) + 1, -1, np.int64)
+    table[ids] = np.arange(ids.size)
+    return np.where(valid, table[raw], -1)
 
 
 def _two_sided(handle: SceneHandle, rooms) -> np.ndarray:
@@ -776,15 +790,18 @@ def _two_sided(handle: SceneHandle, rooms) -> np.ndarray:
                      for k, shape in enumerate(handle.shapes())], bool)
 
 
-def _orient(handle: SceneHandle, object_id, position, normal, n_dirs: int = 16) -> np.ndarray:
+def _orient(handle: SceneHandle, object_id, position, normal, n_dirs: int = 16, seen_from=None) -> np.ndarray:
     """``normal`` (N, 3) turned towards the side of the surface that the rest of the scene is on,
     where that is ambiguous: on a shape that encloses the scene (``enclosing_objects``: a room
     modelled as one closed mesh) towards the scene's centre; on other two-sided surfaces (a
-    ``twosided`` BSDF) away from the authored side where fewer than half of ``n_dirs``
-    cosine-distributed rays from it hit *another* object farther than 2 % of the scene's size
-    (it escapes the scene, as outside a room's wall) and the other side's rays do so at least 25
-    points more often; otherwise the geometric normal stays (a picture on a wall, whose back sees
-    only the wall, keeps its front; the inside of a closed box sees only itself). A texel's radiance is
+    ``twosided`` BSDF) towards the side that sees the views where only one side sees any of
+    ``seen_from`` ((K, 3) view points, ``sees_points``; None: no such test), so a landing seen
+    from below and closed off above serves its underside; else away from the authored side
+    where fewer than half of ``n_dirs`` cosine-distributed rays from it hit *another* object
+    farther than 2 % of the scene's size (it escapes the scene, as outside a room's wall) and
+    the other side's rays do so at least 25 points more often; otherwise the geometric normal
+    stays (a picture on a wall, whose back sees only the wall, keeps its front; the inside of a
+    closed box sees only itself). A texel's radiance is
     gathered, and a measurement point's direct light measured, on the side its normal points to,
     so a wall whose face points outwards would otherwise read the dark outside. One-sided
     surfaces keep their normal: Mitsuba shades only that side."""
@@ -819,7 +836,12 @@ def _orient(handle: SceneHandle, object_id, position, normal, n_dirs: int = 16) 
     # flip only where the authored side mostly sees nothing and the other side clearly more (a
     # picture on a wall sees the room through an opening on its front, the wall behind it on its
     # back: the front keeps)
-    out[sel[(score[0] < 0.5) & (score[1] > score[0] + 0.25)]] *= -1.0
+    flip = (score[0] < 0.5) & (score[1] > score[0] + 0.25)
+    if seen_from is not None and len(seen_from):
+        # where exactly one side sees the views, that side serves them, whatever the rays above say
+        front, back = sees_points(handle, p, nrm, seen_from), sees_points(handle, p, -nrm, seen_from)
+        flip = np.where(front != back, back, flip)
+    out[sel[flip]] *= -1.0
     return out.astype(np.asarray(normal).dtype)
 
 

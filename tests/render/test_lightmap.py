@@ -33,6 +33,24 @@ def test_texels_lie_on_their_surfaces_and_face_outwards(cornell):
     assert np.all(atlas.fill_index >= 0) and atlas.fill_index.max() < atlas.count
 
 
+def test_hit_objects_names_each_hits_shape(cornell):
+    """The registry-id table reads the same object per hit as comparing the hits' shape pointers
+    with each shape in turn, and -1 for rays that leave the box through its open side."""
+    handle, _ = cornell
+    mi = handle.mi
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.tile([0.1, 0.2, -0.1], (4000, 1))
+    si = lightmap.intersect(handle, o, d)
+    expected = np.full(4000, -1)
+    for k, shape in enumerate(handle.shapes()):
+        expected[np.array(si.shape == mi.ShapePtr(shape), bool).reshape(-1)] = k
+    got = lightmap._hit_objects(handle, si)
+    np.testing.assert_array_equal(got, expected)
+    assert len(np.unique(got[got >= 0])) >= 5 and np.any(got == -1)
+
+
 def test_atlas_gbuffer_uv_points_at_the_texel_under_the_pixel(cornell):
     handle, atlas = cornell
     gb = lightmap.atlas_gbuffer(handle, atlas, handle.default_camera(48, 48))
@@ -413,3 +431,40 @@ def test_texels_no_view_sees_are_never_shown(mi, tmp_path):
     plain = lightmap.build_atlas(handle, resolution=32, seen_from=None)
     np.testing.assert_array_equal(np.asarray(plain.fill_index)[plain.texel_index], np.arange(plain.count))
     np.testing.assert_array_equal(plain.position, atlas.position)
+
+
+def _landing_file(tmp_path) -> str:
+    """A 2 x 2 floor (y = 0), a two-sided landing (y = 1) authored facing up, and a loft ceiling
+    (y = 1.2) just above the landing: the landing's upper side sees the loft, its underside the
+    floor, so the rays of ``_orient``'s escape test find geometry on both sides."""
+    quads = {"floor": [(-1, 0, -1), (-1, 0, 1), (1, 0, 1), (1, 0, -1)],
+             "landing": [(-1, 1, -1), (-1, 1, 1), (1, 1, 1), (1, 1, -1)],
+             "loft": [(-1.5, 1.2, -1.5), (1.5, 1.2, -1.5), (1.5, 1.2, 1.5), (-1.5, 1.2, 1.5)]}
+    body = ""
+    for name, corners in quads.items():
+        (tmp_path / f"{name}.obj").write_text("".join("v {} {} {}\n".format(*c) for c in corners) + "f 1 2 3\nf 1 3 4\n")
+        body += (f'<shape type="obj" id="{name}"><string name="filename" value="{name}.obj"/>'
+                 '<bsdf type="twosided"><bsdf type="diffuse"/></bsdf></shape>')
+    path = tmp_path / "landing.xml"
+    path.write_text(f'<scene version="3.0.0">{body}</scene>')
+    return str(path)
+
+
+def test_a_two_sided_surface_seen_from_one_side_only_faces_the_views(mi, tmp_path):
+    """The landing is authored facing up, and both its sides see other geometry, so without view
+    points its texels keep the authored side (which no view sees). Views from under it turn every
+    landing texel to face down; views from between landing and loft keep them facing up."""
+    from jprt.render.scenes import SceneHandle, xml
+
+    handle = SceneHandle(xml(_landing_file(tmp_path)))
+    landing = handle.object_names().index("landing")
+
+    def landing_normals(seen_from):
+        atlas = lightmap.build_atlas(handle, resolution=32, seen_from=seen_from)
+        return np.asarray(atlas.normal)[np.asarray(atlas.texel_object) == landing]
+
+    assert np.all(landing_normals(None)[:, 1] > 0.99)
+    below = np.array([[0.0, 0.5, 0.0], [0.3, 0.4, -0.2]])
+    assert np.all(landing_normals(below)[:, 1] < -0.99)
+    between = np.array([[0.0, 1.1, 0.0], [0.4, 1.1, 0.3]])
+    assert np.all(landing_normals(between)[:, 1] > 0.99)
