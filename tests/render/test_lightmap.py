@@ -396,15 +396,20 @@ def test_an_atlas_grows_until_its_texels_are_as_fine_as_asked(mi, tmp_path):
 def _wall_through_ceiling_file(tmp_path) -> str:
     """A 2 x 2 room's floor (y = 0) and ceiling (y = 1), and a back wall that runs on up to y = 2
     (walls modelled taller than the room are common in scene files)."""
-    quads = {"floor": [(-1, 0, -1), (1, 0, -1), (1, 0, 1), (-1, 0, 1)],
-             "ceiling": [(-1, 1, -1), (-1, 1, 1), (1, 1, 1), (1, 1, -1)],
-             "wall": [(-1, 0, -1), (-1, 2, -1), (1, 2, -1), (1, 0, -1)]}
+    return _two_sided_quads_file(tmp_path, "room", {
+        "floor": [(-1, 0, -1), (1, 0, -1), (1, 0, 1), (-1, 0, 1)],
+        "ceiling": [(-1, 1, -1), (-1, 1, 1), (1, 1, 1), (1, 1, -1)],
+        "wall": [(-1, 0, -1), (-1, 2, -1), (1, 2, -1), (1, 0, -1)]})
+
+
+def _two_sided_quads_file(tmp_path, stem: str, quads: dict) -> str:
+    """A scene file of quads ({id: four corners}), each its own OBJ with a two-sided diffuse BSDF."""
     body = ""
     for name, corners in quads.items():
         (tmp_path / f"{name}.obj").write_text("".join("v {} {} {}\n".format(*c) for c in corners) + "f 1 2 3\nf 1 3 4\n")
         body += (f'<shape type="obj" id="{name}"><string name="filename" value="{name}.obj"/>'
                  '<bsdf type="twosided"><bsdf type="diffuse"/></bsdf></shape>')
-    path = tmp_path / "room.xml"
+    path = tmp_path / f"{stem}.xml"
     path.write_text(f'<scene version="3.0.0">{body}</scene>')
     return str(path)
 
@@ -437,17 +442,10 @@ def _landing_file(tmp_path) -> str:
     """A 2 x 2 floor (y = 0), a two-sided landing (y = 1) authored facing up, and a loft ceiling
     (y = 1.2) just above the landing: the landing's upper side sees the loft, its underside the
     floor, so the rays of ``_orient``'s escape test find geometry on both sides."""
-    quads = {"floor": [(-1, 0, -1), (-1, 0, 1), (1, 0, 1), (1, 0, -1)],
-             "landing": [(-1, 1, -1), (-1, 1, 1), (1, 1, 1), (1, 1, -1)],
-             "loft": [(-1.5, 1.2, -1.5), (1.5, 1.2, -1.5), (1.5, 1.2, 1.5), (-1.5, 1.2, 1.5)]}
-    body = ""
-    for name, corners in quads.items():
-        (tmp_path / f"{name}.obj").write_text("".join("v {} {} {}\n".format(*c) for c in corners) + "f 1 2 3\nf 1 3 4\n")
-        body += (f'<shape type="obj" id="{name}"><string name="filename" value="{name}.obj"/>'
-                 '<bsdf type="twosided"><bsdf type="diffuse"/></bsdf></shape>')
-    path = tmp_path / "landing.xml"
-    path.write_text(f'<scene version="3.0.0">{body}</scene>')
-    return str(path)
+    return _two_sided_quads_file(tmp_path, "landing", {
+        "floor": [(-1, 0, -1), (-1, 0, 1), (1, 0, 1), (1, 0, -1)],
+        "landing": [(-1, 1, -1), (-1, 1, 1), (1, 1, 1), (1, 1, -1)],
+        "loft": [(-1.5, 1.2, -1.5), (1.5, 1.2, -1.5), (1.5, 1.2, 1.5), (-1.5, 1.2, 1.5)]})
 
 
 def test_a_two_sided_surface_seen_from_one_side_only_faces_the_views(mi, tmp_path):
