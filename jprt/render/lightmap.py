@@ -770,8 +770,8 @@ def _hit_objects(handle: SceneHandle, si) -> np.ndarray:
     """(N,) object id of each hit of a surface-interaction batch, -1 where the ray escaped.
 
     A hit's shape pointer is a Dr.Jit registry id; one table from the scene's shapes' ids to their
-    indices reads every hit at once (comparing the hits with each shape in turn took minutes on a
-    file of 800 shapes)."""
+    indices reads every hit at once, instead of a pass over all hits per shape (slow on files of
+    hundreds of shapes)."""
     import drjit as dr
 
     mi = handle.mi
@@ -801,10 +801,10 @@ def _orient(handle: SceneHandle, object_id, position, normal, n_dirs: int = 16, 
     farther than 2 % of the scene's size (it escapes the scene, as outside a room's wall) and
     the other side's rays do so at least 25 points more often; otherwise the geometric normal
     stays (a picture on a wall, whose back sees only the wall, keeps its front; the inside of a
-    closed box sees only itself). A texel's radiance is
-    gathered, and a measurement point's direct light measured, on the side its normal points to,
-    so a wall whose face points outwards would otherwise read the dark outside. One-sided
-    surfaces keep their normal: Mitsuba shades only that side."""
+    closed box sees only itself). A texel's radiance is gathered, and a measurement point's
+    direct light measured, on the side its normal points to, so a wall whose face points
+    outwards would otherwise read the dark outside. One-sided surfaces keep their normal:
+    Mitsuba shades only that side."""
     rooms = enclosing_objects(handle)
     object_id = np.asarray(object_id)
     box = handle.scene.bbox()
