@@ -39,7 +39,8 @@ from jprt.inputs import GBuffer
 from jprt.render.cameras import Camera, check_rays, to_sensor_dict
 from jprt.render.scenes import SceneHandle
 
-__all__ = ["GBuffer", "gbuffer", "gbuffer_rays", "object_materials", "read_materials", "view_dependent_objects"]
+__all__ = ["GBuffer", "gbuffer", "gbuffer_rays", "hit_objects", "object_materials", "read_materials",
+           "view_dependent_objects"]
 
 
 def _child_objects(obj, mi) -> dict:
@@ -256,6 +257,25 @@ def _read_one(handle: SceneHandle, si) -> dict:
     return read_materials(handle, si, handle.mi.Bool(True), 1)
 
 
+def hit_objects(handle: SceneHandle, si) -> np.ndarray:
+    """(N,) int64 object id (index into ``handle.shapes()``) of each hit of a surface-interaction
+    batch, -1 where the ray escaped.
+
+    A hit's shape pointer is a Dr.Jit registry id; one table from the scene's shapes' ids to their
+    indices reads every hit at once, instead of a pass over all hits per shape (slow on files of
+    hundreds of shapes)."""
+    import drjit as dr
+
+    mi = handle.mi
+    valid = np.array(si.is_valid(), bool).reshape(-1)
+    raw = np.array(dr.reinterpret_array(mi.UInt32, si.shape), np.int64).reshape(-1)
+    ids = np.array([int(np.array(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape)))[0])
+                    for shape in handle.shapes()], np.int64)
+    table = np.full(int(max(ids.max(initial=0), raw.max(initial=0))) + 1, -1, np.int64)
+    table[ids] = np.arange(ids.size)
+    return np.where(valid, table[raw], -1)
+
+
 def _hits(handle: SceneHandle, ray, n: int) -> dict:
     """Flat (n, ...) first-hit attributes of a Dr.Jit ray batch (see ``GBuffer`` for the fields)."""
     mi = handle.mi
@@ -269,9 +289,6 @@ def _hits(handle: SceneHandle, ray, n: int) -> dict:
     nrm = nrm * flip
     ndotv = dr.dot(nrm, v)
     r = 2.0 * ndotv * nrm - v
-    object_id = dr.full(mi.Int32, -1, n)
-    for k, shape in enumerate(handle.shapes()):
-        object_id = dr.select(valid & (si.shape == mi.ShapePtr(shape)), k, object_id)
 
     def arr(value, c):
         a = np.array(value, dtype=np.float32)
@@ -280,7 +297,7 @@ def _hits(handle: SceneHandle, ray, n: int) -> dict:
 
     valid_np = np.array(valid, dtype=bool).reshape(n)
     mask = valid_np[:, None]
-    object_np = np.array(object_id, dtype=np.int32).reshape(n)
+    object_np = hit_objects(handle, si).astype(np.int32).reshape(n)
     materials = read_materials(handle, si, valid, n, object_np)
 
     def unit(a):

@@ -38,7 +38,7 @@ import numpy as np
 
 from jprt.render import images
 from jprt.render.cameras import Camera, camera_rays
-from jprt.render.gbuffer import GBuffer, gbuffer, gbuffer_rays
+from jprt.render.gbuffer import GBuffer, gbuffer, gbuffer_rays, hit_objects
 from jprt.render.lights import DirectionalLights, Lighting, PointLights, SpotLights
 from jprt.render.scenes import SceneHandle
 
@@ -766,24 +766,6 @@ def _hemisphere_directions(n: int = 16) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1.0 - r * r)], axis=1)
 
 
-def _hit_objects(handle: SceneHandle, si) -> np.ndarray:
-    """(N,) object id of each hit of a surface-interaction batch, -1 where the ray escaped.
-
-    A hit's shape pointer is a Dr.Jit registry id; one table from the scene's shapes' ids to their
-    indices reads every hit at once, instead of a pass over all hits per shape (slow on files of
-    hundreds of shapes)."""
-    import drjit as dr
-
-    mi = handle.mi
-    valid = np.array(si.is_valid(), bool).reshape(-1)
-    raw = np.array(dr.reinterpret_array(mi.UInt32, si.shape), np.int64).reshape(-1)
-    ids = np.array([int(np.array(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape)))[0])
-                    for shape in handle.shapes()], np.int64)
-    table = np.full(int(max(ids.max(initial=0), raw.max(initial=0))) + 1, -1, np.int64)
-    table[ids] = np.arange(ids.size)
-    return np.where(valid, table[raw], -1)
-
-
 def _two_sided(handle: SceneHandle, rooms) -> np.ndarray:
     """(S,) bool: shapes with a ``twosided`` BSDF that do not enclose the scene (``rooms``)."""
     return np.array([k not in rooms and shape.bsdf() is not None and shape.bsdf().class_name() == "TwoSidedBRDF"
@@ -830,7 +812,7 @@ def _orient(handle: SceneHandle, object_id, position, normal, n_dirs: int = 16, 
         o = np.repeat(p + ray_offset(handle) * z, n_dirs, axis=0)
         si = intersect(handle, o, d.reshape(-1, 3))
         t = np.where(np.array(si.is_valid(), bool).reshape(-1), np.array(si.t, np.float64).reshape(-1), np.inf)
-        hit = _hit_objects(handle, si)
+        hit = hit_objects(handle, si)
         other = (hit >= 0) & (hit != np.repeat(object_id[sel], n_dirs))
         score.append(((t > 0.02 * size) & np.isfinite(t) & other).reshape(-1, n_dirs).mean(axis=1))
     # flip only where the authored side mostly sees nothing and the other side clearly more (a
@@ -943,7 +925,7 @@ def free_positions(handle: SceneHandle, points, *, clearance: float = 0.0, n_dir
     t = np.where(valid, np.array(si.t, np.float64).reshape(-1), np.inf)
     back = valid & (np.sum(n * d, axis=1) > 0)
     rooms = enclosing_objects(handle)
-    hit = _hit_objects(handle, si)
+    hit = hit_objects(handle, si)
     twosided = _two_sided(handle, rooms)
     one_sided = np.append(~twosided & ~np.isin(np.arange(len(twosided)), rooms), False)  # [-1]: no hit
     # one-sided surfaces: seen from their back side; two-sided ones have no back, so a point is

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from jprt.render import lightmap
+from jprt.render.gbuffer import hit_objects
 from jprt.render.cameras import look_at
 from jprt.render.lights import DirectionalLights, PointLights, SpotLights
 from jprt.render.scenes import SceneHandle, asset_room, cornell_box
@@ -46,7 +47,7 @@ def test_hit_objects_names_each_hits_shape(cornell):
     expected = np.full(4000, -1)
     for k, shape in enumerate(handle.shapes()):
         expected[np.array(si.shape == mi.ShapePtr(shape), bool).reshape(-1)] = k
-    got = lightmap._hit_objects(handle, si)
+    got = hit_objects(handle, si)
     np.testing.assert_array_equal(got, expected)
     assert len(np.unique(got[got >= 0])) >= 5 and np.any(got == -1)
 
