@@ -151,15 +151,18 @@ def lit_fraction(handle, positions, size: int = 32, view=None) -> np.ndarray | N
     origins, normals = view
     if not len(origins):
         return np.zeros(len(np.atleast_2d(positions)))
-    out = []
-    for light in np.asarray(positions, np.float64).reshape(-1, 3):
-        to_light = light[None] - origins
-        dist = np.linalg.norm(to_light, axis=1)
-        d = to_light / np.maximum(dist, 1e-12)[:, None]
-        si = intersect(handle, origins, d)
+    lights = np.asarray(positions, np.float64).reshape(-1, 3)
+    out = np.zeros(len(lights))
+    step = max(1, (1 << 20) // len(origins))  # lights per ray batch: about a million rays
+    for a in range(0, len(lights), step):
+        to_light = lights[a:a + step, None] - origins[None]  # (L, N, 3)
+        dist = np.linalg.norm(to_light, axis=2)
+        d = to_light / np.maximum(dist, 1e-12)[..., None]
+        si = intersect(handle, np.broadcast_to(origins, d.shape).reshape(-1, 3), d.reshape(-1, 3))
         t = np.where(np.array(si.is_valid(), bool).reshape(-1), np.array(si.t, np.float64).reshape(-1), np.inf)
-        out.append(float(np.mean((np.sum(d * normals, axis=1) > 0) & (t > dist * (1.0 - 1e-4)))))
-    return np.array(out)
+        lit = (np.sum(d * normals[None], axis=2) > 0) & (t.reshape(dist.shape) > dist * (1.0 - 1e-4))
+        out[a:a + step] = lit.mean(axis=1)
+    return out
 
 
 def serves_view(handle, positions, view) -> np.ndarray:

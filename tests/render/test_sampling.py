@@ -65,6 +65,8 @@ def test_lights_drawn_for_a_file_light_what_its_camera_sees(mi, tmp_path, monkey
     handle = SceneHandle(desc)
     lit = sampling.lit_fraction(handle, lights)
     assert np.all(lights[:, 0] < -0.1) and lit.min() >= sampling.MIN_LIT_FRACTION
+    # lights share a ray batch: each one's share is what it scores alone
+    np.testing.assert_array_equal(lit, [sampling.lit_fraction(handle, p[None])[0] for p in lights])
     assert sampling.lit_fraction(handle, [[2.0, 2.0, 0.0]])[0] == 0.0  # the right room lights none of it
     monkeypatch.setattr(sampling, "MIN_LIT_FRACTION", 0.0)
     assert np.any(draw()[:, 0] > 0.1)
