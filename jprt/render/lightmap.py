@@ -49,6 +49,7 @@ __all__ = [
     "build_atlas",
     "atlas_gbuffer",
     "surface_samples",
+    "albedo_at_points",
     "radiance_at_points",
     "direct_at_points",
     "indirect_at_points",
@@ -739,10 +740,17 @@ def surface_samples(handle: SceneHandle, n: int, *, objects: Sequence[str | int]
     bary = np.column_stack([1 - s, s * (1 - r2), s * r2])
     position = np.einsum("ni,nij->nj", bary, all_tris[pick])
     normal = _orient(handle, owner[pick], position, _geometric_normals(all_tris)[pick])
-    eps = ray_offset(handle)
-    gb = gbuffer_rays(handle, position + eps * normal, -normal)
-    return SurfacePoints(position.astype(np.float32), normal.astype(np.float32), gb.diffuse_albedo,
-                         owner[pick], float(area.sum()))
+    return SurfacePoints(position.astype(np.float32), normal.astype(np.float32),
+                         albedo_at_points(handle, position, normal)[0], owner[pick], float(area.sum()))
+
+
+def albedo_at_points(handle: SceneHandle, position, normal) -> tuple[np.ndarray, np.ndarray]:
+    """The BSDF's diffuse and specular albedo (S, 3) float32 each at surface points (``position``,
+    ``normal`` (S, 3)), read through a ray that hits each point along its normal (textures
+    included); a lightmap's texels' with ``atlas.position`` and ``atlas.normal``."""
+    position, normal = np.asarray(position, np.float64), np.asarray(normal, np.float64)
+    gb = gbuffer_rays(handle, position + ray_offset(handle) * normal, -normal)
+    return np.asarray(gb.diffuse_albedo, np.float32), np.asarray(gb.specular_albedo, np.float32)
 
 
 def enclosing_objects(handle: SceneHandle) -> list[int]:

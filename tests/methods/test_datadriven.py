@@ -14,7 +14,7 @@ import jax
 
 from jprt.inputs import PointRadiance
 from jprt.methods.datadriven import model as dd
-from jprt.methods.lightmap_lookup import atlas_inputs
+from jprt.methods.lightmap_lookup import atlas_inputs, texel_modulation
 
 
 def _layout(params, texels, res=8):
@@ -343,3 +343,66 @@ def test_random_lights_point_scenario():
     assert np.allclose(power, power[:, :1]) and (power >= 0.5).all() and (power <= 2.0).all()
     with pytest.raises(ValueError, match="'area'"):
         random_lights(np.random.default_rng(0), 1, cfg | {"kind": "area"})
+
+
+@pytest.mark.parametrize("demodulate", [True, False])
+def test_demodulated_fit_shades_texture_finer_than_a_texel(demodulate):
+    """Indirect light a(x) E on a Lambertian surface: E linear in the lights and the same over the
+    surface, a a texture that changes from texel to texel. A demodulated fit
+    (``shading.demodulate``) shades a pixel between two texels with its own albedo times E,
+    exactly; the plain lookup blends its neighbours' a E. Both give the texels' own light at
+    texel centres and on the atlas G-buffer (no albedo); a glossy pixel keeps the lookup."""
+    rng = np.random.default_rng(3)
+    s, t, res, n = 6, 64, 8, 12
+    direct = rng.random((n, s, 3)) + 0.1
+    energy = direct.sum(axis=1)  # (n, 3): E of each configuration, the same at every texel
+    albedo = rng.uniform(0.1, 0.9, (t, 3)).astype(np.float32)
+    indirect = albedo[None] * energy[:, None]
+    empty = np.zeros((0, s, 3))
+    data = dd.DDData(atlas={"texel_index": np.arange(t), "fill_index": np.arange(res * res), "resolution": res},
+                     candidates={"position": rng.random((s, 3)), "area": 1.0}, direct=direct, indirect=indirect,
+                     direct_test=empty, indirect_test=np.zeros((0, t, 3)), lights={}, lights_test={}, meta={},
+                     texel_modulation=texel_modulation(albedo, np.zeros_like(albedo), np.zeros(t, int)))
+    cfg = {"points": {"count": s, "supersample": 1}, "basis": {"n": 3},
+           "transfer": {"lam_cv": [], "lam": 1e-9}, "shading": {"demodulate": demodulate}}
+    params = dd.fit(data, cfg).params
+    assert ("texel_modulation" in params) == demodulate
+    evaluate = dd.evaluator(params, cfg)
+    x = PointRadiance(direct[0][params["fine_index"]].astype(np.float32))
+    lightmap = np.asarray(dd.lightmap(params, x.direct, cfg))
+    np.testing.assert_allclose(lightmap, indirect[0], rtol=1e-4)
+    atlas = np.asarray(evaluate(atlas_inputs(res, np.arange(t)), x)).reshape(-1, 3)
+    np.testing.assert_allclose(atlas, indirect[0], rtol=1e-4)
+    # pixels halfway between texel columns c and c + 1 of each row, with albedos of their own
+    rows, cols = np.meshgrid(np.arange(res), np.arange(res - 1), indexing="ij")
+    uv = np.stack([(cols + 1.0) / res, (rows + 0.5) / res], axis=-1).astype(np.float32)
+    pixel_albedo = rng.uniform(0.1, 0.9, uv.shape[:-1] + (3,)).astype(np.float32)
+    gb = atlas_inputs(res, np.arange(t))._replace(uv=uv, valid=np.ones(uv.shape[:-1], bool),
+                                                   diffuse_albedo=pixel_albedo, specular_albedo=np.zeros_like(pixel_albedo))
+    image = np.asarray(evaluate(gb, x))
+    exact = pixel_albedo * energy[0]
+    blend = 0.5 * (indirect[0].reshape(res, res, 3)[:, :-1] + indirect[0].reshape(res, res, 3)[:, 1:])
+    glossy = np.asarray(evaluate(gb._replace(specular_albedo=np.full_like(pixel_albedo, 0.04)), x))
+    np.testing.assert_allclose(glossy, blend, rtol=1e-4)
+    if demodulate:
+        np.testing.assert_allclose(image, exact, rtol=1e-4)
+    else:
+        np.testing.assert_allclose(image, blend, rtol=1e-4)
+        assert np.abs(image - exact).max() > 0.1 * np.abs(exact).max()
+
+
+def test_texel_modulation_divides_out_texture_only():
+    """An untextured Lambertian object's texels keep their light (relative modulation 1, the mean
+    its albedo); a textured one's are divided by their albedo over the object's mean; glossy
+    texels (a specular albedo) are not touched (1, and no mean); a black texel is floored."""
+    diffuse = np.array([[0.5, 0.4, 0.3], [0.5, 0.4, 0.3], [0.2, 0.2, 0.2], [0.6, 0.6, 0.6], [0.7, 0.1, 0.1],
+                        [0.0, 0.0, 0.0]], np.float32)
+    specular = np.zeros_like(diffuse)
+    specular[4] = 0.04
+    obj = np.array([0, 0, 1, 1, 2, 3])
+    m = texel_modulation(diffuse, specular, obj)
+    np.testing.assert_allclose(m[:2, :3], 1.0)
+    np.testing.assert_allclose(m[:2, 3:], diffuse[:2], rtol=1e-6)
+    np.testing.assert_allclose(m[2:4, :3], diffuse[2:4] / 0.4, rtol=1e-6)
+    np.testing.assert_allclose(m[4], [1, 1, 1, 0, 0, 0])
+    np.testing.assert_allclose(m[5], [1, 1, 1, 0, 0, 0])  # no diffuse albedo: not Lambertian

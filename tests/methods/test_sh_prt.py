@@ -118,3 +118,31 @@ def test_view_dependent_objects_are_read_from_the_bsdf_flags(mi, tmp_path):
 def test_a_negative_exit_order_is_refused():
     with pytest.raises(ValueError, match="sh.exit_order must be >= 0"):
         data.make_dataset("cornell_box", {"sh": {"exit_order": -1}})
+
+
+def test_demodulated_lookup_shades_a_texture_finer_than_a_texel():
+    """A Lambertian object whose light is its albedo a times E, E the same at every texel: with
+    ``texel_modulation`` a pixel between two texels is shaded a_pixel E (the plain lookup blends
+    its neighbours' a E); the atlas G-buffer (no albedo) still reads the texels' own light."""
+    from jprt.methods.lightmap_lookup import atlas_inputs, texel_modulation
+
+    rng = np.random.default_rng(4)
+    t, res = 64, 8
+    albedo = rng.uniform(0.1, 0.9, (t, 3)).astype(np.float32)
+    energy = np.array([2.0, 1.5, 1.0], np.float32)
+    params = {"transfer": (albedo * energy)[:, None, :], "texel_index": np.arange(t, dtype=np.int32),
+              "fill_index": np.arange(res * res, dtype=np.int32),
+              "texel_modulation": texel_modulation(albedo, np.zeros_like(albedo), np.zeros(t, int))}
+    light = SHLighting(np.ones((1, 3), np.float32))
+    evaluate = model.evaluator(params)
+    atlas = np.asarray(evaluate(atlas_inputs(res, np.arange(t)), light)).reshape(-1, 3)
+    np.testing.assert_allclose(atlas, albedo * energy, rtol=1e-5)
+    rows, cols = np.meshgrid(np.arange(res), np.arange(res - 1), indexing="ij")
+    uv = np.stack([(cols + 1.0) / res, (rows + 0.5) / res], axis=-1).astype(np.float32)
+    pixel = rng.uniform(0.1, 0.9, uv.shape[:-1] + (3,)).astype(np.float32)
+    gb = atlas_inputs(res, np.arange(t))._replace(uv=uv, valid=np.ones(uv.shape[:-1], bool), diffuse_albedo=pixel,
+                                                   specular_albedo=np.zeros_like(pixel), view=np.zeros_like(pixel))
+    np.testing.assert_allclose(np.asarray(evaluate(gb, light)), pixel * energy, rtol=1e-5)
+    plain = {k: v for k, v in params.items() if k != "texel_modulation"}
+    blend = np.asarray(model.evaluator(plain)(gb, light))
+    assert np.abs(blend - pixel * energy).max() > 0.1

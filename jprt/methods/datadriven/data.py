@@ -133,7 +133,15 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
         return _render(desc, cfg, progress, ray)
 
     arrays, path = cache.cached("datadriven", spec, build, cache_dir=cache_dir)
-    return _unpack(arrays, spec, path)
+    data = _unpack(arrays, spec, path)
+    # the texels' materials are read from the scene each time (one ray per texel), not cached: the
+    # datasets rendered before they were stay valid
+    from jprt.methods.lightmap_lookup import texel_modulation
+    from jprt.render import lightmap
+    from jprt.render.scenes import SceneHandle
+
+    albedo = lightmap.albedo_at_points(SceneHandle(desc), data.atlas["position"], data.atlas["normal"])
+    return data._replace(texel_modulation=texel_modulation(*albedo, data.atlas["texel_object"]))
 
 
 def _render(desc: dict, cfg: dict, progress: bool | None, ray: bool | None = None) -> dict:

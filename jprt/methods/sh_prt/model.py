@@ -40,7 +40,7 @@ import numpy as np
 
 from jprt.inputs import SHLighting
 from jprt.methods.base import FitResult, resolve
-from jprt.methods.lightmap_lookup import atlas_image, atlas_inputs, atlas_lookup
+from jprt.methods.lightmap_lookup import atlas_image, atlas_inputs, atlas_lookup, remodulated_lookup
 from jprt.sphere import sh
 
 __all__ = ["DEFAULT_CONFIG", "SHData", "delta_light_coefficients", "lightmap", "order_to_degree", "fit",
@@ -66,6 +66,10 @@ DEFAULT_CONFIG = {
         # 2 (degree + 1)^2 - 1; 0: none). Not part of the bake's cache key
         "check_maps": 1,
     },
+    # demodulate: a Lambertian pixel shades the looked-up texels' light over their diffuse albedo
+    # with its own (``lightmap_lookup.remodulated_lookup``): a texture finer than a texel comes
+    # from the pixel's material, as engines shade baked lightmaps; glossy texels keep their light
+    "shading": {"demodulate": True},
 }
 
 
@@ -80,6 +84,8 @@ class SHData(NamedTuple):
       exit_transfer: (G, (exit_degree + 1)^2, (degree + 1)^2, 3) exit transfer matrices of the
         view-dependent texels (G may be 0).
       exit_texel: (G,) their texel indices.
+      texel_modulation: (T, 6) ``lightmap_lookup.texel_modulation`` of the texels' materials, or
+        None (no demodulation).
     """
 
     atlas: dict
@@ -87,6 +93,7 @@ class SHData(NamedTuple):
     meta: dict
     exit_transfer: np.ndarray = np.zeros((0, 1, 1, 3), np.float32)
     exit_texel: np.ndarray = np.zeros(0, np.int32)
+    texel_modulation: np.ndarray | None = None
 
 
 def order_to_degree(order: int) -> int:
@@ -127,11 +134,12 @@ def lightmap(transfer, coefficients) -> np.ndarray:
 
 
 def fit(data: SHData, config: dict | None = None) -> FitResult:
-    """Pack the baked transfer and the atlas layout as params (the bake is SH PRT's fit).
+    """Pack the baked transfer and the atlas layout as params (the bake is SH PRT's fit), with the
+    texels' ``texel_modulation`` for a demodulated evaluator (``shading.demodulate``).
 
     Numerics: not differentiable (a fitting or training procedure).
     """
-    resolve(DEFAULT_CONFIG, config)
+    cfg = resolve(DEFAULT_CONFIG, config)
     exit_texel = np.asarray(data.exit_texel, np.int32)
     params = {"transfer": np.asarray(data.transfer, np.float32),
               "texel_index": np.asarray(data.atlas["texel_index"], np.int32),
@@ -139,6 +147,8 @@ def fit(data: SHData, config: dict | None = None) -> FitResult:
               "exit_transfer": np.asarray(data.exit_transfer, np.float32),
               "exit_texel": exit_texel,
               "exit_normal": np.asarray(data.atlas["normal"], np.float32)[exit_texel].reshape(-1, 3)}
+    if cfg["shading"]["demodulate"] and data.texel_modulation is not None:
+        params["texel_modulation"] = np.asarray(data.texel_modulation, np.float32)
     return FitResult(params, {"degree": int(data.meta["degree"]), "bake_s": float(data.meta["bake_s"]),
                               "exit_degree": int(data.meta.get("exit_degree", -1)),
                               "exit_texels": int(exit_texel.size)})
@@ -146,7 +156,9 @@ def fit(data: SHData, config: dict | None = None) -> FitResult:
 
 def evaluator(params, config: dict | None = None):
     """``evaluate(inputs, lighting) -> (H, W, 3)``: the lightmap sum_i l_i t_i (Eq. 5) looked up
-    bilinearly through the G-buffer's atlas ``uv``; invalid pixels 0. ``lighting`` is an
+    bilinearly through the G-buffer's atlas ``uv`` (with ``params["texel_modulation"]`` a
+    Lambertian pixel's lookup of the demodulated texels times its own diffuse albedo,
+    ``lightmap_lookup.remodulated_lookup``); invalid pixels 0. ``lighting`` is an
     ``SHLighting`` with at most (degree + 1)^2 coefficients (fewer evaluate a lower order).
 
     Where the bake holds exit transfer (``params["exit_transfer"]``, view-dependent texels), a
@@ -165,6 +177,19 @@ def evaluator(params, config: dict | None = None):
     exit_normal = jnp.asarray(params.get("exit_normal", np.zeros((0, 3), np.float32)))
     n_texels = transfer.shape[0]
     exit_degree = int(round(math.sqrt(exit_transfer.shape[1]))) - 1
+    modulated = "texel_modulation" in params
+    if modulated:
+        mod = jnp.asarray(params["texel_modulation"], jnp.float32)
+        mod_image = atlas_image(mod, fill)
+
+    def shade(texels, inputs, uv):
+        """The texels' light looked up per pixel (demodulated and shaded with the pixel's albedo
+        where the params carry ``texel_modulation``)."""
+        if not modulated:
+            return atlas_lookup(atlas_image(texels, fill), uv)
+        return remodulated_lookup(atlas_image(texels / mod[:, :3], fill), mod_image, uv,
+                                  jnp.asarray(inputs.diffuse_albedo, jnp.float32),
+                                  jnp.asarray(inputs.specular_albedo, jnp.float32))
 
     @jax.jit
     def evaluate(inputs, lighting):
@@ -173,14 +198,14 @@ def evaluator(params, config: dict | None = None):
             raise ValueError(f"{c.shape[0]} SH coefficients but the transfer holds {transfer.shape[1]}")
         uv = jnp.asarray(inputs.uv, jnp.float32)
         texels = jnp.einsum("tic,ic->tc", transfer[:, :c.shape[0]], c)
-        image = atlas_lookup(atlas_image(texels, fill), uv)
+        image = shade(texels, inputs, uv)
         if exit_transfer.shape[0]:
             coeff = jnp.einsum("gjic,ic->gjc", exit_transfer[:, :, :c.shape[0]], c)  # (G, m, 3)
             m = coeff.shape[1]
             glossy = jnp.zeros(n_texels, jnp.float32).at[exit_texel].set(1.0)
             rows = jnp.zeros((n_texels, m * 3 + 3), jnp.float32)
             rows = rows.at[exit_texel].set(jnp.concatenate([coeff.reshape(-1, m * 3), exit_normal], axis=1))
-            diffuse = atlas_lookup(atlas_image(texels * (1.0 - glossy)[:, None], fill), uv)
+            diffuse = shade(texels * (1.0 - glossy)[:, None], inputs, uv)
             looked = atlas_lookup(atlas_image(rows, fill), uv)
             view = jnp.asarray(inputs.view, jnp.float32)
             y = sh.evaluate(view, exit_degree)  # (H, W, m)
