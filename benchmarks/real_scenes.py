@@ -65,11 +65,20 @@ def summary(report: dict) -> dict:
 
 
 def merged(old: dict | None, new: dict, scenes: list[str]) -> dict:
-    """``new`` (a ``summary``) with the scene entries of ``old`` that ``new`` does not measure
-    (``--merge``); ``missing``: the stems of ``scenes`` without an entry; ``target_met_everywhere``
+    """``new`` (a ``summary``) with the scene entries of ``old`` that ``new`` does not measure, and
+    in a scene it measures the method entries it does not (``--merge``; each keeps its
+    ``measured``: the command, date and config hash that measured it); ``missing``: the stems of ``scenes`` without an entry; ``target_met_everywhere``
     over the entries present (False while any is missing)."""
     out = dict(new)
-    out["scenes"] = {**({} if old is None else old.get("scenes", {})), **new["scenes"]}
+    before = {} if old is None else old.get("scenes", {})
+    out["scenes"] = {**before, **new["scenes"]}
+    for scene, entry in new["scenes"].items():  # a scene run for some methods keeps the others' entries
+        if "methods" not in entry:  # the scene failed as a whole
+            continue
+        kept = {m: e for m, e in before.get(scene, {}).get("methods", {}).items() if m not in entry["methods"]}
+        for e in kept.values():
+            e.setdefault("measured", {k: before[scene].get(k) for k in ("command", "date", "config_hash")})
+        entry["methods"] = {**kept, **entry["methods"]}
     stems = [os.path.basename(os.path.dirname(s)) for s in scenes]
     out["missing"] = [s for s in stems if s not in out["scenes"]]
     out["target_met_everywhere"] = not out["missing"] and all(
@@ -82,7 +91,8 @@ def main() -> int:
     parser.add_argument("--preset", default=None)
     parser.add_argument("--set", action="append", default=[], help="config override KEY=VALUE (as jprt run)")
     parser.add_argument("--scene", default=None, help="run only this scene file (relative to the assets folder)")
-    parser.add_argument("--merge", action="store_true", help="keep --out's entries of the scenes not run")
+    parser.add_argument("--merge", action="store_true",
+                        help="keep --out's entries of the scenes not run, and of the methods not run in a scene that is")
     parser.add_argument("--out", default=os.path.join(HERE, "results", "real_scenes.json"))
     args = parser.parse_args()
     sys.path.insert(0, ROOT)
@@ -100,6 +110,8 @@ def main() -> int:
     for entry in result["scenes"].values():  # each scene says what measured it (--merge keeps others')
         entry.update({"command": command, "config_hash": report["config_hash"], "date": time.strftime("%Y-%m-%d"),
                       "run_total_s": report["total_s"], "matmul_peak_gflops": report["matmul_peak_gflops"]})
+        for method in entry["methods"].values():
+            method["measured"] = {k: entry[k] for k in ("command", "date", "config_hash")}
     old = None
     if args.merge and os.path.exists(args.out):
         with open(args.out) as f:
