@@ -50,36 +50,39 @@ def lambertian(diffuse_albedo, specular_albedo):
     return jnp.any(diffuse_albedo > 0.0, axis=-1) & jnp.all(specular_albedo == 0.0, axis=-1)
 
 
-def texel_modulation(diffuse_albedo, specular_albedo, texel_object) -> np.ndarray:
-    """(T, 6) what a demodulated lightmap divides each texel's light by, and the albedo a pixel's is
-    taken relative to: at a Lambertian texel (``lambertian``) its ``modulation`` over the mean
-    modulation of its object's Lambertian texels (its texture, the object's mean divided out: an
-    untextured object's texels keep their light), then that mean; elsewhere 1 (a glossy texel's
-    light is not its diffuse albedo times anything: dividing by its texture would put the texture
-    into its reflections) and 0."""
+def texel_modulation(diffuse_albedo, specular_albedo, texel_object, hit_object, n_objects: int):
+    """What a demodulated lightmap divides each texel's light by, and what a pixel's albedo is
+    taken relative to: ((T, 3) float32, (n_objects, 3) float32). A Lambertian texel (``lambertian``,
+    its material read on its own object: ``hit_object`` equal to ``texel_object``) is divided by
+    its ``modulation`` over the mean modulation of its object's Lambertian texels (its texture, the
+    object's mean divided out: an untextured object's texels keep their light), the second array
+    holding that mean per object (0 for an object without Lambertian texels); every other texel
+    by 1 (a glossy texel's light is not its diffuse albedo times anything: dividing by its texture
+    would put the texture into its reflections)."""
     d, s = np.asarray(diffuse_albedo, np.float32), np.asarray(specular_albedo, np.float32)
     obj = np.asarray(texel_object)
-    lamb = np.asarray(lambertian(d, s))
+    lamb = np.asarray(lambertian(d, s)) & (np.asarray(hit_object) == obj)
     m = np.asarray(modulation(d), np.float64)
-    mean = np.zeros_like(m)
+    means = np.zeros((int(n_objects), 3))
+    rel = np.ones_like(m)
     for o in np.unique(obj[lamb]):
         mine = lamb & (obj == o)
-        mean[mine] = m[mine].mean(axis=0)
-    rel = np.where(lamb[:, None], m / np.where(lamb[:, None], mean, 1.0), 1.0)
-    return np.concatenate([rel, mean], axis=1).astype(np.float32)
+        means[o] = m[mine].mean(axis=0)
+        rel[mine] = m[mine] / means[o]
+    return rel.astype(np.float32), means.astype(np.float32)
 
 
-def remodulated_lookup(image, modulation_image, uv, albedo, specular):
-    """Shading with a demodulated lightmap (texels divided by ``texel_modulation``'s first three
-    columns; ``modulation_image`` its (R, R, 6) atlas image): the bilinear lookup of ``image`` times
-    the pixel's own ``modulation`` over its object's mean where the pixel is Lambertian (``albedo``
-    and ``specular`` (..., 3) from its G-buffer), so the albedo detail finer than a texel (a
-    texture) comes from the pixel, as engines shade lightmaps that hold illumination; elsewhere
-    times the looked-up texel modulation (a glossy pixel, or an atlas G-buffer, ``atlas_inputs``,
-    without albedos: at texel centres exactly the texels' light)."""
-    looked = atlas_lookup(modulation_image, uv)
-    own = modulation(albedo) / jnp.maximum(looked[..., 3:], ALBEDO_FLOOR)
-    scale = jnp.where(lambertian(albedo, specular)[..., None] & (looked[..., 3:] > 0.0), own, looked[..., :3])
+def remodulated_lookup(image, relative_image, uv, albedo, specular, object_id, object_mean):
+    """Shading with a demodulated lightmap (texels divided by ``texel_modulation``'s first array;
+    ``relative_image`` its (R, R, 3) atlas image): the bilinear lookup of ``image`` times a
+    Lambertian pixel's own ``modulation`` over its object's mean (``albedo``, ``specular`` (..., 3)
+    and ``object_id`` (...) from its G-buffer; ``object_mean`` the second array), so the albedo
+    detail finer than a texel (a texture) comes from the pixel, as engines shade lightmaps that
+    hold illumination; any other pixel times the looked-up texel modulation (a glossy pixel, or an
+    atlas G-buffer, ``atlas_inputs``, without albedos: at texel centres exactly the texels' light)."""
+    mean = jnp.asarray(object_mean)[jnp.clip(object_id, 0, object_mean.shape[0] - 1)]
+    own = lambertian(albedo, specular)[..., None] & (object_id >= 0)[..., None] & (mean > 0.0)
+    scale = jnp.where(own, modulation(albedo) / jnp.maximum(mean, ALBEDO_FLOOR), atlas_lookup(relative_image, uv))
     return atlas_lookup(image, uv) * scale
 
 

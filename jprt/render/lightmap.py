@@ -744,13 +744,15 @@ def surface_samples(handle: SceneHandle, n: int, *, objects: Sequence[str | int]
                          albedo_at_points(handle, position, normal)[0], owner[pick], float(area.sum()))
 
 
-def albedo_at_points(handle: SceneHandle, position, normal) -> tuple[np.ndarray, np.ndarray]:
+def albedo_at_points(handle: SceneHandle, position, normal) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The BSDF's diffuse and specular albedo (S, 3) float32 each at surface points (``position``,
     ``normal`` (S, 3)), read through a ray that hits each point along its normal (textures
-    included); a lightmap's texels' with ``atlas.position`` and ``atlas.normal``."""
+    included), and the object that ray hit (S,) (-1: none; another object where surfaces meet);
+    a lightmap's texels' with ``atlas.position`` and ``atlas.normal``."""
     position, normal = np.asarray(position, np.float64), np.asarray(normal, np.float64)
     gb = gbuffer_rays(handle, position + ray_offset(handle) * normal, -normal)
-    return np.asarray(gb.diffuse_albedo, np.float32), np.asarray(gb.specular_albedo, np.float32)
+    return (np.asarray(gb.diffuse_albedo, np.float32), np.asarray(gb.specular_albedo, np.float32),
+            np.asarray(gb.object_id, np.int32))
 
 
 def enclosing_objects(handle: SceneHandle) -> list[int]:

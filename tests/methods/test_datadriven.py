@@ -362,7 +362,7 @@ def test_demodulated_fit_shades_texture_finer_than_a_texel(demodulate):
     data = dd.DDData(atlas={"texel_index": np.arange(t), "fill_index": np.arange(res * res), "resolution": res},
                      candidates={"position": rng.random((s, 3)), "area": 1.0}, direct=direct, indirect=indirect,
                      direct_test=empty, indirect_test=np.zeros((0, t, 3)), lights={}, lights_test={}, meta={},
-                     texel_modulation=texel_modulation(albedo, np.zeros_like(albedo), np.zeros(t, int)))
+                     modulation=texel_modulation(albedo, np.zeros_like(albedo), np.zeros(t, int), np.zeros(t, int), 1))
     cfg = {"points": {"count": s, "supersample": 1}, "basis": {"n": 3},
            "transfer": {"lam_cv": [], "lam": 1e-9}, "shading": {"demodulate": demodulate}}
     params = dd.fit(data, cfg).params
@@ -378,7 +378,8 @@ def test_demodulated_fit_shades_texture_finer_than_a_texel(demodulate):
     uv = np.stack([(cols + 1.0) / res, (rows + 0.5) / res], axis=-1).astype(np.float32)
     pixel_albedo = rng.uniform(0.1, 0.9, uv.shape[:-1] + (3,)).astype(np.float32)
     gb = atlas_inputs(res, np.arange(t))._replace(uv=uv, valid=np.ones(uv.shape[:-1], bool),
-                                                   diffuse_albedo=pixel_albedo, specular_albedo=np.zeros_like(pixel_albedo))
+                                                   diffuse_albedo=pixel_albedo, specular_albedo=np.zeros_like(pixel_albedo),
+                                                   object_id=np.zeros(uv.shape[:-1], np.int32))
     image = np.asarray(evaluate(gb, x))
     exact = pixel_albedo * energy[0]
     blend = 0.5 * (indirect[0].reshape(res, res, 3)[:, :-1] + indirect[0].reshape(res, res, 3)[:, 1:])
@@ -394,15 +395,17 @@ def test_demodulated_fit_shades_texture_finer_than_a_texel(demodulate):
 def test_texel_modulation_divides_out_texture_only():
     """An untextured Lambertian object's texels keep their light (relative modulation 1, the mean
     its albedo); a textured one's are divided by their albedo over the object's mean; glossy
-    texels (a specular albedo) are not touched (1, and no mean); a black texel is floored."""
+    texels (a specular albedo), texels without a diffuse albedo, and texels whose material was
+    read on another object keep theirs, and no mean is taken over them."""
     diffuse = np.array([[0.5, 0.4, 0.3], [0.5, 0.4, 0.3], [0.2, 0.2, 0.2], [0.6, 0.6, 0.6], [0.7, 0.1, 0.1],
-                        [0.0, 0.0, 0.0]], np.float32)
+                        [0.0, 0.0, 0.0], [0.9, 0.9, 0.9]], np.float32)
     specular = np.zeros_like(diffuse)
     specular[4] = 0.04
-    obj = np.array([0, 0, 1, 1, 2, 3])
-    m = texel_modulation(diffuse, specular, obj)
-    np.testing.assert_allclose(m[:2, :3], 1.0)
-    np.testing.assert_allclose(m[:2, 3:], diffuse[:2], rtol=1e-6)
-    np.testing.assert_allclose(m[2:4, :3], diffuse[2:4] / 0.4, rtol=1e-6)
-    np.testing.assert_allclose(m[4], [1, 1, 1, 0, 0, 0])
-    np.testing.assert_allclose(m[5], [1, 1, 1, 0, 0, 0])  # no diffuse albedo: not Lambertian
+    obj = np.array([0, 0, 1, 1, 2, 3, 0])
+    hit = np.array([0, 0, 1, 1, 2, 3, 5])
+    rel, mean = texel_modulation(diffuse, specular, obj, hit, 6)
+    np.testing.assert_allclose(rel[:2], 1.0)
+    np.testing.assert_allclose(mean[0], diffuse[0], rtol=1e-6)
+    np.testing.assert_allclose(rel[2:4], diffuse[2:4] / 0.4, rtol=1e-6)
+    np.testing.assert_allclose(rel[4:], 1.0)
+    np.testing.assert_allclose(mean[2:], 0.0)

@@ -132,7 +132,8 @@ def test_demodulated_lookup_shades_a_texture_finer_than_a_texel():
     energy = np.array([2.0, 1.5, 1.0], np.float32)
     params = {"transfer": (albedo * energy)[:, None, :], "texel_index": np.arange(t, dtype=np.int32),
               "fill_index": np.arange(res * res, dtype=np.int32),
-              "texel_modulation": texel_modulation(albedo, np.zeros_like(albedo), np.zeros(t, int))}
+              **dict(zip(("texel_modulation", "object_albedo"),
+                         texel_modulation(albedo, np.zeros_like(albedo), np.zeros(t, int), np.zeros(t, int), 1)))}
     light = SHLighting(np.ones((1, 3), np.float32))
     evaluate = model.evaluator(params)
     atlas = np.asarray(evaluate(atlas_inputs(res, np.arange(t)), light)).reshape(-1, 3)
@@ -141,8 +142,9 @@ def test_demodulated_lookup_shades_a_texture_finer_than_a_texel():
     uv = np.stack([(cols + 1.0) / res, (rows + 0.5) / res], axis=-1).astype(np.float32)
     pixel = rng.uniform(0.1, 0.9, uv.shape[:-1] + (3,)).astype(np.float32)
     gb = atlas_inputs(res, np.arange(t))._replace(uv=uv, valid=np.ones(uv.shape[:-1], bool), diffuse_albedo=pixel,
-                                                   specular_albedo=np.zeros_like(pixel), view=np.zeros_like(pixel))
+                                                   specular_albedo=np.zeros_like(pixel), view=np.zeros_like(pixel),
+                                                   object_id=np.zeros(uv.shape[:-1], np.int32))
     np.testing.assert_allclose(np.asarray(evaluate(gb, light)), pixel * energy, rtol=1e-5)
-    plain = {k: v for k, v in params.items() if k != "texel_modulation"}
+    plain = {k: v for k, v in params.items() if k not in ("texel_modulation", "object_albedo")}
     blend = np.asarray(model.evaluator(plain)(gb, light))
     assert np.abs(blend - pixel * energy).max() > 0.1

@@ -140,8 +140,10 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
     from jprt.render import lightmap
     from jprt.render.scenes import SceneHandle
 
-    albedo = lightmap.albedo_at_points(SceneHandle(desc), data.atlas["position"], data.atlas["normal"])
-    return data._replace(texel_modulation=texel_modulation(*albedo, data.atlas["texel_object"]))
+    handle = SceneHandle(desc)
+    albedo = lightmap.albedo_at_points(handle, data.atlas["position"], data.atlas["normal"])
+    return data._replace(modulation=texel_modulation(*albedo[:2], data.atlas["texel_object"], albedo[2],
+                                                     len(handle.object_names())))
 
 
 def _render(desc: dict, cfg: dict, progress: bool | None, ray: bool | None = None) -> dict:

@@ -130,10 +130,10 @@ DEFAULT_CONFIG: dict[str, Any] = {
         # light transport itself (not in the paper; both measured: docs/methods/datadriven.md)
         "mean": "linear",
     },
-    # demodulate: the lightmap holds a Lambertian texel's indirect light over its diffuse albedo, and
-    # a Lambertian pixel multiplies the lookup by its own (``lightmap_lookup.remodulated_lookup``):
-    # a texture finer than a texel comes from the pixel's material, as engines shade baked lightmaps
-    # (the paper's lightmaps sit at the asset's texture resolution); glossy texels keep their light
+    # demodulate: a Lambertian pixel shades the looked-up texels' light over their texture with its
+    # own (``lightmap_lookup.remodulated_lookup``): a texture finer than a texel comes from the
+    # pixel's material, as engines shade baked lightmaps (the paper's lightmaps sit at the asset's
+    # texture resolution); glossy texels keep their light
     "shading": {"demodulate": True},
     "transfer": {
         "lam": 0.1,  # Tikhonov lambda of Eq. 14 on unit-norm direct vectors
@@ -603,7 +603,7 @@ def _lightmap(params: dict, direct, *, channels: str, gamma: float):
 def lightmap(params: dict, direct, config: dict | None = None):
     """Fine direct (..., S, 3) -> lightmap texels (..., T, 3) (§4.3): average to the coarse points
     (§5.1), gamma map (§5.3), u = M_n x, m |x| + U_n u (or B_n u with ``basis.mean="linear"``),
-    map back; a demodulated fit's texels times ``params["texel_modulation"]``. Jitted, batched over leading axes; the evaluator, cross-validation and the
+    map back. Jitted, batched over leading axes; the evaluator, cross-validation and the
     experiments all go through it. Only the arrays named in ``fit_arrays`` are read.
 
     Numerics:
@@ -616,11 +616,8 @@ def lightmap(params: dict, direct, config: dict | None = None):
     cfg = _cfg(config)
     arrays = {k: jnp.asarray(params[k]) for k in ("mean", "basis", "transfer", "group", "counts")}
     # in the params' precision: float32 from ``fit``, float64 where a test enables x64
-    out = _lightmap(arrays, jnp.asarray(direct, arrays["transfer"].dtype), channels=cfg["basis"]["channels"],
-                    gamma=float(cfg["basis"]["gamma"]))
-    if "texel_modulation" in params:  # a demodulated fit (``fit``): the texels' light
-        out = out * jnp.asarray(params["texel_modulation"], out.dtype)[:, :3]
-    return out
+    return _lightmap(arrays, jnp.asarray(direct, arrays["transfer"].dtype), channels=cfg["basis"]["channels"],
+                     gamma=float(cfg["basis"]["gamma"]))
 
 
 def transfer_coefficients(params: dict, x, config: dict | None = None):
@@ -647,9 +644,11 @@ def evaluator(params: dict, config: dict | None = None):
     itself, which makes the output the lightmap as an (R, R, 3) image);
     ``lighting`` a ``PointRadiance``: the direct radiance (S, 3) at the fine measurement points
     (the method's lighting input, §4.3 "fake G-buffer"). Pure and jitted: the lightmap
-    (``lightmap``) then a bilinear atlas lookup per pixel; for a demodulated fit a Lambertian
-    pixel multiplies it by its own diffuse albedo (``inputs.diffuse_albedo`` and
-    ``specular_albedo``, ``lightmap_lookup.remodulated_lookup``); invalid pixels are 0.
+    (``lightmap``) then a bilinear atlas lookup per pixel; with ``params["texel_modulation"]`` the
+    lookup of the texels' light over their texture, times a Lambertian pixel's own
+    (``inputs.diffuse_albedo``, ``specular_albedo`` and ``object_id``,
+    ``lightmap_lookup.remodulated_lookup``);
+    invalid pixels are 0.
 
     Numerics: not differentiable (builds the float32 run-time program; its arithmetic is ``lightmap``'s, covered).
     """
@@ -663,12 +662,19 @@ def evaluator(params: dict, config: dict | None = None):
     n_fine = int(params["group"].shape[0])
     channels, gamma = cfg["basis"]["channels"], float(cfg["basis"]["gamma"])
     modulated = "texel_modulation" in params
-    mod_image = atlas_image(jnp.asarray(params["texel_modulation"], jnp.float32), fill) if modulated else None
+    if modulated:
+        mod = jnp.asarray(params["texel_modulation"], jnp.float32)
+        mod_image = atlas_image(mod, fill)
+        object_albedo = jnp.asarray(params["object_albedo"], jnp.float32)
 
     @jax.jit
-    def image(uv, valid, albedo, specular, direct):
-        atlas = atlas_image(_lightmap(arrays, direct, channels=channels, gamma=gamma), fill)
-        shaded = remodulated_lookup(atlas, mod_image, uv, albedo, specular) if modulated else atlas_lookup(atlas, uv)
+    def image(uv, valid, albedo, specular, object_id, direct):
+        texels = _lightmap(arrays, direct, channels=channels, gamma=gamma)
+        if modulated:
+            shaded = remodulated_lookup(atlas_image(texels / mod, fill), mod_image, uv, albedo, specular, object_id,
+                                        object_albedo)
+        else:
+            shaded = atlas_lookup(atlas_image(texels, fill), uv)
         return jnp.where(valid[..., None], shaded, 0.0)
 
     def evaluate(inputs, lighting):
@@ -683,7 +689,8 @@ def evaluator(params: dict, config: dict | None = None):
         zeros = jnp.zeros(uv.shape[:-1] + (3,), jnp.float32)
         albedo = jnp.asarray(inputs.diffuse_albedo, jnp.float32) if modulated else zeros
         specular = jnp.asarray(inputs.specular_albedo, jnp.float32) if modulated else zeros
-        return image(uv, valid, albedo, specular, direct)
+        object_id = jnp.asarray(inputs.object_id, jnp.int32) if modulated else jnp.zeros(uv.shape[:-1], jnp.int32)
+        return image(uv, valid, albedo, specular, object_id, direct)
 
     return evaluate
 
@@ -780,8 +787,8 @@ class DDData(NamedTuple):
       direct_test / indirect_test: held-out configurations (``data.test_spp``).
       lights / lights_test: dicts of the stacked fields of the lights (``SpotLights`` or ``PointLights``).
       meta: scene description, object names, render seconds, cache path.
-      texel_modulation: (T, 6) ``lightmap_lookup.texel_modulation`` of the texels' materials (a
-        Lambertian texel's albedo over its object's mean, and that mean), or None (no demodulation).
+      modulation: ``lightmap_lookup.texel_modulation`` of the texels' materials (a Lambertian
+        texel's albedo over its object's mean (T, 3), the means per object (K, 3)), or None.
     """
 
     atlas: dict
@@ -793,15 +800,14 @@ class DDData(NamedTuple):
     lights: dict
     lights_test: dict
     meta: dict
-    texel_modulation: np.ndarray | None = None
+    modulation: tuple | None = None
 
 
 def fit(data: DDData, config: dict | None = None) -> FitResult:
     """Measurement points (§4.1, §5.1), basis and transfer (§4.2) from a ``DDData``; the params
     also carry the lightmap layout the evaluator needs (fine_index, texel_index, fill_index).
-    With ``shading.demodulate`` and the data's ``texel_modulation``, the basis and transfer are
-    fitted to the texels' indirect light divided by it, which the params keep for the evaluator
-    and ``lightmap``.
+    With ``shading.demodulate`` the params keep the data's ``modulation`` for the evaluator
+    (``texel_modulation``, ``object_albedo``).
     ``info`` adds ``lambda_cv`` (the cross-validation, or None), ``resolution`` and ``fit_s``.
 
     Numerics: not differentiable (a fitting or training procedure).
@@ -810,16 +816,15 @@ def fit(data: DDData, config: dict | None = None) -> FitResult:
     t0 = time.perf_counter()
     points = measurement_points(data, cfg)
     direct = data.direct[:, points.fine_index]
-    mod = data.texel_modulation if cfg["shading"]["demodulate"] else None
-    indirect = data.indirect if mod is None else data.indirect / np.asarray(mod, np.float32)[:, :3]
     cv = None
     if cfg["transfer"]["lam_cv"]:
-        cv = cross_validate_lambda(direct, indirect, points.group, cfg, cfg["transfer"]["lam_cv"],
+        cv = cross_validate_lambda(direct, data.indirect, points.group, cfg, cfg["transfer"]["lam_cv"],
                                    folds=int(cfg["transfer"]["cv_folds"]))
         cfg = merge(cfg, {"transfer": {"lam": cv["best"]}})
-    params, info = fit_arrays(direct, indirect, points.group, cfg)
-    if mod is not None:
-        params["texel_modulation"] = np.asarray(mod, np.float32)
+    params, info = fit_arrays(direct, data.indirect, points.group, cfg)
+    if cfg["shading"]["demodulate"] and data.modulation is not None:
+        params["texel_modulation"] = np.asarray(data.modulation[0], np.float32)
+        params["object_albedo"] = np.asarray(data.modulation[1], np.float32)
     params["fine_index"] = points.fine_index
     params["texel_index"] = np.asarray(data.atlas["texel_index"], np.int32)
     params["fill_index"] = np.asarray(data.atlas["fill_index"], np.int32)

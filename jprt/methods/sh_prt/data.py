@@ -225,8 +225,10 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
     from jprt.render import lightmap
     from jprt.render.scenes import SceneHandle
 
-    albedo = lightmap.albedo_at_points(SceneHandle(desc), atlas["position"], atlas["normal"])
-    return SHData(atlas, arrays["transfer"], meta, exit_transfer, exit_texel, texel_modulation(*albedo, atlas["texel_object"]))
+    handle = SceneHandle(desc)
+    albedo = lightmap.albedo_at_points(handle, atlas["position"], atlas["normal"])
+    return SHData(atlas, arrays["transfer"], meta, exit_transfer, exit_texel,
+                  texel_modulation(*albedo[:2], atlas["texel_object"], albedo[2], len(handle.object_names())))
 
 
 #: Cube-map face size of the self-check's procedural maps.

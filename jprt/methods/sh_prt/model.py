@@ -84,8 +84,8 @@ class SHData(NamedTuple):
       exit_transfer: (G, (exit_degree + 1)^2, (degree + 1)^2, 3) exit transfer matrices of the
         view-dependent texels (G may be 0).
       exit_texel: (G,) their texel indices.
-      texel_modulation: (T, 6) ``lightmap_lookup.texel_modulation`` of the texels' materials, or
-        None (no demodulation).
+      modulation: ``lightmap_lookup.texel_modulation`` of the texels' materials (T, 3) and (K, 3),
+        or None (no demodulation).
     """
 
     atlas: dict
@@ -93,7 +93,7 @@ class SHData(NamedTuple):
     meta: dict
     exit_transfer: np.ndarray = np.zeros((0, 1, 1, 3), np.float32)
     exit_texel: np.ndarray = np.zeros(0, np.int32)
-    texel_modulation: np.ndarray | None = None
+    modulation: tuple | None = None
 
 
 def order_to_degree(order: int) -> int:
@@ -135,7 +135,8 @@ def lightmap(transfer, coefficients) -> np.ndarray:
 
 def fit(data: SHData, config: dict | None = None) -> FitResult:
     """Pack the baked transfer and the atlas layout as params (the bake is SH PRT's fit), with the
-    texels' ``texel_modulation`` for a demodulated evaluator (``shading.demodulate``).
+    data's ``modulation`` for a demodulated evaluator (``shading.demodulate``: ``texel_modulation``,
+    ``object_albedo``).
 
     Numerics: not differentiable (a fitting or training procedure).
     """
@@ -147,8 +148,9 @@ def fit(data: SHData, config: dict | None = None) -> FitResult:
               "exit_transfer": np.asarray(data.exit_transfer, np.float32),
               "exit_texel": exit_texel,
               "exit_normal": np.asarray(data.atlas["normal"], np.float32)[exit_texel].reshape(-1, 3)}
-    if cfg["shading"]["demodulate"] and data.texel_modulation is not None:
-        params["texel_modulation"] = np.asarray(data.texel_modulation, np.float32)
+    if cfg["shading"]["demodulate"] and data.modulation is not None:
+        params["texel_modulation"] = np.asarray(data.modulation[0], np.float32)
+        params["object_albedo"] = np.asarray(data.modulation[1], np.float32)
     return FitResult(params, {"degree": int(data.meta["degree"]), "bake_s": float(data.meta["bake_s"]),
                               "exit_degree": int(data.meta.get("exit_degree", -1)),
                               "exit_texels": int(exit_texel.size)})
@@ -181,15 +183,17 @@ def evaluator(params, config: dict | None = None):
     if modulated:
         mod = jnp.asarray(params["texel_modulation"], jnp.float32)
         mod_image = atlas_image(mod, fill)
+        object_albedo = jnp.asarray(params["object_albedo"], jnp.float32)
 
     def shade(texels, inputs, uv):
         """The texels' light looked up per pixel (demodulated and shaded with the pixel's albedo
         where the params carry ``texel_modulation``)."""
         if not modulated:
             return atlas_lookup(atlas_image(texels, fill), uv)
-        return remodulated_lookup(atlas_image(texels / mod[:, :3], fill), mod_image, uv,
+        return remodulated_lookup(atlas_image(texels / mod, fill), mod_image, uv,
                                   jnp.asarray(inputs.diffuse_albedo, jnp.float32),
-                                  jnp.asarray(inputs.specular_albedo, jnp.float32))
+                                  jnp.asarray(inputs.specular_albedo, jnp.float32),
+                                  jnp.asarray(inputs.object_id, jnp.int32), object_albedo)
 
     @jax.jit
     def evaluate(inputs, lighting):
