@@ -305,7 +305,10 @@ def relightable_parts(session, out: str, texel_index, fill, materials: dict | No
                               "holds": "the lightmap basis of Belcour et al. 2022 §4.2: channel 'mean' (times |x| "
                                        "per channel, or a regressed coefficient with basis.mean='linear') and 'bNN' "
                                        "(the basis vector NN); lightmap = mean |x| + sum_NN bNN u_NN, u = M x "
-                                       "(params/transfer.bin), x = the direct light averaged per coarse point"}
+                                       "(params/transfer.bin), x = the direct light averaged per coarse point"
+                                       + ("; a demodulated fit (shading.demodulate): times params/texel_modulation "
+                                          "per texel and channel, the texture its basis was fitted without"
+                                          if "texel_modulation" in params else "")}
         cand = ds.candidates
         fine = np.asarray(params["fine_index"], np.int64)
         pts = np.concatenate([np.asarray(cand["position"], np.float32)[fine],

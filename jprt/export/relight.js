@@ -144,6 +144,9 @@ async function dataDriven(base, manifest) {
   const group = (await buffer(base, manifest, "group")).data;  // (S,)
   const counts = (await buffer(base, manifest, "counts")).data;  // (P,)
   const fill = (await buffer(base, manifest, "fill_index")).data;
+  // a demodulated fit's basis holds the texels' light over their texture: put it back per channel
+  const modulation = manifest.params.some((e) => e.keys.length === 1 && e.keys[0] === "texel_modulation")
+    ? (await buffer(base, manifest, "texel_modulation")).data : null;  // (T, 3)
   const [, n] = basis.shape;
   const p = counts.length;
   const res = manifest.lightmap.resolution;
@@ -151,7 +154,7 @@ async function dataDriven(base, manifest) {
   // layer 0: the mean (weighted by |x|), layers 1..n: the basis vectors (weighted by u)
   const texture = layerTexture(fill, res, n + 1, (k, texel) => {
     const v = k === 0 ? mean[texel] : b[texel * n + k - 1];
-    return [v, v, v];
+    return modulation ? [0, 1, 2].map((c) => v * modulation[texel * 3 + c]) : [v, v, v];
   });
   const material = layerMaterial(texture, n + 1);
   return {

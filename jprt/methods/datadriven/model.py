@@ -130,10 +130,10 @@ DEFAULT_CONFIG: dict[str, Any] = {
         # light transport itself (not in the paper; both measured: docs/methods/datadriven.md)
         "mean": "linear",
     },
-    # demodulate: a Lambertian pixel shades the looked-up texels' light over their texture with its
-    # own (``lightmap_lookup.remodulated_lookup``): a texture finer than a texel comes from the
-    # pixel's material, as engines shade baked lightmaps (the paper's lightmaps sit at the asset's
-    # texture resolution); glossy texels keep their light
+    # demodulate: the lightmap is fitted to Lambertian texels' light over their texture, and a
+    # Lambertian pixel shades the lookup with its own (``lightmap_lookup.remodulated_lookup``): a
+    # texture finer than a texel comes from the pixel's material, as engines shade baked lightmaps
+    # (the paper's lightmaps sit at the asset's texture resolution); glossy texels keep their light
     "shading": {"demodulate": True},
     "transfer": {
         "lam": 0.1,  # Tikhonov lambda of Eq. 14 on unit-norm direct vectors
@@ -603,7 +603,8 @@ def _lightmap(params: dict, direct, *, channels: str, gamma: float):
 def lightmap(params: dict, direct, config: dict | None = None):
     """Fine direct (..., S, 3) -> lightmap texels (..., T, 3) (§4.3): average to the coarse points
     (§5.1), gamma map (§5.3), u = M_n x, m |x| + U_n u (or B_n u with ``basis.mean="linear"``),
-    map back. Jitted, batched over leading axes; the evaluator, cross-validation and the
+    map back; a demodulated fit's times ``params["texel_modulation"]`` (the texels' texture).
+    Jitted, batched over leading axes; the evaluator, cross-validation and the
     experiments all go through it. Only the arrays named in ``fit_arrays`` are read.
 
     Numerics:
@@ -616,8 +617,11 @@ def lightmap(params: dict, direct, config: dict | None = None):
     cfg = _cfg(config)
     arrays = {k: jnp.asarray(params[k]) for k in ("mean", "basis", "transfer", "group", "counts")}
     # in the params' precision: float32 from ``fit``, float64 where a test enables x64
-    return _lightmap(arrays, jnp.asarray(direct, arrays["transfer"].dtype), channels=cfg["basis"]["channels"],
-                     gamma=float(cfg["basis"]["gamma"]))
+    out = _lightmap(arrays, jnp.asarray(direct, arrays["transfer"].dtype), channels=cfg["basis"]["channels"],
+                    gamma=float(cfg["basis"]["gamma"]))
+    if "texel_modulation" in params:  # a demodulated fit: its texture back on, the texels' light
+        out = out * jnp.asarray(params["texel_modulation"], out.dtype)
+    return out
 
 
 def transfer_coefficients(params: dict, x, config: dict | None = None):
@@ -644,8 +648,9 @@ def evaluator(params: dict, config: dict | None = None):
     itself, which makes the output the lightmap as an (R, R, 3) image);
     ``lighting`` a ``PointRadiance``: the direct radiance (S, 3) at the fine measurement points
     (the method's lighting input, §4.3 "fake G-buffer"). Pure and jitted: the lightmap
-    (``lightmap``) then a bilinear atlas lookup per pixel; with ``params["texel_modulation"]`` the
-    lookup of the texels' light over their texture, times a Lambertian pixel's own
+    (``lightmap``) then a bilinear atlas lookup per pixel; for a demodulated fit
+    (``params["texel_modulation"]``) the lookup of the texels' light over their texture, times a
+    Lambertian pixel's own
     (``inputs.diffuse_albedo``, ``specular_albedo`` and ``object_id``,
     ``lightmap_lookup.remodulated_lookup``);
     invalid pixels are 0.
@@ -669,9 +674,9 @@ def evaluator(params: dict, config: dict | None = None):
 
     @jax.jit
     def image(uv, valid, albedo, specular, object_id, direct):
-        texels = _lightmap(arrays, direct, channels=channels, gamma=gamma)
+        texels = _lightmap(arrays, direct, channels=channels, gamma=gamma)  # demodulated where ``modulated``
         if modulated:
-            shaded = remodulated_lookup(atlas_image(texels / mod, fill), mod_image, uv, albedo, specular, object_id,
+            shaded = remodulated_lookup(atlas_image(texels, fill), mod_image, uv, albedo, specular, object_id,
                                         object_albedo)
         else:
             shaded = atlas_lookup(atlas_image(texels, fill), uv)
@@ -806,8 +811,9 @@ class DDData(NamedTuple):
 def fit(data: DDData, config: dict | None = None) -> FitResult:
     """Measurement points (§4.1, §5.1), basis and transfer (§4.2) from a ``DDData``; the params
     also carry the lightmap layout the evaluator needs (fine_index, texel_index, fill_index).
-    With ``shading.demodulate`` the params keep the data's ``modulation`` for the evaluator
-    (``texel_modulation``, ``object_albedo``).
+    With ``shading.demodulate`` the basis and transfer are fitted to the texels' light over their
+    texture (the data's ``modulation``: a Lambertian texel's albedo over its object's mean), which
+    the params keep (``texel_modulation``, ``object_albedo``) for ``lightmap`` and the evaluator.
     ``info`` adds ``lambda_cv`` (the cross-validation, or None), ``resolution`` and ``fit_s``.
 
     Numerics: not differentiable (a fitting or training procedure).
@@ -816,13 +822,15 @@ def fit(data: DDData, config: dict | None = None) -> FitResult:
     t0 = time.perf_counter()
     points = measurement_points(data, cfg)
     direct = data.direct[:, points.fine_index]
+    demodulate = cfg["shading"]["demodulate"] and data.modulation is not None
+    indirect = data.indirect / np.asarray(data.modulation[0], np.float32) if demodulate else data.indirect
     cv = None
     if cfg["transfer"]["lam_cv"]:
-        cv = cross_validate_lambda(direct, data.indirect, points.group, cfg, cfg["transfer"]["lam_cv"],
+        cv = cross_validate_lambda(direct, indirect, points.group, cfg, cfg["transfer"]["lam_cv"],
                                    folds=int(cfg["transfer"]["cv_folds"]))
         cfg = merge(cfg, {"transfer": {"lam": cv["best"]}})
-    params, info = fit_arrays(direct, data.indirect, points.group, cfg)
-    if cfg["shading"]["demodulate"] and data.modulation is not None:
+    params, info = fit_arrays(direct, indirect, points.group, cfg)
+    if demodulate:
         params["texel_modulation"] = np.asarray(data.modulation[0], np.float32)
         params["object_albedo"] = np.asarray(data.modulation[1], np.float32)
     params["fine_index"] = points.fine_index
