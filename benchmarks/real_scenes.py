@@ -76,9 +76,15 @@ def merged(old: dict | None, new: dict, scenes: list[str]) -> dict:
         if "methods" not in entry:  # the scene failed as a whole
             continue
         kept = {m: e for m, e in before.get(scene, {}).get("methods", {}).items() if m not in entry["methods"]}
+        if not kept:
+            continue
         for e in kept.values():
             e.setdefault("measured", {k: before[scene].get(k) for k in ("command", "date", "config_hash")})
         entry["methods"] = {**kept, **entry["methods"]}
+        # the set-ups (lightings, references) the kept methods were judged under, where this run had none
+        entry["setups"] = {**before[scene].get("setups", {}), **entry.get("setups", {})}
+        if "environment" in before[scene] and "environment" not in entry:
+            entry["environment"] = before[scene]["environment"]
     stems = [os.path.basename(os.path.dirname(s)) for s in scenes]
     out["missing"] = [s for s in stems if s not in out["scenes"]]
     out["target_met_everywhere"] = not out["missing"] and all(

@@ -315,14 +315,15 @@ def test_real_scenes_benchmark_merges_scenes_and_names_the_missing():
     again = bench.merged(both, {"scenes": {"b": {"failed": "RuntimeError: x"}}}, scenes)
     assert again["scenes"]["a"] == met and again["target_met_everywhere"] is False
     # a scene run again for one method keeps the other methods' entries, each saying what measured it
-    two = {"command": "run 1", "date": "d1", "config_hash": "h1",
+    two = {"command": "run 1", "date": "d1", "config_hash": "h1", "setups": {"point": 1, "environment": 2},
            "methods": {"rrf": {"target_met": True}, "sh_prt": {"target_met": False}}}
-    one = {"command": "run 2", "date": "d2", "config_hash": "h2",
+    one = {"command": "run 2", "date": "d2", "config_hash": "h2", "setups": {"environment": 3},
            "methods": {"sh_prt": {"target_met": True, "measured": {"command": "run 2"}}}}
-    out = bench.merged(bench.merged(None, {"scenes": {"a": two}}, scenes), {"scenes": {"a": one}}, scenes)
-    methods = out["scenes"]["a"]["methods"]
-    assert methods["sh_prt"] == one["methods"]["sh_prt"]
-    assert methods["rrf"]["measured"] == {"command": "run 1", "date": "d1", "config_hash": "h1"}
+    out = bench.merged(bench.merged(None, {"scenes": {"a": two}}, scenes), {"scenes": {"a": dict(one)}}, scenes)
+    entry = out["scenes"]["a"]
+    assert entry["methods"]["sh_prt"] == {"target_met": True, "measured": {"command": "run 2"}}
+    assert entry["methods"]["rrf"]["measured"] == {"command": "run 1", "date": "d1", "config_hash": "h1"}
+    assert entry["setups"] == {"point": 1, "environment": 3}  # rrf's set-up kept, sh_prt's the new one
 
 #: A closed grey room with a white box and a point-lit ceiling opening's worth of height.
 _SMALL_ROOM = """<scene version="3.0.0">
