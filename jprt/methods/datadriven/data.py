@@ -133,17 +133,10 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
         return _render(desc, cfg, progress, ray)
 
     arrays, path = cache.cached("datadriven", spec, build, cache_dir=cache_dir)
-    data = _unpack(arrays, spec, path)
-    # the texels' materials are read from the scene each time (one ray per texel), not cached: the
-    # datasets rendered before they were stay valid
-    from jprt.methods.lightmap_lookup import texel_modulation
-    from jprt.render import lightmap
-    from jprt.render.scenes import SceneHandle
+    from jprt.methods.lightmap_data import atlas_modulation
 
-    handle = SceneHandle(desc)
-    albedo = lightmap.albedo_at_points(handle, data.atlas["position"], data.atlas["normal"])
-    return data._replace(modulation=texel_modulation(*albedo[:2], data.atlas["texel_object"], albedo[2],
-                                                     len(handle.object_names())))
+    data = _unpack(arrays, spec, path)
+    return data._replace(modulation=atlas_modulation(desc, data.atlas))
 
 
 def _render(desc: dict, cfg: dict, progress: bool | None, ray: bool | None = None) -> dict:

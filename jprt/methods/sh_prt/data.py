@@ -219,16 +219,9 @@ def make_dataset(scene=None, config: dict | None = None, *, cache_dir: str | Non
         meta.update(exit_degree=order_to_degree(exit_order), exit_bake_s=float(exit_arrays["bake_s"]))
     if n_check:
         meta["check"] = _check(desc, spec, atlas, n_check, cache_dir=cache_dir, progress=progress)
-    # the texels' materials are read from the scene each time (one ray per texel), not baked: the
-    # bakes made before they were stay valid
-    from jprt.methods.lightmap_lookup import texel_modulation
-    from jprt.render import lightmap
-    from jprt.render.scenes import SceneHandle
+    from jprt.methods.lightmap_data import atlas_modulation
 
-    handle = SceneHandle(desc)
-    albedo = lightmap.albedo_at_points(handle, atlas["position"], atlas["normal"])
-    return SHData(atlas, arrays["transfer"], meta, exit_transfer, exit_texel,
-                  texel_modulation(*albedo[:2], atlas["texel_object"], albedo[2], len(handle.object_names())))
+    return SHData(atlas, arrays["transfer"], meta, exit_transfer, exit_texel, atlas_modulation(desc, atlas))
 
 
 #: Cube-map face size of the self-check's procedural maps.
