@@ -365,12 +365,18 @@ _PARAM_MEANING = {
                    "transfer": "transfer matrices M_n (Eq. 14): (3, n, P) per channel (mono) or (n, 3P)",
                    "group": "coarse point of each fine measurement point", "counts": "fine points per coarse point",
                    "fine_index": "candidate index of each fine measurement point", "texel_index": "atlas pixel of "
-                   "each texel", "fill_index": "texel each atlas pixel shows", "singular_values": "of the basis SVD"},
+                   "each texel", "fill_index": "texel each atlas pixel shows", "singular_values": "of the basis SVD",
+                   "texel_modulation": "(T, 3) a demodulated fit's texture per texel: the lightmap's light is the "
+                   "basis's times it (lightmap_lookup.texel_modulation)",
+                   "object_albedo": "(objects, 3) the mean albedo a Lambertian pixel's is taken relative to"},
     "sh_prt": {"transfer": "transfer vectors (T, n_coefficients, 3)", "texel_index": "atlas pixel of each texel",
                "fill_index": "texel each atlas pixel shows",
                "exit_transfer": "exit transfer (G, m_view, n_coefficients, 3) of the view-dependent texels: radiance "
                                 "toward w = sum_j Y_j(w) sum_i M_ji l_i (not shaded by relight.js)",
-               "exit_texel": "texel of each exit transfer", "exit_normal": "unit normal of each exit transfer's texel"},
+               "exit_texel": "texel of each exit transfer", "exit_normal": "unit normal of each exit transfer's texel",
+               "texel_modulation": "(T, 3) each texel's texture, divided out before a Lambertian pixel's own "
+               "is applied (lightmap_lookup.texel_modulation; the transfer holds the texels' light)",
+               "object_albedo": "(objects, 3) the mean albedo a Lambertian pixel's is taken relative to"},
     "sg_lightfield": {"axes": "lobe axes (T, N, 3) float16", "sharpness": "lobe sharpness (T, N) float16",
                       "amplitude": "lobe RGB amplitude (T, N, 3) float16", "irradiance": "texel irradiance (T, 3)",
                       "fill_index": "texel each atlas pixel shows"},
