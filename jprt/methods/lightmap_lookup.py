@@ -17,7 +17,7 @@ import numpy as np
 from jprt.inputs import GBuffer
 
 __all__ = ["atlas_lookup", "atlas_image", "atlas_inputs", "modulation", "lambertian", "texel_modulation",
-           "remodulated_lookup", "ALBEDO_FLOOR"]
+           "remodulated_lookup", "modulation_params", "lightmap_shader", "ALBEDO_FLOOR"]
 
 
 def atlas_lookup(image, uv):
@@ -84,6 +84,35 @@ def remodulated_lookup(image, relative_image, uv, albedo, specular, object_id, o
     own = lambertian(albedo, specular)[..., None] & (object_id >= 0)[..., None] & (mean > 0.0)
     scale = jnp.where(own, modulation(albedo) / jnp.maximum(mean, ALBEDO_FLOOR), atlas_lookup(relative_image, uv))
     return atlas_lookup(image, uv) * scale
+
+
+def modulation_params(modulation) -> dict:
+    """The params a demodulated lightmap's evaluator reads (``lightmap_shader``) from
+    ``texel_modulation``'s pair: ``texel_modulation`` (T, 3) and ``object_albedo`` (K, 3)."""
+    return {"texel_modulation": np.asarray(modulation[0], np.float32),
+            "object_albedo": np.asarray(modulation[1], np.float32)}
+
+
+def lightmap_shader(params: dict, fill_index):
+    """How a lightmap method's evaluator shades pixels with its texels: ``(materials, shade)``.
+    ``materials(inputs)``: the G-buffer fields ``shade`` reads (diffuse and specular albedo and
+    object id; None where the params carry no ``texel_modulation``). ``shade(texels, uv,
+    materials)``: texels (T, 3), divided by ``texel_modulation`` where the params carry it, looked
+    up at ``uv`` (``remodulated_lookup``, else ``atlas_lookup``)."""
+    fill = jnp.asarray(fill_index)
+    if "texel_modulation" not in params:
+        return (lambda inputs: None), (lambda texels, uv, materials: atlas_lookup(atlas_image(texels, fill), uv))
+    relative = atlas_image(jnp.asarray(params["texel_modulation"], jnp.float32), fill)
+    means = jnp.asarray(params["object_albedo"], jnp.float32)
+
+    def materials(inputs):
+        return (jnp.asarray(inputs.diffuse_albedo, jnp.float32), jnp.asarray(inputs.specular_albedo, jnp.float32),
+                jnp.asarray(inputs.object_id, jnp.int32))
+
+    def shade(texels, uv, materials):
+        return remodulated_lookup(atlas_image(texels, fill), relative, uv, *materials, means)
+
+    return materials, shade
 
 
 def atlas_image(texels, fill_index):

@@ -57,7 +57,7 @@ import numpy as np
 from jprt.config import merge
 from jprt.inputs import PointRadiance
 from jprt.methods.base import FitResult, resolve
-from jprt.methods.lightmap_lookup import atlas_image, atlas_inputs, atlas_lookup, remodulated_lookup
+from jprt.methods.lightmap_lookup import atlas_inputs, lightmap_shader, modulation_params
 
 __all__ = [
     "DEFAULT_CONFIG",
@@ -663,24 +663,14 @@ def evaluator(params: dict, config: dict | None = None):
             raise ValueError(f"params have no {key!r} (fit_arrays output): use fit(data, config), which adds the "
                              "lightmap layout")
     arrays = {k: jnp.asarray(params[k]) for k in ("mean", "basis", "transfer", "group", "counts")}
-    fill = jnp.asarray(params["fill_index"])
     n_fine = int(params["group"].shape[0])
     channels, gamma = cfg["basis"]["channels"], float(cfg["basis"]["gamma"])
-    modulated = "texel_modulation" in params
-    if modulated:
-        mod = jnp.asarray(params["texel_modulation"], jnp.float32)
-        mod_image = atlas_image(mod, fill)
-        object_albedo = jnp.asarray(params["object_albedo"], jnp.float32)
+    materials, shade = lightmap_shader(params, params["fill_index"])
 
     @jax.jit
-    def image(uv, valid, albedo, specular, object_id, direct):
-        texels = _lightmap(arrays, direct, channels=channels, gamma=gamma)  # demodulated where ``modulated``
-        if modulated:
-            shaded = remodulated_lookup(atlas_image(texels, fill), mod_image, uv, albedo, specular, object_id,
-                                        object_albedo)
-        else:
-            shaded = atlas_lookup(atlas_image(texels, fill), uv)
-        return jnp.where(valid[..., None], shaded, 0.0)
+    def image(uv, valid, pixel_materials, direct):
+        texels = _lightmap(arrays, direct, channels=channels, gamma=gamma)  # demodulated for a demodulated fit
+        return jnp.where(valid[..., None], shade(texels, uv, pixel_materials), 0.0)
 
     def evaluate(inputs, lighting):
         uv = jnp.asarray(inputs.uv, jnp.float32)
@@ -691,11 +681,7 @@ def evaluator(params: dict, config: dict | None = None):
         if direct.shape != (n_fine, 3):
             raise ValueError(f"lighting.direct must be ({n_fine}, 3) radiance at the fine measurement points, "
                              f"got {direct.shape}")
-        zeros = jnp.zeros(uv.shape[:-1] + (3,), jnp.float32)
-        albedo = jnp.asarray(inputs.diffuse_albedo, jnp.float32) if modulated else zeros
-        specular = jnp.asarray(inputs.specular_albedo, jnp.float32) if modulated else zeros
-        object_id = jnp.asarray(inputs.object_id, jnp.int32) if modulated else jnp.zeros(uv.shape[:-1], jnp.int32)
-        return image(uv, valid, albedo, specular, object_id, direct)
+        return image(uv, valid, materials(inputs), direct)
 
     return evaluate
 
@@ -831,8 +817,7 @@ def fit(data: DDData, config: dict | None = None) -> FitResult:
         cfg = merge(cfg, {"transfer": {"lam": cv["best"]}})
     params, info = fit_arrays(direct, indirect, points.group, cfg)
     if demodulate:
-        params["texel_modulation"] = np.asarray(data.modulation[0], np.float32)
-        params["object_albedo"] = np.asarray(data.modulation[1], np.float32)
+        params.update(modulation_params(data.modulation))
     params["fine_index"] = points.fine_index
     params["texel_index"] = np.asarray(data.atlas["texel_index"], np.int32)
     params["fill_index"] = np.asarray(data.atlas["fill_index"], np.int32)

@@ -40,7 +40,7 @@ import numpy as np
 
 from jprt.inputs import SHLighting
 from jprt.methods.base import FitResult, resolve
-from jprt.methods.lightmap_lookup import atlas_image, atlas_inputs, atlas_lookup, remodulated_lookup
+from jprt.methods.lightmap_lookup import atlas_image, atlas_inputs, atlas_lookup, lightmap_shader, modulation_params
 from jprt.sphere import sh
 
 __all__ = ["DEFAULT_CONFIG", "SHData", "delta_light_coefficients", "lightmap", "order_to_degree", "fit",
@@ -149,8 +149,7 @@ def fit(data: SHData, config: dict | None = None) -> FitResult:
               "exit_texel": exit_texel,
               "exit_normal": np.asarray(data.atlas["normal"], np.float32)[exit_texel].reshape(-1, 3)}
     if cfg["shading"]["demodulate"] and data.modulation is not None:
-        params["texel_modulation"] = np.asarray(data.modulation[0], np.float32)
-        params["object_albedo"] = np.asarray(data.modulation[1], np.float32)
+        params.update(modulation_params(data.modulation))
     return FitResult(params, {"degree": int(data.meta["degree"]), "bake_s": float(data.meta["bake_s"]),
                               "exit_degree": int(data.meta.get("exit_degree", -1)),
                               "exit_texels": int(exit_texel.size)})
@@ -179,21 +178,9 @@ def evaluator(params, config: dict | None = None):
     exit_normal = jnp.asarray(params.get("exit_normal", np.zeros((0, 3), np.float32)))
     n_texels = transfer.shape[0]
     exit_degree = int(round(math.sqrt(exit_transfer.shape[1]))) - 1
-    modulated = "texel_modulation" in params
-    if modulated:
-        mod = jnp.asarray(params["texel_modulation"], jnp.float32)
-        mod_image = atlas_image(mod, fill)
-        object_albedo = jnp.asarray(params["object_albedo"], jnp.float32)
-
-    def shade(texels, inputs, uv):
-        """The texels' light looked up per pixel (demodulated and shaded with the pixel's albedo
-        where the params carry ``texel_modulation``)."""
-        if not modulated:
-            return atlas_lookup(atlas_image(texels, fill), uv)
-        return remodulated_lookup(atlas_image(texels / mod, fill), mod_image, uv,
-                                  jnp.asarray(inputs.diffuse_albedo, jnp.float32),
-                                  jnp.asarray(inputs.specular_albedo, jnp.float32),
-                                  jnp.asarray(inputs.object_id, jnp.int32), object_albedo)
+    # the bake holds the texels' light: a demodulated evaluator divides their texture out first
+    demodulate = jnp.asarray(params.get("texel_modulation", np.ones((1, 3), np.float32)), jnp.float32)
+    materials, shade = lightmap_shader(params, fill)
 
     @jax.jit
     def evaluate(inputs, lighting):
@@ -201,15 +188,16 @@ def evaluator(params, config: dict | None = None):
         if c.shape[0] > transfer.shape[1]:
             raise ValueError(f"{c.shape[0]} SH coefficients but the transfer holds {transfer.shape[1]}")
         uv = jnp.asarray(inputs.uv, jnp.float32)
+        pixel_materials = materials(inputs)
         texels = jnp.einsum("tic,ic->tc", transfer[:, :c.shape[0]], c)
-        image = shade(texels, inputs, uv)
+        image = shade(texels / demodulate, uv, pixel_materials)
         if exit_transfer.shape[0]:
             coeff = jnp.einsum("gjic,ic->gjc", exit_transfer[:, :, :c.shape[0]], c)  # (G, m, 3)
             m = coeff.shape[1]
             glossy = jnp.zeros(n_texels, jnp.float32).at[exit_texel].set(1.0)
             rows = jnp.zeros((n_texels, m * 3 + 3), jnp.float32)
             rows = rows.at[exit_texel].set(jnp.concatenate([coeff.reshape(-1, m * 3), exit_normal], axis=1))
-            diffuse = shade(texels * (1.0 - glossy)[:, None], inputs, uv)
+            diffuse = shade(texels * (1.0 - glossy)[:, None] / demodulate, uv, pixel_materials)
             looked = atlas_lookup(atlas_image(rows, fill), uv)
             view = jnp.asarray(inputs.view, jnp.float32)
             y = sh.evaluate(view, exit_degree)  # (H, W, m)
