@@ -15,11 +15,14 @@
 //     radiance at the fine measurement points is averaged per coarse point (params/group.bin,
 //     params/counts.bin) into x, u = M x per channel (params/transfer.bin) on the CPU (a small
 //     matrix-vector product), and the shader sums mean |x| + sum_i b_i u_i over the basis layers.
-//   * SG light-field textures (Currius et al. 2020 Appendix B, Eq. 15-24): the shader fetches the
-//     texel's lobes (params/axes, sharpness, amplitude: float16), its irradiance and its material
-//     (sg_materials.bin), warps the GGX NDF to an ASG about the reflected view direction, convolves
-//     it with each lobe (Xu et al. 2013 Eq. 12), applies Smith G, Schlick's Fresnel and n.l, adds
-//     albedo / pi x irradiance, and scales by the LightScale; view = the camera's direction.
+//   * SG light-field textures (Currius et al. 2020): the shader fetches the texel's lobes
+//     (params/axes, sharpness, amplitude: float16), its irradiance and its material
+//     (sg_materials.bin), shades the lobes as the export's config says (shading.samples): by
+//     samples^2 directions drawn from each lobe through the GGX BRDF (jprt's shade_sampled), or, at
+//     0 or in exports without the key, by Appendix B (Eq. 15-24: the GGX NDF warped to an ASG about
+//     the reflected view direction, convolved with each lobe by Xu et al. 2013 Eq. 12, Smith G,
+//     Schlick's Fresnel and n.l at that direction); adds albedo / pi x irradiance and scales by the
+//     LightScale; view = the camera's direction.
 //   * MRT (Loos et al. 2011 §7.3): b = T_d->b x per block, the interface records r = T_b->r b, the
 //     feedback bounces in the reduced spaces (W, V), then the incident light U_b b + U_r r at every
 //     texel: on the CPU (operators of a few hundred numbers per block); the shader multiplies the
@@ -200,6 +203,7 @@ async function sgLightfield(base, manifest) {
   const materials = await rawFloats(base, manifest, "sg_materials.bin");  // (T, 7)
   const [, n] = sharpness.shape;
   const res = manifest.lightmap.resolution;
+  const samples = manifest.config?.shading?.samples ?? 0;  // 0: Appendix B's product
   const sh = sharpness.data;
   // layers 2j: lobe j's axis and sharpness, 2j + 1: its amplitude; 2N: irradiance;
   // 2N + 1: diffuse albedo and roughness; 2N + 2: specular reflectance at normal incidence
@@ -217,7 +221,7 @@ async function sgLightfield(base, manifest) {
   const material = new THREE.ShaderMaterial({
     glslVersion: THREE.GLSL3,
     side: THREE.DoubleSide,
-    defines: { LOBES: n },
+    defines: { LOBES: n, SAMPLES: samples },
     uniforms: { lobes: { value: texture }, scale: { value: new THREE.Vector3(1, 1, 1) } },
     vertexShader: VERTEX_WORLD,
     fragmentShader: `
@@ -241,6 +245,42 @@ async function sgLightfield(base, manifest) {
         vec3 diffuse = mat.rgb, f0 = at(2 * LOBES + 2).rgb;
         float r = max(mat.a, 1e-3), r2 = r * r;
         float ndotv = dot(nrm, v), cosV = max(ndotv, 1e-4);
+#if SAMPLES > 0
+        // jprt's shade_sampled: SAMPLES^2 strata of each lobe (the SG's inverse CDF in 1 - cos, even
+        // steps in phi), each an equal share of the lobe's integral through GGX D, separable Smith G
+        // and Schlick's Fresnel, alpha^2 widened by 1 / (lambda SAMPLES^2) (a stratum's spread)
+        const float S2 = float(SAMPLES * SAMPLES);
+        vec3 plain = vec3(0.0), grazing = vec3(0.0);
+        for (int j = 0; j < LOBES; j++) {
+          vec4 lobe = at(2 * j);
+          vec3 amp = at(2 * j + 1).rgb;
+          float lam = lobe.w;
+          vec3 u = lobe.xyz * inversesqrt(max(dot(lobe.xyz, lobe.xyz), 1e-20));
+          vec3 t = abs(u.z) >= 0.9 ? vec3(0.0, -u.z, u.y) : vec3(-u.y, u.x, 0.0);
+          t *= inversesqrt(max(dot(t, t), 1e-20));
+          vec3 b = cross(u, t);
+          float a2 = r2 + 1.0 / (lam * S2), tail = 1.0 - exp(-2.0 * lam), gv = ggxV1(a2, cosV);
+          float p = 0.0, g = 0.0;
+          for (int i = 0; i < SAMPLES; i++) {
+            float tt = -log(1.0 - (float(i) + 0.5) / float(SAMPLES) * tail) / lam;  // 1 - cos theta
+            float cs = 1.0 - tt, sn = sqrt(max(tt * (2.0 - tt), 0.0));
+            for (int k = 0; k < SAMPLES; k++) {
+              float phi = 6.283185307179586 * (float(k) + 0.5) / float(SAMPLES);
+              vec3 d = sn * cos(phi) * t + sn * sin(phi) * b + cs * u;
+              vec3 h = d + v;
+              h *= inversesqrt(max(dot(h, h), 1e-20));
+              float c = dot(nrm, h), dd = a2 + max((1.0 - c) * (1.0 + c), 0.0) * (1.0 - a2);
+              float value = c > 0.0 ? a2 / (3.14159265358979 * dd * dd) * ggxV1Cos(a2, dot(nrm, d)) * gv : 0.0;
+              p += value;
+              g += value * pow(1.0 - clamp(dot(d, h), 0.0, 1.0), 5.0);
+            }
+          }
+          float e = 6.283185307179586 / S2 * tail / lam;
+          plain += e * p * amp;
+          grazing += e * g * amp;
+        }
+        vec3 glossy = f0 * plain + (1.0 - f0) * grazing;
+#else
         // Eq. 18: the NDF warped to an ASG about z = reflect(-v, n); x across the plane of incidence
         vec3 z = 2.0 * ndotv * nrm - v;
         vec3 c = cross(nrm, z);
@@ -267,6 +307,7 @@ async function sgLightfield(base, manifest) {
         float visCos = ggxV1Cos(r2, dot(nrm, z)) * ggxV1(r2, cosV);
         vec3 fresnel = f0 + (1.0 - f0) * pow(1.0 - clamp(dot(z, h), 0.0, 1.0), 5.0);
         vec3 glossy = conv * visCos * fresnel;
+#endif
         radiance = vec4((glossy + diffuse / 3.14159265358979 * at(2 * LOBES).rgb) * scale, 1.0);
       }`,
   });

@@ -177,6 +177,21 @@ def shade(draw, spec):
     return Problem(fn, args, ["sharpness", "amplitude", "view", "roughness", "specular", "irradiance"])
 
 
+def shade_sampled(draw, spec):
+    from jprt.methods.sg_lightfield import model as m
+
+    lobes = _lobes(draw, (8,))
+    lobes.pop("directions")
+    args = {**lobes, **_draw(draw, normal="(8, 3) unit", view="(8, 3) unit within 89.9 of normal",
+                              roughness="(8,) in [1e-3, 1]", specular="(8, 3) in [0, 1]",
+                              diffuse_albedo="(8, 3) in [0, 1]", irradiance="(8, 3) in [0, 1e5]")}
+
+    def fn(axes, sharpness, amplitude, **pixel):
+        return m.shade_sampled(m.Lobes(axes, sharpness, amplitude), **pixel)
+
+    return Problem(fn, args, ["sharpness", "amplitude", "view", "roughness", "specular", "irradiance"])
+
+
 def shade_quadrature(draw, spec):
     from jprt.methods.sg_lightfield import model as m
 

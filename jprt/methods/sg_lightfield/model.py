@@ -50,7 +50,7 @@ from jprt.sphere import sg
 
 __all__ = ["DEFAULT_CONFIG", "GLOSSY_RECEIVERS", "SGData", "Lobes", "fit", "evaluator", "example", "lookup_lobes", "PARAMS_PER_LOBE", "constrain", "lobe_radiance", "jittered_directions",
            "log_l2_loss", "pixel_weights", "fit_cnn", "encode", "initial_amplitude", "texel_irradiance", "shade", "to_storage",
-           "ggx_ndf", "ggx_brdf_cos", "shade_quadrature", "storage_params", "map_tiles"]
+           "ggx_ndf", "ggx_brdf_cos", "shade_quadrature", "shade_sampled", "storage_params", "map_tiles"]
 
 #: Raw numbers per lobe the encoder outputs: axis (3), sharpness (1), RGB amplitude (3).
 PARAMS_PER_LOBE = 7
@@ -99,6 +99,10 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "seed": 0,  # seed of the initial weights, the batches and the jitter
         "jitter": True,  # evaluate P at a direction jittered uniformly inside each octahedral pixel (§4)
     },
+    # the run-time shading of the lobes: samples^2 stratified directions drawn from each lobe's SG,
+    # each through the GGX BRDF (``shade_sampled``); 0: Appendix B's SG x ASG product (``shade``).
+    # 3 chosen on the glossy receivers (benchmarks/results/sg_lightfield.json; docs/methods/sg_lightfield.md)
+    "shading": {"samples": 3},
 }
 
 
@@ -593,6 +597,86 @@ def _shade_planes(at, normal, view, roughness, specular, diffuse_albedo):
     return glossy_factor(conv, asg.z, normal, view, roughness, specular) + diffuse_albedo / jnp.pi * at[7]
 
 
+def _lobe_tangents(ux, uy, uz):
+    """Unit tangent and bitangent planes (three (..., N) each) about unit lobe axes given as
+    planes: t = normalise(up x u) with up = z, or x where the axis is within 26 degrees of z."""
+    near_z = jnp.abs(uz) >= 0.9
+    tx, ty, tz = jnp.where(near_z, 0.0, -uy), jnp.where(near_z, -uz, ux), jnp.where(near_z, uy, 0.0)
+    inv = jax.lax.rsqrt(jnp.maximum(tx * tx + ty * ty + tz * tz, 1e-20))
+    tx, ty, tz = tx * inv, ty * inv, tz * inv
+    return (tx, ty, tz), (uy * tz - uz * ty, uz * tx - ux * tz, ux * ty - uy * tx)
+
+
+def _shade_planes_sampled(at, normal, view, roughness, specular, diffuse_albedo, samples: int):
+    """``shade_sampled`` for fetched texels as planes (``lobe_planes``), the layout of
+    ``_shade_planes``."""
+    ux, uy, uz, lam = at[:4]
+    inv = jax.lax.rsqrt(jnp.maximum(ux * ux + uy * uy + uz * uz, 1e-20))
+    ux, uy, uz = ux * inv, uy * inv, uz * inv
+    (tx, ty, tz), (bx, by, bz) = _lobe_tangents(ux, uy, uz)
+    s = int(samples)
+    nx, ny, nz = (normal[..., k:k + 1] for k in range(3))
+    vx, vy, vz = (view[..., k:k + 1] for k in range(3))
+    ndotv = jnp.maximum(nx * vx + ny * vy + nz * vz, 1e-4)
+    a2 = jnp.square(jnp.maximum(roughness, 1e-3))[..., None] + 1.0 / (lam * (s * s))  # widened per lobe
+    tail = 1.0 - jnp.exp(-2.0 * lam)  # the SG's mass in the cosine's range
+    gv = _ggx_v1(a2, ndotv)
+    plain, grazing = 0.0, 0.0
+    for i in range(s):
+        # 1 - cos of the stratum's direction, from the SG's inverse CDF (no 1 - cos cancellation)
+        t = -jnp.log1p(-((i + 0.5) / s) * tail) / lam
+        cos = 1.0 - t
+        sin = jnp.sqrt(jnp.maximum(t * (2.0 - t), 0.0))
+        for j in range(s):
+            phi = 2.0 * math.pi * (j + 0.5) / s
+            cx, cy = sin * math.cos(phi), sin * math.sin(phi)
+            dx, dy, dz = cx * tx + cy * bx + cos * ux, cx * ty + cy * by + cos * uy, cx * tz + cy * bz + cos * uz
+            ndotl = nx * dx + ny * dy + nz * dz
+            hx, hy, hz = dx + vx, dy + vy, dz + vz
+            hinv = jax.lax.rsqrt(jnp.maximum(hx * hx + hy * hy + hz * hz, 1e-20))
+            c = (nx * hx + ny * hy + nz * hz) * hinv
+            d = jnp.where(c > 0.0, _ggx_d(jnp.maximum((1.0 - c) * (1.0 + c), 0.0), a2), 0.0)
+            value = d * _ggx_v1_cos(a2, ndotl) * gv
+            w5 = jnp.power(1.0 - jnp.clip((dx * hx + dy * hy + dz * hz) * hinv, 0.0, 1.0), 5.0)
+            plain = plain + value
+            grazing = grazing + value * w5
+    energy = (2.0 * math.pi / (s * s)) * tail / lam  # each direction's share of the SG's integral
+    plain, grazing = plain * energy, grazing * energy
+    base = jnp.stack([jnp.sum(plain * a, axis=-1) for a in at[4:7]], axis=-1)
+    schlick = jnp.stack([jnp.sum(grazing * a, axis=-1) for a in at[4:7]], axis=-1)
+    f0 = jnp.asarray(specular)
+    return f0 * base + (1.0 - f0) * schlick + diffuse_albedo / jnp.pi * at[7]
+
+
+def shade_sampled(lobes: Lobes, normal, view, roughness, specular, diffuse_albedo, irradiance, samples: int = 3):
+    """Outgoing radiance (..., 3) like ``shade``, with each lobe integrated against the GGX BRDF
+    by ``samples`` x ``samples`` stratified directions drawn from the lobe itself instead of
+    Appendix B's SG x ASG product.
+
+    Each lobe's light, mu exp(lambda (w . u - 1)), has the integral 2 pi mu (1 - e^(-2 lambda)) /
+    lambda; its directions are drawn by the SG's inverse CDF, 1 - cos theta = -log(1 - x (1 -
+    e^(-2 lambda))) / lambda at x = (i + 1/2) / samples, and phi = 2 pi (j + 1/2) / samples, each
+    carrying an equal share of the integral through f(w, v) (n . w): GGX D, separable Smith G and
+    Schlick's Fresnel with f0 = ``specular``, the terms of ``shade``. Each direction stands for a
+    stratum of the lobe, angular variance about 1 / (lambda samples^2) per axis; a light spread of
+    variance s^2 spreads the half vector by s^2 / 4, which GGX's peak (variance alpha^2 / 4) absorbs
+    as alpha^2 + 1 / (lambda samples^2): that widened alpha is used (derived, not fitted). At 3 x 3
+    it reaches the lobes' own quadrature bound on the benchmark's receivers (docs/methods/
+    sg_lightfield.md); the cost is samples^2 BRDF evaluations per lobe and pixel.
+
+    Numerics:
+        case: shade_sampled (4 lobes as in ``lobe_radiance``; unit normals, views to 89.9 degrees
+          from them, roughness in [1e-3, 1], specular and albedo in [0, 1], irradiance in [0, 1e5])
+        fd: off (clamps at n . v = 1e-4, n . l = 0 and n . h = 0)
+        float32: value rtol 1e-3 atol 1e-2; grad rtol 1e-3 atol 1e-2
+        (sums of samples^2 x 4 terms with amplitudes to 1e5: absolute rounding near zero)
+    """
+    planes = (lobes.axes[..., 0], lobes.axes[..., 1], lobes.axes[..., 2], lobes.sharpness,
+              lobes.amplitude[..., 0], lobes.amplitude[..., 1], lobes.amplitude[..., 2], jnp.asarray(irradiance))
+    return _shade_planes_sampled(planes, jnp.asarray(normal), jnp.asarray(view), jnp.asarray(roughness),
+                                 specular, jnp.asarray(diffuse_albedo), samples)
+
+
 #: Pixels per tile of the evaluator's loop (see ``evaluator``).
 TILE = 4096
 
@@ -623,7 +707,8 @@ def map_tiles(fn, fields, tile: int):
 
 def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     """``evaluate(inputs, lighting) -> (H, W, 3)``: a G-buffer with atlas ``uv`` (``jprt.render.
-    lightmap.atlas_gbuffer``) shaded from its texels' lobes (``shade``); ``lighting`` is a
+    lightmap.atlas_gbuffer``) shaded from its texels' lobes (``shade_sampled`` at ``shading.samples``
+    directions per lobe and side; ``shade``, Appendix B's product, where that is 0); ``lighting`` is a
     ``jprt.inputs.LightScale`` (or its (3,) array): the baked lighting scaled per channel (light
     transport is linear in the emitters' power: the only relighting a baked light field allows).
     Invalid pixels are 0.
@@ -631,16 +716,18 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     The texture (lobes and irradiance of every atlas pixel, float32 from the float16 storage) is
     packed once here, as a renderer uploads its textures once. Pixels are shaded in tiles of
     ``tile`` (a ``lax.map``, one program): one bilinear fetch of the packed texture per pixel, then
-    the shading on (..., N) planes (``_shade_planes``): on a CPU several times faster than the
+    the shading on (..., N) planes (``_shade_planes_sampled``, ``_shade_planes``): on a CPU several times faster than the
     same program untiled or ``shade`` on (..., N, 3) vectors (XLA fuses the fetch into every use
     of its result and streams the whole frame through each fusion; a tile stays in cache).
 
-    Numerics: not differentiable (builds the float32 run-time program; its arithmetic is ``shade``'s, covered).
+    Numerics: not differentiable (builds the float32 run-time program; ``shade_sampled`` and ``shade`` are covered).
     """
-    _cfg(config)
     from jprt.methods.lightmap_lookup import atlas_lookup
 
     n = params["sharpness"].shape[-1]
+    samples = int(_cfg(config)["shading"]["samples"])
+    if samples < 0:
+        raise ValueError(f"shading.samples must be >= 0 (0: Appendix B's product), got {samples}")
     table = lobe_table(params)
     tile = int(tile)
 
@@ -648,6 +735,8 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     def _evaluate(table, inputs, scale):
         def shade_tile(uv, normal, view, roughness, specular, diffuse):
             at = lobe_planes(atlas_lookup(table, uv), n)
+            if samples:
+                return _shade_planes_sampled(at, normal, view, roughness, specular, diffuse, samples)
             return _shade_planes(at, normal, view, roughness, specular, diffuse)
 
         out = map_tiles(shade_tile, (inputs.uv, inputs.normal, inputs.view, inputs.roughness, inputs.specular_albedo,
