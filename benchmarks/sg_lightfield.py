@@ -20,6 +20,7 @@ ROOT = os.path.dirname(HERE)
 KEYS = ("fit_log_l2", "fit_s", "midpoint_log_l2", "midpoints", "log_l2_by_lobes", "psnr_indirect_by_lobes",
         "frame_ms_by_lobes", "psnr_indirect", "ssim_indirect", "psnr_full", "lpips_indirect", "indirect_rel_rmse",
         "psnr_indirect_by_roughness", "psnr_indirect_baselines", "psnr_oct_quadrature", "psnr_lobes_quadrature",
+        "psnr_indirect_appendix_b",
         "reference_noise_psnr",
         "psnr_env_we", "psnr_env_reflected_visibility", "psnr_env_no_visibility", "psnr_env_we_raw",
         "psnr_env_quadrature",

@@ -134,9 +134,9 @@ def _psnr(run, predictions, references=None, masks=None) -> float:
                               scores=("psnr_indirect",), psnr_valid=masks is not None)["psnr_indirect"]
 
 
-def _images(run, params) -> list:
-    """The evaluator of ``params`` at every held-out view's G-buffer."""
-    evaluate = sgm.evaluator(params, run.method_config)
+def _images(run, params, config: dict | None = None) -> list:
+    """The evaluator of ``params`` (and ``config``, default the run's) at every held-out view's G-buffer."""
+    evaluate = sgm.evaluator(params, run.method_config if config is None else config)
     return [np.asarray(evaluate(g, ONE)) for g in run.state["gbuffers"]]
 
 
@@ -202,13 +202,18 @@ def oct_quadrature(run) -> dict:
     """§3's raw light-field texture without lobes, shaded by quadrature of the rendered BRDF
     (``evaluation.quadrature_images``): what the lobes could reach with no compression at all;
     and the run's lobes shaded the same way: the gap between the two is the fit's, the gap from
-    there to ``psnr_indirect`` that of Appendix B's SG x ASG shading."""
+    there to ``psnr_indirect`` that of the run's shading (``shading.samples``); the lobes through
+    Appendix B's SG x ASG product too (``psnr_indirect_appendix_b``)."""
     raw, lobed = ev.quadrature_images(run.dataset, run.result.params, run.state["gbuffers"],
                                       int(run.config["eval"]["quadrature_sub"]))
-    out = {"psnr_oct_quadrature": _psnr(run, raw), "psnr_lobes_quadrature": _psnr(run, lobed)}
+    # the same lobes through Appendix B's SG x ASG product (shading.samples 0), whatever the run shades with
+    product = _images(run, run.result.params, {**run.method_config, "shading": {"samples": 0}})
+    out = {"psnr_oct_quadrature": _psnr(run, raw), "psnr_lobes_quadrature": _psnr(run, lobed),
+           "psnr_indirect_appendix_b": _psnr(run, product)}
     run.say(f"shaded by quadrature of the rendered BRDF: raw captured maps {out['psnr_oct_quadrature']:.2f} dB, "
-            f"the CNN's lobes {out['psnr_lobes_quadrature']:.2f} dB (Appendix B's shading: "
-            f"{run.summary['psnr_indirect']:.2f} dB)")
+            f"the CNN's lobes {out['psnr_lobes_quadrature']:.2f} dB; the evaluator (shading.samples "
+            f"{run.method_config['shading']['samples']}) {run.summary['psnr_indirect']:.2f} dB, Appendix B's "
+            f"product {out['psnr_indirect_appendix_b']:.2f} dB")
     return out
 
 

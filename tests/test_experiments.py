@@ -148,7 +148,7 @@ def test_sg_lightfield_test_preset(mi, tmp_path):
     values = [*e["midpoint_log_l2"].values(), *e["psnr_indirect_baselines"].values(), *e["log_l2_by_lobes"].values(),
               e["psnr_oct_quadrature"], e["reference_noise_psnr"], *e["psnr_indirect_by_roughness"].values(),
               e["psnr_env_we"], e["psnr_env_we_raw"], e["psnr_env_reflected_visibility"], e["psnr_env_no_visibility"],
-              e["psnr_env_quadrature"], e["psnr_lobes_quadrature"]]
+              e["psnr_env_quadrature"], e["psnr_lobes_quadrature"], e["psnr_indirect_appendix_b"]]
     assert np.isfinite(values).all(), values
     # nothing in the way is never better than the visibility the scene has (the box's walls block light)
     assert e["psnr_env_no_visibility"] < e["psnr_env_reflected_visibility"]
