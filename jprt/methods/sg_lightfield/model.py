@@ -621,6 +621,11 @@ def _shade_planes_sampled(at, normal, view, roughness, specular, diffuse_albedo,
     a2 = jnp.square(jnp.maximum(roughness, 1e-3))[..., None] + 1.0 / (lam * (s * s))  # widened per lobe
     tail = 1.0 - jnp.exp(-2.0 * lam)  # the SG's mass in the cosine's range
     gv = _ggx_v1(a2, ndotv)
+    # a direction d = cx t + cy b + cos u enters only through n . d and v . d (both linear in its
+    # frame coordinates), and h = (d + v) / |d + v| with |d + v|^2 = 2 + 2 v . d
+    nt, nb, nu = nx * tx + ny * ty + nz * tz, nx * bx + ny * by + nz * bz, nx * ux + ny * uy + nz * uz
+    vt, vb, vu = vx * tx + vy * ty + vz * tz, vx * bx + vy * by + vz * bz, vx * ux + vy * uy + vz * uz
+    nv = nx * vx + ny * vy + nz * vz
     plain, grazing = 0.0, 0.0
     for i in range(s):
         # 1 - cos of the stratum's direction, from the SG's inverse CDF (no 1 - cos cancellation)
@@ -630,16 +635,20 @@ def _shade_planes_sampled(at, normal, view, roughness, specular, diffuse_albedo,
         for j in range(s):
             phi = 2.0 * math.pi * (j + 0.5) / s
             cx, cy = sin * math.cos(phi), sin * math.sin(phi)
-            dx, dy, dz = cx * tx + cy * bx + cos * ux, cx * ty + cy * by + cos * uy, cx * tz + cy * bz + cos * uz
-            ndotl = nx * dx + ny * dy + nz * dz
-            hx, hy, hz = dx + vx, dy + vy, dz + vz
-            hinv = jax.lax.rsqrt(jnp.maximum(hx * hx + hy * hy + hz * hz, 1e-20))
-            c = (nx * hx + ny * hy + nz * hz) * hinv
-            d = jnp.where(c > 0.0, _ggx_d(jnp.maximum((1.0 - c) * (1.0 + c), 0.0), a2), 0.0)
-            value = d * _ggx_v1_cos(a2, ndotl) * gv
-            w5 = jnp.power(1.0 - jnp.clip((dx * hx + dy * hy + dz * hz) * hinv, 0.0, 1.0), 5.0)
+            ndotl = cx * nt + cy * nb + cos * nu
+            vdotl = cx * vt + cy * vb + cos * vu
+            hinv = jax.lax.rsqrt(jnp.maximum(2.0 + 2.0 * vdotl, 1e-20))
+            c = (ndotl + nv) * hinv  # n . h
+            dd = a2 + jnp.maximum((1.0 - c) * (1.0 + c), 0.0) * (1.0 - a2)  # GGX D = a2 / (pi dd^2)
+            lit = (c > 0.0) & (ndotl > 0.0)
+            safe = jnp.where(lit, ndotl, 1.0)
+            # D x n.l x _ggx_v1(n.l) in one division: n.l / (n.l + sqrt(a2 + (1 - a2) n.l^2))
+            value = jnp.where(lit, a2 * safe / (math.pi * dd * dd * (safe + jnp.sqrt(a2 + (1.0 - a2) * safe * safe))),
+                              0.0) * gv
+            w = 1.0 - jnp.clip((1.0 + vdotl) * hinv, 0.0, 1.0)  # 1 - d . h
+            w2 = w * w
             plain = plain + value
-            grazing = grazing + value * w5
+            grazing = grazing + value * (w2 * w2 * w)
     energy = (2.0 * math.pi / (s * s)) * tail / lam  # each direction's share of the SG's integral
     plain, grazing = plain * energy, grazing * energy
     base = jnp.stack([jnp.sum(plain * a, axis=-1) for a in at[4:7]], axis=-1)
