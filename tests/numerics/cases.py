@@ -162,7 +162,8 @@ def log_l2_loss(draw, spec):
         ["axes", "sharpness", "amplitude", "targets"])
 
 
-def shade(draw, spec):
+def _lobe_shading(draw, name: str):
+    """Eight pixels of 4 lobes each shaded by ``model.<name>`` (``shade``, ``shade_sampled``)."""
     from jprt.methods.sg_lightfield import model as m
 
     lobes = _lobes(draw, (8,))
@@ -172,24 +173,17 @@ def shade(draw, spec):
                               diffuse_albedo="(8, 3) in [0, 1]", irradiance="(8, 3) in [0, 1e5]")}
 
     def fn(axes, sharpness, amplitude, **pixel):
-        return m.shade(m.Lobes(axes, sharpness, amplitude), **pixel)
+        return getattr(m, name)(m.Lobes(axes, sharpness, amplitude), **pixel)
 
     return Problem(fn, args, ["sharpness", "amplitude", "view", "roughness", "specular", "irradiance"])
+
+
+def shade(draw, spec):
+    return _lobe_shading(draw, "shade")
 
 
 def shade_sampled(draw, spec):
-    from jprt.methods.sg_lightfield import model as m
-
-    lobes = _lobes(draw, (8,))
-    lobes.pop("directions")
-    args = {**lobes, **_draw(draw, normal="(8, 3) unit", view="(8, 3) unit within 89.9 of normal",
-                              roughness="(8,) in [1e-3, 1]", specular="(8, 3) in [0, 1]",
-                              diffuse_albedo="(8, 3) in [0, 1]", irradiance="(8, 3) in [0, 1e5]")}
-
-    def fn(axes, sharpness, amplitude, **pixel):
-        return m.shade_sampled(m.Lobes(axes, sharpness, amplitude), **pixel)
-
-    return Problem(fn, args, ["sharpness", "amplitude", "view", "roughness", "specular", "irradiance"])
+    return _lobe_shading(draw, "shade_sampled")
 
 
 def shade_quadrature(draw, spec):
