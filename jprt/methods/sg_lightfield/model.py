@@ -101,7 +101,8 @@ DEFAULT_CONFIG: dict[str, Any] = {
     },
     # the run-time shading of the lobes: samples^2 stratified directions drawn from each lobe's SG,
     # each through the GGX BRDF (``shade_sampled``); 0: Appendix B's SG x ASG product (``shade``).
-    # 3 chosen on the glossy receivers (benchmarks/results/sg_lightfield.json; docs/methods/sg_lightfield.md)
+    # 3 chosen on the glossy receivers (benchmarks/results/sg_lightfield.json; docs/methods/sg_lightfield.md),
+    # checked on veach-bidir (benchmarks/results/real_scenes.json: no loss there)
     "shading": {"samples": 3},
 }
 
