@@ -166,7 +166,8 @@ def test_evaluator_shades_by_samples_or_by_appendix_b():
     res, t_count, n_lobes = 4, 16, 2
     axes = rng.normal(size=(t_count, n_lobes, 3))
     axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
-    params = {"axes": jnp.asarray(axes, jnp.float16), "sharpness": jnp.asarray(rng.uniform(1, 50, (t_count, n_lobes)), jnp.float16),
+    params = {"axes": jnp.asarray(axes, jnp.float16),
+              "sharpness": jnp.asarray(rng.uniform(1, 50, (t_count, n_lobes)), jnp.float16),
               "amplitude": jnp.asarray(rng.uniform(0, 2, (t_count, n_lobes, 3)), jnp.float16),
               "irradiance": jnp.asarray(rng.uniform(0, 1, (t_count, 3)), jnp.float32),
               "fill_index": jnp.arange(res * res, dtype=jnp.int32)}

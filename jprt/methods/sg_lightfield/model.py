@@ -18,11 +18,14 @@
 * **Encoder** (§4 "Encoder Network"): ``jprt.nn.cnn.sg_encoder`` maps a texel's light-field
   image to its N x 7 raw parameters; trained with Adam on all texels (``fit_cnn``). Its input is
   log(1 + T) (the paper does not say how HDR input is scaled; the loss compares logs too).
-* **Run time** (§6, Appendix B, Eq. 15-24 with the errata of ``jprt.sphere.sg``): per pixel, the
-  lobes of its texel (bilinear in the atlas), the GGX NDF as an SG warped to an ASG about the
-  reflected view direction, each lobe convolved with it, times Smith's G (separable GGX, in the
-  V = G / (4 n.l n.v) form) and Schlick's Fresnel at the reflected direction, times n.l; the
-  diffuse term is albedo / pi times the texel's irradiance, integrated from the captured map.
+* **Run time** (§6): per pixel, the lobes of its texel (bilinear in the atlas), each integrated
+  against the GGX BRDF at ``shading.samples``^2 directions drawn from it (``shade_sampled``, the
+  default: Appendix B's product lost 8 dB to the lobes' own quadrature bound on the benchmark's
+  receivers), or, with ``shading.samples`` 0, by Appendix B (Eq. 15-24 with the errata of
+  ``jprt.sphere.sg``, ``shade``): the GGX NDF as an SG warped to an ASG about the reflected view
+  direction, each lobe convolved with it, times Smith's G (separable GGX, in the V = G / (4 n.l
+  n.v) form) and Schlick's Fresnel at the reflected direction, times n.l; the diffuse term is
+  albedo / pi times the texel's irradiance, integrated from the captured map.
   Eq. 17 as printed drops the 1 / (pi r^2) normalisation of the NDF; ``sg.ggx_ndf_sg`` keeps it.
   "Roughness" is GGX alpha throughout (Mitsuba's ``alpha``; Table 2 may mean perceptual
   roughness). The receivers are Mitsuba conductors with Fresnel = ``specular`` (``material
@@ -726,16 +729,17 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     The texture (lobes and irradiance of every atlas pixel, float32 from the float16 storage) is
     packed once here, as a renderer uploads its textures once. Pixels are shaded in tiles of
     ``tile`` (a ``lax.map``, one program): one bilinear fetch of the packed texture per pixel, then
-    the shading on (..., N) planes (``_shade_planes_sampled``, ``_shade_planes``): on a CPU several times faster than the
-    same program untiled or ``shade`` on (..., N, 3) vectors (XLA fuses the fetch into every use
-    of its result and streams the whole frame through each fusion; a tile stays in cache).
+    the shading on (..., N) planes (``_shade_planes_sampled``, ``_shade_planes``): on a CPU
+    several times faster than the same program untiled or ``shade`` on (..., N, 3) vectors (XLA
+    fuses the fetch into every use of its result and streams the whole frame through each fusion;
+    a tile stays in cache).
 
     Numerics: not differentiable (builds the float32 run-time program; ``shade_sampled`` and ``shade`` are covered).
     """
     from jprt.methods.lightmap_lookup import atlas_lookup
 
-    n = params["sharpness"].shape[-1]
     samples = int(_cfg(config)["shading"]["samples"])
+    n = params["sharpness"].shape[-1]
     if samples < 0:
         raise ValueError(f"shading.samples must be >= 0 (0: Appendix B's product), got {samples}")
     table = lobe_table(params)
