@@ -97,8 +97,9 @@ def lightmap_shader(params: dict, fill_index):
     """How a lightmap method's evaluator shades pixels with its texels: ``(materials, shade)``.
     ``materials(inputs)``: the G-buffer fields ``shade`` reads (diffuse and specular albedo and
     object id; None where the params carry no ``texel_modulation``). ``shade(texels, uv,
-    materials)``: texels (T, 3), divided by ``texel_modulation`` where the params carry it, looked
-    up at ``uv`` (``remodulated_lookup``, else ``atlas_lookup``)."""
+    materials)``: texels (T, 3) looked up at ``uv`` (``remodulated_lookup``, else
+    ``atlas_lookup``); where the params carry ``texel_modulation`` the texels must already be the
+    light over their texture (data-driven PRT fits them so; SH PRT divides its bake first)."""
     fill = jnp.asarray(fill_index)
     if "texel_modulation" not in params:
         return (lambda inputs: None), (lambda texels, uv, materials: atlas_lookup(atlas_image(texels, fill), uv))

@@ -621,7 +621,8 @@ def _shade_planes_sampled(at, normal, view, roughness, specular, diffuse_albedo,
     s = int(samples)
     nx, ny, nz = (normal[..., k:k + 1] for k in range(3))
     vx, vy, vz = (view[..., k:k + 1] for k in range(3))
-    ndotv = jnp.maximum(nx * vx + ny * vy + nz * vz, 1e-4)
+    nv = nx * vx + ny * vy + nz * vz
+    ndotv = jnp.maximum(nv, 1e-4)
     a2 = jnp.square(jnp.maximum(roughness, 1e-3))[..., None] + 1.0 / (lam * (s * s))  # widened per lobe
     tail = 1.0 - jnp.exp(-2.0 * lam)  # the SG's mass in the cosine's range
     gv = _ggx_v1(a2, ndotv)
@@ -629,7 +630,6 @@ def _shade_planes_sampled(at, normal, view, roughness, specular, diffuse_albedo,
     # frame coordinates), and h = (d + v) / |d + v| with |d + v|^2 = 2 + 2 v . d
     nt, nb, nu = nx * tx + ny * ty + nz * tz, nx * bx + ny * by + nz * bz, nx * ux + ny * uy + nz * uz
     vt, vb, vu = vx * tx + vy * ty + vz * tz, vx * bx + vy * by + vz * bz, vx * ux + vy * uy + vz * uz
-    nv = nx * vx + ny * vy + nz * vz
     plain, grazing = 0.0, 0.0
     for i in range(s):
         # 1 - cos of the stratum's direction, from the SG's inverse CDF (no 1 - cos cancellation)
