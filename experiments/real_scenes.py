@@ -87,8 +87,11 @@ CONFIG = {
     # their share, the training maps ([]: every map not held out), envmaps.tilt, train.objective,
     # train.fine_penalty (the light the finest Haar levels carry, penalised; 0: off) and the seed.
     # model.lighting_levels 2: the model reads the lighting's scaling wavelets and two coarsest
-    # detail levels (96 per channel at face 16, fewer than the 150 training lightings)
-    "wavelet_prt": {"envmaps": {"face_size": 16, "procedural": "lobes", "procedural_fraction": 0.2, "train": [],
+    # detail levels (96 per channel at face 16, fewer than the 150 training lightings);
+    # envmaps.procedural "sun" at procedural_fraction 0.6: 60 % of the training lightings are clear
+    # skies with a one-texel sun anywhere on the upper hemisphere, so each direction's transport is
+    # seen alone (chosen on staircase, validated on cornell_box_picture and veach-bidir: CHANGELOG.md)
+    "wavelet_prt": {"envmaps": {"face_size": 16, "procedural": "sun", "procedural_fraction": 0.6, "train": [],
                                  "tilt": 0.0},
                     "cameras": {"width": 64, "height": 64, "target": None, "sphere": {"n": 40}, "helix": {"n": 35},
                                 "near": 1, "far": 1},
