@@ -597,8 +597,14 @@ def _shade_planes(at, normal, view, roughness, specular, diffuse_albedo):
     scale, sx, sy = _warped_convolution(cos_v, jnp.square(roughness)[..., None], 0.5 * lam)
     vx, vy, vz = dot(asg.x), dot(asg.y), dot(asg.z)
     per_lobe = scale * jnp.maximum(vz, 0.0) * jnp.exp(-sx * vx * vx - sy * vy * vy)
-    conv = jnp.stack([jnp.sum(per_lobe * a, axis=-1) for a in at[4:7]], axis=-1)
+    conv = _amplitude_sum(per_lobe, at)
     return glossy_factor(conv, asg.z, normal, view, roughness, specular) + diffuse_albedo / jnp.pi * at[7]
+
+
+def _amplitude_sum(weights, at):
+    """(..., 3): per channel, the sum over lobes of ``weights`` (..., N) times the lobes'
+    amplitude planes (``at[4:7]`` of ``lobe_planes``)."""
+    return jnp.stack([jnp.sum(weights * a, axis=-1) for a in at[4:7]], axis=-1)
 
 
 def _lobe_tangents(ux, uy, uz):
@@ -655,8 +661,7 @@ def _shade_planes_sampled(at, normal, view, roughness, specular, diffuse_albedo,
             grazing = grazing + value * (w2 * w2 * w)
     energy = (2.0 * math.pi / (s * s)) * tail / lam  # each direction's share of the SG's integral
     plain, grazing = plain * energy, grazing * energy
-    base = jnp.stack([jnp.sum(plain * a, axis=-1) for a in at[4:7]], axis=-1)
-    schlick = jnp.stack([jnp.sum(grazing * a, axis=-1) for a in at[4:7]], axis=-1)
+    base, schlick = _amplitude_sum(plain, at), _amplitude_sum(grazing, at)
     f0 = jnp.asarray(specular)
     return f0 * base + (1.0 - f0) * schlick + diffuse_albedo / jnp.pi * at[7]
 
