@@ -179,7 +179,12 @@ def evaluator(params, config: dict | None = None):
     n_texels = transfer.shape[0]
     exit_degree = int(round(math.sqrt(exit_transfer.shape[1]))) - 1
     # the bake holds the texels' light: a demodulated evaluator divides their texture out first
-    demodulate = jnp.asarray(params.get("texel_modulation", np.ones((1, 3), np.float32)), jnp.float32)
+    # (an evaluator without modulation skips the division rather than dividing by ones)
+    modulation = params.get("texel_modulation")
+    inverse_modulation = None if modulation is None else 1.0 / jnp.asarray(modulation, jnp.float32)
+
+    def demodulated(texels):
+        return texels if inverse_modulation is None else texels * inverse_modulation
     materials, shade = lightmap_shader(params, fill)
 
     @jax.jit
@@ -190,14 +195,14 @@ def evaluator(params, config: dict | None = None):
         uv = jnp.asarray(inputs.uv, jnp.float32)
         pixel_materials = materials(inputs)
         texels = jnp.einsum("tic,ic->tc", transfer[:, :c.shape[0]], c)
-        image = shade(texels / demodulate, uv, pixel_materials)
+        image = shade(demodulated(texels), uv, pixel_materials)
         if exit_transfer.shape[0]:
             coeff = jnp.einsum("gjic,ic->gjc", exit_transfer[:, :, :c.shape[0]], c)  # (G, m, 3)
             m = coeff.shape[1]
             glossy = jnp.zeros(n_texels, jnp.float32).at[exit_texel].set(1.0)
             rows = jnp.zeros((n_texels, m * 3 + 3), jnp.float32)
             rows = rows.at[exit_texel].set(jnp.concatenate([coeff.reshape(-1, m * 3), exit_normal], axis=1))
-            diffuse = shade(texels * (1.0 - glossy)[:, None] / demodulate, uv, pixel_materials)
+            diffuse = shade(demodulated(texels * (1.0 - glossy)[:, None]), uv, pixel_materials)
             looked = atlas_lookup(atlas_image(rows, fill), uv)
             view = jnp.asarray(inputs.view, jnp.float32)
             y = sh.evaluate(view, exit_degree)  # (H, W, m)
