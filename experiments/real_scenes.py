@@ -65,10 +65,11 @@ CONFIG = {
     # largest samples per pixel; reference_noise: the largest relative noise of a reference on a
     # judged object, as a fraction of the target; min_object_fraction: the share of a view an object
     # needs to be judged; target / target_mean: the largest and the mean judged object's relative
-    # RMSE (noise removed)
+    # RMSE (noise removed); time_peer: time Mitsuba's reference frame as the speed peer (false skips
+    # it, for diagnostic runs: the report's speed-ups are then null)
     "eval": {"resolution": 128, "extra_views": 1, "n_lights": 3, "reference_spp": 256, "reference_spp_max": 16384,
              "reference_noise": 1.0 / 3.0, "seed": 7100, "min_object_fraction": 0.01, "timing_repeats": 10,
-             "target": 0.35, "target_mean": 0.25},
+             "target": 0.35, "target_mean": 0.25, "time_peer": True},
     # the environment-lit methods: the opening cut into each file, the held-out maps (one indoor, one
     # overcast, one clear sky with sun; all held out of neural-wavelet PRT's training maps) as cube
     # maps at neural-wavelet PRT's cube face size, normalised to mean radiance 1

@@ -294,6 +294,9 @@ def test_real_scenes_one_method_failing_keeps_the_others(mi, tmp_path, monkeypat
     assert not failed["target_met"]
     assert entry["methods"]["rrf"]["per_object"]
     assert len(entry["cameras"]) == 2 and entry["cameras"][0] != entry["cameras"][1]
+    assert entry["setups"]["point"]["pathtracer"]["ms"] > 0  # the peer is timed by default
+    config["eval"] = config["eval"] | {"time_peer": False}  # a diagnostic run skips the peer's timing
+    assert module.run_scene(str(scene), config, str(tmp_path))["setups"]["point"]["pathtracer"] is None
 
 
 

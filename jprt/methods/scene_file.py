@@ -98,7 +98,7 @@ def fit_and_score(name: str, s: dict, cameras: list, cfg: dict, e: dict, peak_gf
              "self_check": check, "frame_ms": timing["median_ms"], "frame_flops": roof["frame_flops"],
              "frame_flops_source": "method" if own else "xla", "flops_fraction_of_peak": roof["flops_fraction_of_peak"],
              "roofline": roof["roofline"],
-             "speedup_vs_reference_render": s["peer"]["ms"] / timing["median_ms"],
+             "speedup_vs_reference_render": s["peer"]["ms"] / timing["median_ms"] if s["peer"] else None,
              "frame_resolution": list(np.shape(preds[0])[:2]), "dataset_s": t1 - t0, "fit_s": t2 - t1, "info": info,
              "grouped_objects": report.get("grouped", {}), "skipped_objects": report.get("skipped", {}),
              "regions": meta.get("regions") if isinstance(meta, dict) else None}

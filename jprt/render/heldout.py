@@ -175,7 +175,9 @@ def face_counts(handle) -> list[int]:
 
 def lighting_setup(desc: dict, cameras: list, lightings: list, method_lightings: list, e: dict) -> dict:
     """One lighting set-up of a scene: its handle, the views' G-buffers, which objects are judged
-    (>= ``eval.min_object_fraction`` of some view, not purely specular), the references."""
+    (>= ``eval.min_object_fraction`` of some view, not purely specular), the references, and the
+    path tracer's time for one reference frame (``pathtrace_ms``; None where ``eval.time_peer`` is
+    false: a diagnostic run that needs no speed-up skips minutes of path tracing)."""
     from jprt.render.gbuffer import gbuffer
     from jprt.render.scenes import SceneHandle
 
@@ -199,4 +201,5 @@ def lighting_setup(desc: dict, cameras: list, lightings: list, method_lightings:
     return {"desc": desc, "handle": h, "names": names, "gbuffers": gbs, "judged": judged, "apart": apart,
             "lightings": lightings, "method_lightings": method_lightings, "refs": refs, "refs2": refs2,
             "ids": ids, "floor": jeval.object_scores(refs2, refs, ids, names),
-            "spp": spp, "peer": pathtrace_ms(h, cameras[0], lightings[0], spp[0][0])}
+            "spp": spp,
+            "peer": pathtrace_ms(h, cameras[0], lightings[0], spp[0][0]) if e.get("time_peer", True) else None}
