@@ -91,8 +91,9 @@ CONFIG = {
     # detail levels (96 per channel at face 16, fewer than the 150 training lightings);
     # envmaps.procedural "sun" at procedural_fraction 0.6: 60 % of the training lightings are clear
     # skies with a one-texel sun anywhere on the upper hemisphere, so each direction's transport is
-    # seen alone (chosen on staircase; checked on cornell_box_picture and veach-bidir, which lost up
-    # to 0.02 of mean object error there: CHANGELOG.md, 2026-12-06 (night))
+    # seen alone (chosen on staircase; checked on the other three scenes, each of which lost a little:
+    # up to 0.02 of mean object error, and 0.17 on living-room's worst object: CHANGELOG.md,
+    # 2026-12-06 (night) and (late night))
     "wavelet_prt": {"envmaps": {"face_size": 16, "procedural": "sun", "procedural_fraction": 0.6, "train": [],
                                  "tilt": 0.0},
                     "cameras": {"width": 64, "height": 64, "target": None, "sphere": {"n": 40}, "helix": {"n": 35},
