@@ -105,8 +105,10 @@ CONFIG = {
                               "fine_penalty": 0.0, "fine_levels": 2, "seed": 0}, "render": {"k": 64}},
     # SH PRT: sh.order the SH order (order^2 coefficients), sh.spp the path samples per transfer
     # texel; order 4 and 256 spp chosen on cornell_box_picture, validated on living-room
-    # (CHANGELOG.md, 2026-12-05)
-    "sh_prt": {"lightmap": {"resolution": 96}, "sh": {"order": 4, "spp": 256, "env_height": 32}},
+    # (CHANGELOG.md, 2026-12-05); exit_directions / exit_spp: view directions per view-dependent
+    # texel and path samples along each (the method's defaults, named so a preset can shrink them)
+    "sh_prt": {"lightmap": {"resolution": 96},
+               "sh": {"order": 4, "spp": 256, "env_height": 32, "exit_directions": 32, "exit_spp": 16}},
     "output": {"dir": "results/real_scenes"},
 }
 

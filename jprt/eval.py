@@ -26,7 +26,7 @@ from jprt.metrics import error_map, tonemap
 
 __all__ = ["set_rmse", "object_scores", "noise_removed", "DARK_OBJECT_SCALE", "HeldOut", "SCORES", "SUMMARY_SCORES",
            "score_images", "score_held_out", "optional_metric", "time_call", "interleaved_times", "xla_flops",
-           "xla_cost", "matmul_peak_gflops", "stream_bandwidth_gbs", "roofline", "roofline_of", "PathTracer",
+           "xla_cost", "gather_overcount", "matmul_peak_gflops", "stream_bandwidth_gbs", "roofline", "roofline_of", "PathTracer",
            "EqualErrorCurve", "equal_error_spp", "side_by_side", "plot_series"]
 
 
@@ -292,17 +292,123 @@ def xla_cost(jitted: Callable, *args) -> dict:
     """XLA's cost analysis of one call of ``jitted`` (a ``jax.jit`` function) on ``args``, compiled
     once: {"flops": multiply-adds count 2, gathers, sorts and scatters nothing; "bytes": the bytes
     its fused operations read and write ("bytes accessed": each fusion's operands and results,
-    not what stays in registers or cache inside it)}, each None when the backend reports none."""
+    not what stays in registers or cache inside it), except that a table read only through gathers
+    is charged for the rows they read (``gathered_bytes``), not its whole size as XLA charges it;
+    "bytes_xla": XLA's own figure}, each None when the backend reports none."""
     try:
-        cost = jitted.lower(*args).compile().cost_analysis()
+        compiled = jitted.lower(*args).compile()
+        cost = compiled.cost_analysis()
     except Exception:  # noqa: BLE001 - a backend without cost analysis
-        return {"flops": None, "bytes": None}
+        return {"flops": None, "bytes": None, "bytes_xla": None}
     cost = cost[0] if isinstance(cost, (list, tuple)) and cost else cost
     out = {}
     for key, name in (("flops", "flops"), ("bytes", "bytes accessed")):
         value = cost.get(name) if cost else None
         out[key] = float(value) if value is not None and value > 0 else None
+    out["bytes_xla"] = out["bytes"]
+    if out["bytes"] is not None:
+        try:
+            text = compiled.as_text()
+        except Exception:  # noqa: BLE001 - no HLO text: XLA's figure stands
+            text = ""
+        out["bytes"] = max(out["bytes"] - gather_overcount(text), 0.0) or out["bytes"]
     return out
+
+
+_DTYPE_BYTES = {"pred": 1, "s8": 1, "u8": 1, "s16": 2, "u16": 2, "f16": 2, "bf16": 2, "s32": 4, "u32": 4,
+                "f32": 4, "s64": 8, "u64": 8, "f64": 8, "c64": 8, "c128": 16}
+# ops that pass a table through unchanged in what a gather of it reads (a view or a per-element cast)
+_PASS_THROUGH = ("bitcast", "convert", "copy", "reshape")
+
+
+def _hlo_computations(text: str) -> dict:
+    """The computations of an HLO module's text: name -> {"entry": bool, "ops": {instruction name:
+    (dtype, dims, opcode, operand names, attribute text)}}; array-shaped instructions only."""
+    import re
+
+    comps, current = {}, None
+    head = re.compile(r"^(ENTRY )?%([\w.\-]+) \(.*\{\s*$")
+    line_re = re.compile(r"^\s*(?:ROOT )?%([\w.\-]+) = (\w+)\[([\d,]*)\]\S* ([\w\-]+)\((.*)$")
+    for line in text.splitlines():
+        m = head.match(line)
+        if m:
+            current = comps.setdefault(m.group(2), {"entry": bool(m.group(1)), "ops": {}})
+            continue
+        if line.startswith("}"):
+            current = None
+            continue
+        m = line_re.match(line) if current is not None else None
+        if not m:
+            continue
+        name, dtype, dims, opcode, rest = m.groups()
+        depth, end = 1, len(rest)
+        for i, ch in enumerate(rest):  # the operand list ends at the parenthesis that closes it
+            depth += {"(": 1, ")": -1}.get(ch, 0)
+            if depth == 0:
+                end = i
+                break
+        operands = re.findall(r"%([\w.\-]+)", rest[:end])
+        current["ops"][name] = (dtype, [int(d) for d in dims.split(",") if d], opcode, operands, rest[end:])
+    return comps
+
+
+def gather_overcount(hlo_text: str, line_bytes: int = 64) -> float:
+    """Bytes XLA's "bytes accessed" charges for gathered tables beyond what their gathers read.
+
+    XLA charges a gather's table operand at its full size; a lightmap or feature-grid lookup reads
+    only the rows its indices name. For every table a gather reads (a fusion's parameter used only
+    by gathers, through views and casts; or an unfused gather's operand), this counts its size minus
+    the rows read (each gathered slice rounded up to ``line_bytes``, one cache line; the table's
+    size at most), summed over the module of ``hlo_text`` (a compiled executable's ``as_text()``).
+    """
+    import re
+
+    total = 0.0
+    for comp in _hlo_computations(hlo_text).values():
+        ops = comp["ops"]
+        users: dict = {}
+        for name, (_, _, _, operands, _) in ops.items():
+            for o in operands:
+                users.setdefault(o, []).append(name)
+
+        def size(name: str) -> float:
+            dtype, dims, *_ = ops[name]
+            return float(_DTYPE_BYTES.get(dtype, 4) * math.prod(dims))
+
+        def read(gather: str, elem_bytes: int) -> float:  # the rows one gather reads, in lines
+            _, dims, _, _, attrs = ops[gather]
+            m = re.search(r"slice_sizes=\{([\d,]*)\}", attrs)
+            slice_elems = math.prod(int(d) for d in m.group(1).split(",") if d) if m else 1
+            n = math.prod(dims) / max(slice_elems, 1)
+            return n * line_bytes * math.ceil(slice_elems * elem_bytes / line_bytes)
+
+        tables: dict = {}
+        for name, (dtype, dims, opcode, operands, _) in ops.items():
+            if opcode != "gather" or not operands or operands[0] not in ops:
+                continue
+            source = operands[0]
+            if not comp["entry"]:  # inside a fusion: follow views and casts back to its parameter
+                while ops[source][2] in _PASS_THROUGH and ops[source][3] and ops[source][3][0] in ops:
+                    source = ops[source][3][0]
+                if ops[source][2] != "parameter":
+                    continue
+                tables.setdefault(source, []).append(name)
+            else:  # an unfused gather is charged its own operand in full
+                src = ops[source]
+                total += max(size(source) - read(name, _DTYPE_BYTES.get(src[0], 4)), 0.0)
+        for param, gathers in tables.items():
+            # every use of the parameter (through views and casts) must be one of these gathers
+            frontier, ok = [param], True
+            while frontier and ok:
+                for u in users.get(frontier.pop(), []):
+                    if ops[u][2] in _PASS_THROUGH:
+                        frontier.append(u)
+                    elif not (ops[u][2] == "gather" and u in gathers):
+                        ok = False
+            if ok:
+                elem = _DTYPE_BYTES.get(ops[param][0], 4)
+                total += max(size(param) - sum(read(g, elem) for g in gathers), 0.0)
+    return total
 
 
 def xla_flops(jitted: Callable, *args) -> float | None:
@@ -349,14 +455,17 @@ def roofline(jitted: Callable, *args, frame_ms: float, peak_gflops: float | None
     ``frame_gflops_per_s``, ``matmul_peak_gflops`` (measured now unless given),
     ``flops_fraction_of_peak`` = achieved / peak, and ``roofline``: {``matmul_gflops``,
     ``bandwidth_gbs`` (``stream_bandwidth_gbs``, measured now unless given), ``frame_flops``,
-    ``frame_bytes`` (``frame_bytes`` when given, else XLA's bytes accessed), ``intensity``
+    ``frame_bytes`` (``frame_bytes`` when given, else ``xla_cost``'s bytes: XLA's bytes accessed
+    with gathered tables charged for the rows read), ``frame_bytes_xla`` (XLA's own figure), ``intensity``
     (FLOP per byte), ``attainable_gflops`` = min(peak, intensity x bandwidth), ``bound``
     ("compute" or "memory": which of the two is the smaller), ``fraction_of_roofline`` =
     achieved / attainable}. None where nothing counts (no FLOP or byte count)."""
     cost = xla_cost(jitted, *args)
-    return roofline_of(cost["flops"] if flops is None else float(flops),
-                       cost["bytes"] if frame_bytes is None else float(frame_bytes), frame_ms=frame_ms,
-                       peak_gflops=peak_gflops, bandwidth_gbs=bandwidth_gbs)
+    out = roofline_of(cost["flops"] if flops is None else float(flops),
+                      cost["bytes"] if frame_bytes is None else float(frame_bytes), frame_ms=frame_ms,
+                      peak_gflops=peak_gflops, bandwidth_gbs=bandwidth_gbs)
+    out["roofline"]["frame_bytes_xla"] = cost.get("bytes_xla")
+    return out
 
 
 def roofline_of(flops: float | None, moved: float | None, *, frame_ms: float, peak_gflops: float | None = None,

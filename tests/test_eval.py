@@ -103,6 +103,25 @@ def test_roofline_counts_a_matmul_and_judges_it_against_the_peak():
     assert jeval.matmul_peak_gflops(n=64, repeats=2) > 0
 
 
+def test_a_gathered_table_is_charged_for_the_rows_read_not_its_size():
+    """A lookup of 4096 rows of 64 bytes in a 16 MiB table moves about 4096 lines, not the table
+    (XLA's own figure charges the whole table); a table also read in full (a sum) keeps its full
+    charge; the same holds through a float16 -> float32 cast."""
+    import jax
+    import jax.numpy as jnp
+
+    table = jnp.ones((1 << 18, 16), jnp.float32)  # 16 MiB
+    idx = (jnp.arange(4096) * 61) % (1 << 18)
+    rows = 4096 * 64
+    looked_up = jeval.xla_cost(jax.jit(lambda t, i: t[i] * 2.0), table, idx)
+    assert looked_up["bytes_xla"] >= table.nbytes
+    assert rows <= looked_up["bytes"] <= 4 * rows + idx.nbytes
+    cast = jeval.xla_cost(jax.jit(lambda t, i: t.astype(jnp.float32)[i] * 2.0), table.astype(jnp.float16), idx)
+    assert cast["bytes"] <= 4 * rows + idx.nbytes
+    both = jeval.xla_cost(jax.jit(lambda t, i: t[i].sum() + t.sum()), table, idx)
+    assert both["bytes"] >= table.nbytes
+
+
 def test_roofline_is_the_lower_of_the_peak_and_intensity_times_bandwidth():
     """attainable = min(peak, FLOP/byte x bandwidth); the bound names the smaller; the fraction is
     the achieved rate over it. XLA's bytes of a matmul are at least its operands and result."""
