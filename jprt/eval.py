@@ -293,7 +293,7 @@ def xla_cost(jitted: Callable, *args) -> dict:
     once: {"flops": multiply-adds count 2, gathers, sorts and scatters nothing; "bytes": the bytes
     its fused operations read and write ("bytes accessed": each fusion's operands and results,
     not what stays in registers or cache inside it), except that a table read only through gathers
-    is charged for the rows they read (``gathered_bytes``), not its whole size as XLA charges it;
+    is charged for the rows they read (``gather_overcount``), not its whole size as XLA charges it;
     "bytes_xla": XLA's own figure}, each None when the backend reports none."""
     try:
         compiled = jitted.lower(*args).compile()
@@ -416,20 +416,40 @@ def xla_flops(jitted: Callable, *args) -> float | None:
     return xla_cost(jitted, *args)["flops"]
 
 
+def _triad():
+    """STREAM's triad as ``stream_bandwidth_gbs`` runs it: (a, b, c) -> 0 a + b + 3 c, ``a`` donated."""
+    import jax
+
+    return jax.jit(lambda a, b, c: 0.0 * a + b + 3.0 * c, donate_argnums=0)
+
+
 @functools.lru_cache(maxsize=None)
 def stream_bandwidth_gbs(n_bytes: int = 256 << 20, repeats: int = 5) -> float:
     """The memory bandwidth of this process (GB/s): the STREAM triad a = b + 3 c in JAX over
-    float32 arrays of ``n_bytes`` each (default 256 MiB, far larger than CPU caches), counted as
-    3 x ``n_bytes`` moved per call, the fastest of ``repeats`` timed calls after warm-up.
-    Measured once per process and argument set (about a second on a CPU)."""
+    float32 arrays of ``n_bytes`` each (default 256 MiB, far larger than CPU caches), written into
+    ``a``'s own buffer, the fastest of ``repeats`` timed calls after warm-up. Measured once per
+    process and argument set (about a second on a CPU).
+
+    ``a`` is donated and enters the sum times 0, so XLA writes the result in place: a triad into a
+    fresh 256 MiB output spends most of its time faulting in new pages (5-7 GB/s against 20-30 in
+    place on the 2-core CPU of CHANGELOG.md 2026-12-06), which no evaluator's stream pays. The
+    bytes counted are what the kernel moves: ``a``, ``b``, ``c`` read and ``a`` written."""
     import jax
     import jax.numpy as jnp
 
     n = max(int(n_bytes) // 4, 1)
     b = jax.device_put(jnp.ones((n,), jnp.float32))
     c = jax.device_put(jnp.full((n,), 0.5, jnp.float32))
-    ms = time_call(jax.jit(lambda b, c: b + 3.0 * c), b, c, repeats=repeats, warmup=2)["min_ms"]
-    return 3.0 * 4 * n / (ms * 1e-3) / 1e9
+    a = jax.device_put(jnp.zeros((n,), jnp.float32))
+    triad = _triad()
+    times = []
+    for i in range(2 + max(1, int(repeats))):
+        t0 = time.perf_counter()
+        a = triad(a, b, c)
+        a.block_until_ready()
+        if i >= 2:
+            times.append(time.perf_counter() - t0)
+    return 4.0 * 4 * n / min(times) / 1e9
 
 
 def matmul_peak_gflops(n: int = 1024, repeats: int = 10, dtype: str = "float32",
