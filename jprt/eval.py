@@ -431,9 +431,8 @@ def stream_bandwidth_gbs(n_bytes: int = 256 << 20, repeats: int = 5) -> float:
     process and argument set (about a second on a CPU).
 
     ``a`` is donated and enters the sum times 0, so XLA writes the result in place: a triad into a
-    fresh 256 MiB output spends most of its time faulting in new pages (5-7 GB/s against 20-30 in
-    place on the 2-core CPU of CHANGELOG.md 2026-12-06), which no evaluator's stream pays. The
-    bytes counted are what the kernel moves: ``a``, ``b``, ``c`` read and ``a`` written."""
+    fresh 256 MiB output spends most of its time faulting in new pages, which no evaluator's
+    stream pays (CHANGELOG.md has the two rates side by side). The bytes counted are what the kernel moves: ``a``, ``b``, ``c`` read and ``a`` written."""
     import jax
     import jax.numpy as jnp
 
