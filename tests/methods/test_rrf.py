@@ -219,6 +219,28 @@ def test_frame_flops_count_the_shared_layer_once_per_distinct_leaf(model):
     assert rrf.frame_flops(params, None, gb, lights) == distinct * shared + live.sum() * 3 * per_light
 
 
+def test_frame_work_counts_the_tiles_slots(model):
+    """With one-pixel tiles and one-item chunks every slot is one needed pixel-leaf network, so
+    one light executes exactly what it needs; larger tiles and chunks only add masked slots
+    (occupancy <= 1), in whole tiles and chunks. The network rate is measured and positive."""
+    from jprt.methods.rrf import evaluation
+
+    params, _ = model
+    gb = _fake_gbuffer(h=12, w=10, seed=4, n_objects=2)
+    one = PointLights.create([[0.1, 0.5, 0.0]], np.ones((1, 3)))
+    exact = rrf.frame_work(params, {"render": {"tile": 1, "chunk": 1}}, gb, one)
+    assert exact["slots"] == exact["pixels"] == exact["items"] > 0
+    assert exact["executed_flops"] == exact["useful_flops"] and exact["occupancy"] == 1.0
+    tiled = rrf.frame_work(params, {"render": {"tile": 4, "chunk": 3}}, gb, one)
+    assert tiled["useful_flops"] == exact["useful_flops"]
+    assert tiled["slots"] % (4 * 4 * 3) == 0 and tiled["executed_flops"] >= exact["executed_flops"]
+    assert 0 < tiled["occupancy"] <= 1 and tiled["bytes"] > 0
+    roof = evaluation.network_roofline(params, {"render": {"tile": 4, "chunk": 3}}, gb, one, frame_ms=1.0, repeats=2)
+    assert roof["network_gflops"] > 0 and roof["roofline"]["matmul_gflops"] == roof["network_gflops"]
+    assert roof["roofline"]["frame_flops"] == tiled["executed_flops"]
+    assert 0 < roof["useful_over_executed"] <= 1
+
+
 def test_traversal_in_evaluator_matches_brute_force(model):
     params, _ = model
     rng = np.random.default_rng(3)
@@ -506,7 +528,7 @@ def test_renderer_tanh_matches_float64():
     matters and past its clamp (+-7.9: exactly +-1 in float32), including 0 and denormal-small."""
     x = np.concatenate([np.linspace(-20, 20, 200001), [0.0, 1e-30, -1e-30, 7.9053111, -7.9053111, 1e4, -1e4]])
     x = x.astype(np.float32)
-    got = np.asarray(rrf_renderer._tanh(jnp.asarray(x)), np.float64)
+    got = np.asarray(rrf_renderer.rational_tanh(jnp.asarray(x)), np.float64)
     want = np.tanh(x.astype(np.float64))
     assert np.abs(got - want).max() <= 3.2e-7  # measured 3.13e-7 (jnp.tanh: 2.6e-7)
     assert np.all(np.abs(got) <= 1.0) and np.all(np.sign(got) == np.sign(want))

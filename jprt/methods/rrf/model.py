@@ -54,7 +54,7 @@ from jprt.methods.rrf.fitting import layer_sizes, split_samples, tree_of
 from jprt.methods.rrf.renderer import RENDER_LAYOUTS, raw_thresholds, render_layout
 
 __all__ = ["DEFAULT_CONFIG", "gradient_evaluator", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features",
-           "split_samples", "split_dims", "input_size", "fit", "fit_arrays", "evaluator", "frame_flops", "check_inputs", "example",
+           "split_samples", "split_dims", "input_size", "fit", "fit_arrays", "evaluator", "frame_flops", "frame_work", "network_flops", "check_inputs", "example",
            "refit_leaves", "parameter_count", "light_box", "raw_thresholds", "RENDER_LAYOUTS", "render_layout"]
 
 DEFAULT_CONFIG: dict = {
@@ -333,10 +333,31 @@ def frame_flops(params, config: dict | None, inputs, lights) -> float:
 
     Numerics: not differentiable (a FLOP count).
     """
+    sizes = layer_sizes(params["leaves"]["layers"])
+    _, leaf, k = _pixel_leaves(params, config, inputs, lights)
+    distinct = int(np.sum(1 + np.sum(np.diff(np.sort(leaf, axis=0), axis=0) != 0, axis=0))) if leaf.size else 0
+    shared, per_light = network_flops(sizes)
+    return float(distinct * shared + leaf.shape[1] * k * per_light)
+
+
+def network_flops(sizes) -> tuple[int, int]:
+    """FLOPs of one pixel's network of layer ``sizes`` (``frame_flops``'s count): the light-free
+    part of the first layer, and what each light adds (its part of the first layer, the other
+    layers, the colour).
+
+    Numerics: not differentiable (a count).
+    """
+    shared = 2 * (sizes[0] - 3) * sizes[1]
+    later = sum(2 * a * b + b for a, b in zip(sizes[1:-1], sizes[2:]))
+    return shared, 2 * 3 * sizes[1] + 2 * sizes[1] + later + 2 * sizes[-1]
+
+
+def _pixel_leaves(params, config: dict | None, inputs, lights):
+    """The pixels with networks, flat indices into the (H, W) image, and each one's kd-tree leaf
+    under each light, (K, pixels); and K."""
     cfg = _cfg(config)
     material = cfg["data"]["mode"] == "material"
     gb = inputs.gbuffer if material else inputs
-    sizes = layer_sizes(params["leaves"]["layers"])
     roots = np.asarray(params["tree"]["roots"])
     obj = np.asarray(gb.object_id).reshape(-1)
     ok = np.asarray(gb.valid, bool).reshape(-1) & (obj >= 0) & (obj < roots.shape[0])
@@ -357,11 +378,46 @@ def frame_flops(params, config: dict | None, inputs, lights) -> float:
                                     np.broadcast_to(light_pos[kk], (idx.size, 3)), normal, brdf, edit))
             xn = normalise(x, obj[idx], params["obj_lo"], params["obj_hi"])
             leaf[kk] = kdtree.traverse(tree, obj[idx], xn, xp=np)
-    distinct = int(np.sum(1 + np.sum(np.diff(np.sort(leaf, axis=0), axis=0) != 0, axis=0))) if idx.size else 0
-    shared = 2 * (sizes[0] - 3) * sizes[1]
-    later = sum(2 * a * b + b for a, b in zip(sizes[1:-1], sizes[2:]))
-    per_light = 2 * 3 * sizes[1] + 2 * sizes[1] + later + 2 * sizes[-1]
-    return float(distinct * shared + idx.size * k * per_light)
+    return idx, leaf, k
+
+
+def frame_work(params, config: dict | None, inputs, lights) -> dict:
+    """What one ``evaluator`` call executes (``renderer.render_frame``'s tiled layout), beside what
+    it needs (``frame_flops``): every (leaf, tile) pair some pixel needs is a work item of
+    tile^2 pixel slots, each leaf's items padded to whole chunks, and every slot of an item runs
+    its leaf's network (masked afterwards). Returns {"useful_flops" (``frame_flops``),
+    "executed_flops" (slots x the network's FLOPs, every light counted on every slot: exact for
+    one light or trees that do not split on the light, an upper bound otherwise), "pixels" (with
+    networks), "items", "slots", "occupancy" (pixel-leaf evaluations needed / slots), "tile",
+    "chunk", "bytes" (a stated model of the memory traffic: the G-buffer's fields read once, each
+    slot's inputs gathered and its output added into the image planes, read and written; the
+    networks' weights, a few kB per leaf, stay in cache)}.
+
+    Numerics: not differentiable (a count).
+    """
+    cfg = _cfg(config)
+    material = cfg["data"]["mode"] == "material"
+    gb = inputs.gbuffer if material else inputs
+    h, w = np.asarray(gb.object_id).shape
+    tile, chunk = renderer.render_layout(cfg["render"])
+    sizes = layer_sizes(params["leaves"]["layers"])
+    n_leaves = int(np.asarray(params["leaves"]["layers"][0]["w"]).shape[0])
+    idx, leaf, k = _pixel_leaves(params, config, inputs, lights)
+    tw = -(-w // tile)
+    tiles = (idx // w) // tile * tw + (idx % w) // tile
+    pairs = np.unique((leaf * (-(-h // tile) * tw) + tiles[None, :]).reshape(-1))  # (leaf, tile) items
+    count = np.bincount(pairs // (-(-h // tile) * tw), minlength=n_leaves)
+    items = int(count.sum())
+    slots = int(np.sum(-(-count // chunk) * chunk)) * tile * tile
+    shared, per_light = network_flops(sizes)
+    needed = int(np.sum(1 + np.sum(np.diff(np.sort(leaf, axis=0), axis=0) != 0, axis=0))) if leaf.size else 0
+    inputs_per_pixel = sizes[0] - 3  # x's columns but the light's, float32
+    fields = 4 * (3 + 3 + 3 + 3 + 3 + 1 + 1) + 1  # GBUFFER_FIELDS: six float vectors / scalars, id, valid
+    moved = h * w * fields + slots * 4 * (inputs_per_pixel + 2 * sizes[-1]) + h * w * 4 * sizes[-1]
+    return {"useful_flops": frame_flops(params, config, inputs, lights),
+            "executed_flops": float(slots * (shared + k * per_light)), "pixels": int(idx.size), "items": items,
+            "slots": slots, "occupancy": needed / slots if slots else None, "tile": tile, "chunk": chunk,
+            "bytes": float(moved)}
 
 
 def check_inputs(params, gbuffer, lights, *, extrapolation: str = "error", tolerance: float = 0.02) -> None:

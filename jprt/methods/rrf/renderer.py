@@ -24,7 +24,8 @@ from jprt.methods.rrf import kdtree
 from jprt.methods.rrf.features import ATTRIBUTE_SETS, attribute_columns, unit
 from jprt.methods.rrf.fitting import layer_sizes, network, tree_of
 
-__all__ = ["RENDER_LAYOUTS", "render_layout", "raw_thresholds", "render_frame", "render_dense", "GBUFFER_FIELDS", "gbuffer_arrays"]
+__all__ = ["RENDER_LAYOUTS", "render_layout", "raw_thresholds", "render_frame", "render_dense", "GBUFFER_FIELDS", "gbuffer_arrays",
+           "rational_tanh"]
 
 
 #: ``render.tile`` x ``render.chunk`` by JAX backend when the config leaves them None, each the
@@ -59,8 +60,12 @@ _TANH_P = (-2.76076847742355e-16, 2.00018790482477e-13, -8.60467152213735e-11, 5
 _TANH_Q = (1.19825839466702e-06, 1.18534705686654e-04, 2.26843463243900e-03, 4.89352518554385e-03)
 
 
-def _tanh(x):
-    """tanh by the rational approximation above (float32)."""
+def rational_tanh(x):
+    """tanh by the rational approximation above (float32): the renderer's, and the network rate's
+    (``evaluation.network_rate_gflops``).
+
+    Numerics: not differentiable (the float32 run-time tanh of the networks; within 3.2e-7 of tanh in float64, tested in tests/methods/test_rrf.py).
+    """
     x = jnp.clip(x, -7.90531110763549805, 7.90531110763549805)
     x2 = x * x
     p = functools.reduce(lambda acc, c: acc * x2 + c, _TANH_P[1:], jnp.full_like(x, _TANH_P[0]))
@@ -245,10 +250,10 @@ def _predict_tiles(params, parts, light_pos, light_rgb, object_id, *, light_cols
         bias = zl @ w0[lc] + layers[0]["b"][lf][None, :] - (s["in_center"][rest] @ w_rest)[None, :]  # (K, H1)
 
         def light_term(kk, y_sum):  # light kk's term of Eq. 9 on the chunk's pixels of this leaf
-            h = _tanh(h0 + bias[kk][:, None])
+            h = rational_tanh(h0 + bias[kk][:, None])
             for i, layer in enumerate(layers[1:], start=1):
                 h = layer["w"][lf].T @ h + layer["b"][lf][:, None]
-                h = _tanh(h) if i < len(layers) - 1 else h
+                h = rational_tanh(h) if i < len(layers) - 1 else h
             y = h * s["out_halfrange"][:, None] + s["out_center"][:, None]
             y = jnp.maximum(y, 0.0) if nonnegative else y
             y = y * light_rgb[kk][:, None]
