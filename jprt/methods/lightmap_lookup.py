@@ -16,7 +16,7 @@ import numpy as np
 
 from jprt.inputs import GBuffer
 
-__all__ = ["atlas_lookup", "atlas_image", "atlas_inputs", "modulation", "lambertian", "texel_modulation",
+__all__ = ["atlas_lookup", "texel_lookup", "atlas_image", "atlas_inputs", "modulation", "lambertian", "texel_modulation",
            "remodulated_lookup", "modulation_params", "lightmap_shader", "ALBEDO_FLOOR"]
 
 
@@ -31,6 +31,26 @@ def atlas_lookup(image, uv):
     fc, fr = (col - c0)[..., None], (row - r0)[..., None]
     top = image[r0, c0] * (1 - fc) + image[r0, c1] * fc
     bottom = image[r1, c0] * (1 - fc) + image[r1, c1] * fc
+    return top * (1 - fr) + bottom * fr
+
+
+def texel_lookup(texels, fill_index, uv):
+    """``atlas_lookup(atlas_image(texels, fill_index), uv)`` without building the atlas image:
+    each bilinear corner reads its texel through ``fill_index`` (the same values and arithmetic).
+    Where the texels are computed per frame and wide (an exit-transfer row per texel), the image
+    would be written and read back every frame; here only the looked-up rows are read."""
+    r = int(round(math.sqrt(fill_index.shape[0])))
+    col = jnp.clip(uv[..., 0] * r - 0.5, 0.0, r - 1.0)
+    row = jnp.clip(uv[..., 1] * r - 0.5, 0.0, r - 1.0)
+    c0, r0 = jnp.floor(col).astype(jnp.int32), jnp.floor(row).astype(jnp.int32)
+    c1, r1 = jnp.minimum(c0 + 1, r - 1), jnp.minimum(r0 + 1, r - 1)
+    fc, fr = (col - c0)[..., None], (row - r0)[..., None]
+
+    def at(i, j):
+        return texels[fill_index[i * r + j]]
+
+    top = at(r0, c0) * (1 - fc) + at(r0, c1) * fc
+    bottom = at(r1, c0) * (1 - fc) + at(r1, c1) * fc
     return top * (1 - fr) + bottom * fr
 
 

@@ -4,6 +4,7 @@ evaluator shades a view-dependent texel by sum_j Y_j(view) sum_i M_ji l_i and ev
 as the along-normal lightmap, and the bake's texels are exactly those of view-dependent
 materials (Mitsuba's BSDF flags)."""
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -86,6 +87,20 @@ def test_a_view_dependent_texel_is_shaded_along_the_view_and_the_rest_as_the_lig
     for v in (np.zeros((16, 3), np.float32), behind):
         image = np.asarray(evaluate(inputs._replace(view=v.reshape(4, 4, 3)), lighting)).reshape(-1, 3)
         np.testing.assert_allclose(image, flat, rtol=1e-5, atol=1e-6)
+
+
+def test_texel_lookup_is_the_atlas_image_lookup():
+    """Reading each bilinear corner through the fill index is the lookup of the built atlas image,
+    to the bit, at texel centres, between them and clamped past the atlas's edges."""
+    from jprt.methods.lightmap_lookup import atlas_image, atlas_lookup, texel_lookup
+
+    rng = np.random.default_rng(3)
+    texels = rng.normal(size=(7, 5)).astype(np.float32)
+    fill = rng.integers(0, 7, 36).astype(np.int32)  # a 6 x 6 atlas, texels repeated as the fill does
+    uv = rng.uniform(-0.1, 1.1, (9, 11, 2)).astype(np.float32)
+    expect = np.asarray(atlas_lookup(atlas_image(jnp.asarray(texels), jnp.asarray(fill)), jnp.asarray(uv)))
+    got = np.asarray(texel_lookup(jnp.asarray(texels), jnp.asarray(fill), jnp.asarray(uv)))
+    assert got.shape == (9, 11, 5) and np.array_equal(got, expect)
 
 
 def test_without_exit_transfer_the_evaluator_is_the_lightmap():

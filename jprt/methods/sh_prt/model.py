@@ -40,7 +40,7 @@ import numpy as np
 
 from jprt.inputs import SHLighting
 from jprt.methods.base import FitResult, resolve
-from jprt.methods.lightmap_lookup import atlas_image, atlas_inputs, atlas_lookup, lightmap_shader, modulation_params
+from jprt.methods.lightmap_lookup import atlas_inputs, lightmap_shader, modulation_params, texel_lookup
 from jprt.sphere import sh
 
 __all__ = ["DEFAULT_CONFIG", "SHData", "delta_light_coefficients", "lightmap", "order_to_degree", "fit",
@@ -203,7 +203,7 @@ def evaluator(params, config: dict | None = None):
             rows = jnp.zeros((n_texels, m * 3 + 3), jnp.float32)
             rows = rows.at[exit_texel].set(jnp.concatenate([coeff.reshape(-1, m * 3), exit_normal], axis=1))
             diffuse = shade(demodulated(texels * (1.0 - glossy)[:, None]), uv, pixel_materials)
-            looked = atlas_lookup(atlas_image(rows, fill), uv)
+            looked = texel_lookup(rows, fill, uv)
             view = jnp.asarray(inputs.view, jnp.float32)
             y = sh.evaluate(view, exit_degree)  # (H, W, m)
             exit_image = jnp.einsum("...jc,...j->...c", looked[..., :m * 3].reshape(uv.shape[:-1] + (m, 3)), y)
