@@ -26,8 +26,8 @@ from jprt.metrics import error_map, tonemap
 
 __all__ = ["set_rmse", "object_scores", "noise_removed", "DARK_OBJECT_SCALE", "HeldOut", "SCORES", "SUMMARY_SCORES",
            "score_images", "score_held_out", "optional_metric", "time_call", "interleaved_times", "xla_flops",
-           "xla_cost", "gather_overcount", "matmul_peak_gflops", "stream_bandwidth_gbs", "roofline", "roofline_of", "PathTracer",
-           "EqualErrorCurve", "equal_error_spp", "side_by_side", "plot_series"]
+           "xla_cost", "gather_overcount", "matmul_peak_gflops", "stream_bandwidth_gbs", "roofline", "roofline_of",
+           "PathTracer", "EqualErrorCurve", "equal_error_spp", "side_by_side", "plot_series"]
 
 
 def set_rmse(predictions: Sequence, references: Sequence, valids: Sequence | None = None) -> float:
@@ -432,7 +432,8 @@ def stream_bandwidth_gbs(n_bytes: int = 256 << 20, repeats: int = 5) -> float:
 
     ``a`` is donated and enters the sum times 0, so XLA writes the result in place: a triad into a
     fresh 256 MiB output spends most of its time faulting in new pages, which no evaluator's
-    stream pays (CHANGELOG.md has the two rates side by side). The bytes counted are what the kernel moves: ``a``, ``b``, ``c`` read and ``a`` written."""
+    stream pays (CHANGELOG.md has the two rates side by side). The bytes counted are what the
+    kernel moves: ``a``, ``b``, ``c`` read and ``a`` written."""
     import jax
     import jax.numpy as jnp
 

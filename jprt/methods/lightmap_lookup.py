@@ -16,8 +16,8 @@ import numpy as np
 
 from jprt.inputs import GBuffer
 
-__all__ = ["atlas_lookup", "texel_lookup", "atlas_image", "atlas_inputs", "modulation", "lambertian", "texel_modulation",
-           "remodulated_lookup", "modulation_params", "lightmap_shader", "ALBEDO_FLOOR"]
+__all__ = ["atlas_lookup", "texel_lookup", "atlas_image", "atlas_inputs", "modulation", "lambertian",
+           "texel_modulation", "remodulated_lookup", "modulation_params", "lightmap_shader", "ALBEDO_FLOOR"]
 
 
 def atlas_lookup(image, uv):

@@ -222,7 +222,8 @@ def network_rate_gflops(params, config: dict | None, slots: int, repeats: int = 
     """
     tile, chunk = renderer.render_layout(resolve(rrf.DEFAULT_CONFIG, config)["render"])
     n = chunk * tile * tile
-    layers = [{"w": jnp.asarray(layer["w"][0]), "b": jnp.asarray(layer["b"][0])} for layer in params["leaves"]["layers"]]
+    layers = [{"w": jnp.asarray(layer["w"][0]), "b": jnp.asarray(layer["b"][0])}
+              for layer in params["leaves"]["layers"]]
     sizes = layer_sizes(params["leaves"]["layers"])
     steps = max(16, -(-int(slots) // n))  # at least 16 chunks: the products' rate, not one call's overhead
     z = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (sizes[0] - 3, n)), jnp.float32)
@@ -230,7 +231,8 @@ def network_rate_gflops(params, config: dict | None, slots: int, repeats: int = 
     @jax.jit
     def run(layers, z):
         def body(i, acc):
-            h = layers[0]["w"][:-3].T @ (z + acc[:1, :1] * 0.0)  # acc: no hoisting out of the loop + layers[0]["b"][:, None]
+            # acc enters the product's operand, so XLA cannot hoist the product out of the loop
+            h = layers[0]["w"][:-3].T @ (z + acc[:1, :1] * 0.0) + layers[0]["b"][:, None]
             h = renderer.rational_tanh(h)
             for j, layer in enumerate(layers[1:], start=1):
                 h = layer["w"].T @ h + layer["b"][:, None]

@@ -54,7 +54,8 @@ from jprt.methods.rrf.fitting import layer_sizes, split_samples, tree_of
 from jprt.methods.rrf.renderer import RENDER_LAYOUTS, raw_thresholds, render_layout
 
 __all__ = ["DEFAULT_CONFIG", "gradient_evaluator", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features",
-           "split_samples", "split_dims", "input_size", "fit", "fit_arrays", "evaluator", "frame_flops", "frame_work", "network_flops", "check_inputs", "example",
+           "split_samples", "split_dims", "input_size", "fit", "fit_arrays", "evaluator", "frame_flops", "frame_work",
+           "network_flops", "check_inputs", "example",
            "refit_leaves", "parameter_count", "light_box", "raw_thresholds", "RENDER_LAYOUTS", "render_layout"]
 
 DEFAULT_CONFIG: dict = {

@@ -24,8 +24,8 @@ from jprt.methods.rrf import kdtree
 from jprt.methods.rrf.features import ATTRIBUTE_SETS, attribute_columns, unit
 from jprt.methods.rrf.fitting import layer_sizes, network, tree_of
 
-__all__ = ["RENDER_LAYOUTS", "render_layout", "raw_thresholds", "render_frame", "render_dense", "GBUFFER_FIELDS", "gbuffer_arrays",
-           "rational_tanh"]
+__all__ = ["RENDER_LAYOUTS", "render_layout", "raw_thresholds", "render_frame", "render_dense", "GBUFFER_FIELDS",
+           "gbuffer_arrays", "rational_tanh"]
 
 
 #: ``render.tile`` x ``render.chunk`` by JAX backend when the config leaves them None, each the
@@ -64,7 +64,7 @@ def rational_tanh(x):
     """tanh by the rational approximation above (float32): the renderer's, and the network rate's
     (``evaluation.network_rate_gflops``).
 
-    Numerics: not differentiable (the float32 run-time tanh of the networks; within 3.2e-7 of tanh in float64, tested in tests/methods/test_rrf.py).
+    Numerics: not differentiable (the float32 run-time tanh of the networks, tested against tanh in float64).
     """
     x = jnp.clip(x, -7.90531110763549805, 7.90531110763549805)
     x2 = x * x
