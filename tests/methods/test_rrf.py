@@ -232,7 +232,7 @@ def test_frame_work_counts_the_tiles_slots(model):
     assert exact["slots"] == exact["pixels"] == exact["items"] > 0
     assert exact["executed_flops"] == exact["useful_flops"] and exact["occupancy"] == 1.0
     tiled = rrf.frame_work(params, {"render": {"tile": 4, "chunk": 3}}, gb, one)
-    assert tiled["useful_flops"] == exact["useful_flops"]
+    assert tiled["useful_flops"] == exact["useful_flops"] == rrf.frame_flops(params, None, gb, one)
     assert tiled["slots"] % (4 * 4 * 3) == 0 and tiled["executed_flops"] >= exact["executed_flops"]
     assert 0 < tiled["occupancy"] <= 1 and tiled["bytes"] > 0
     roof = evaluation.network_roofline(params, {"render": {"tile": 4, "chunk": 3}}, gb, one, frame_ms=1.0, repeats=2)

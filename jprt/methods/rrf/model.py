@@ -415,7 +415,7 @@ def frame_work(params, config: dict | None, inputs, lights) -> dict:
     inputs_per_pixel = sizes[0] - 3  # x's columns but the light's, float32
     fields = 4 * (3 + 3 + 3 + 3 + 3 + 1 + 1) + 1  # GBUFFER_FIELDS: six float vectors / scalars, id, valid
     moved = h * w * fields + slots * 4 * (inputs_per_pixel + 2 * sizes[-1]) + h * w * 4 * sizes[-1]
-    return {"useful_flops": frame_flops(params, config, inputs, lights),
+    return {"useful_flops": float(needed * shared + leaf.shape[1] * k * per_light),  # frame_flops, one traversal
             "executed_flops": float(slots * (shared + k * per_light)), "pixels": int(idx.size), "items": items,
             "slots": slots, "occupancy": needed / slots if slots else None, "tile": tile, "chunk": chunk,
             "bytes": float(moved)}
