@@ -336,7 +336,7 @@ def frame_flops(params, config: dict | None, inputs, lights) -> float:
     """
     sizes = layer_sizes(params["leaves"]["layers"])
     _, leaf, k = _pixel_leaves(params, config, inputs, lights)
-    distinct = int(np.sum(1 + np.sum(np.diff(np.sort(leaf, axis=0), axis=0) != 0, axis=0))) if leaf.size else 0
+    distinct = _distinct_leaves(leaf)
     shared, per_light = network_flops(sizes)
     return float(distinct * shared + leaf.shape[1] * k * per_light)
 
@@ -351,6 +351,12 @@ def network_flops(sizes) -> tuple[int, int]:
     shared = 2 * (sizes[0] - 3) * sizes[1]
     later = sum(2 * a * b + b for a, b in zip(sizes[1:-1], sizes[2:]))
     return shared, 2 * 3 * sizes[1] + 2 * sizes[1] + later + 2 * sizes[-1]
+
+
+def _distinct_leaves(leaf) -> int:
+    """The (pixel, distinct leaf) pairs of a (K, pixels) leaf array: each pixel's first layer runs
+    once per distinct leaf its lights reach."""
+    return int(np.sum(1 + np.sum(np.diff(np.sort(leaf, axis=0), axis=0) != 0, axis=0))) if leaf.size else 0
 
 
 def _pixel_leaves(params, config: dict | None, inputs, lights):
@@ -411,7 +417,7 @@ def frame_work(params, config: dict | None, inputs, lights) -> dict:
     items = int(count.sum())
     slots = int(np.sum(-(-count // chunk) * chunk)) * tile * tile
     shared, per_light = network_flops(sizes)
-    needed = int(np.sum(1 + np.sum(np.diff(np.sort(leaf, axis=0), axis=0) != 0, axis=0))) if leaf.size else 0
+    needed = _distinct_leaves(leaf)
     inputs_per_pixel = sizes[0] - 3  # x's columns but the light's, float32
     fields = 4 * (3 + 3 + 3 + 3 + 3 + 1 + 1) + 1  # GBUFFER_FIELDS: six float vectors / scalars, id, valid
     moved = h * w * fields + slots * 4 * (inputs_per_pixel + 2 * sizes[-1]) + h * w * 4 * sizes[-1]
