@@ -23,15 +23,7 @@ __all__ = ["atlas_lookup", "texel_lookup", "atlas_image", "atlas_inputs", "modul
 def atlas_lookup(image, uv):
     """Bilinear lookup of an (R, R, C) atlas at (..., 2) UVs (u -> column, v -> row; texel
     centres at (i + 0.5) / R), clamped to the atlas."""
-    r = image.shape[0]
-    col = jnp.clip(uv[..., 0] * r - 0.5, 0.0, r - 1.0)
-    row = jnp.clip(uv[..., 1] * r - 0.5, 0.0, r - 1.0)
-    c0, r0 = jnp.floor(col).astype(jnp.int32), jnp.floor(row).astype(jnp.int32)
-    c1, r1 = jnp.minimum(c0 + 1, r - 1), jnp.minimum(r0 + 1, r - 1)
-    fc, fr = (col - c0)[..., None], (row - r0)[..., None]
-    top = image[r0, c0] * (1 - fc) + image[r0, c1] * fc
-    bottom = image[r1, c0] * (1 - fc) + image[r1, c1] * fc
-    return top * (1 - fr) + bottom * fr
+    return _bilinear(lambda i, j: image[i, j], image.shape[0], uv)
 
 
 def texel_lookup(texels, fill_index, uv):
@@ -40,15 +32,16 @@ def texel_lookup(texels, fill_index, uv):
     Where the texels are computed per frame and wide (an exit-transfer row per texel), the image
     would be written and read back every frame; here only the looked-up rows are read."""
     r = int(round(math.sqrt(fill_index.shape[0])))
+    return _bilinear(lambda i, j: texels[fill_index[i * r + j]], r, uv)
+
+
+def _bilinear(at, r: int, uv):
+    """The bilinear lookup of an R x R atlas whose texel at (row i, column j) ``at(i, j)`` reads."""
     col = jnp.clip(uv[..., 0] * r - 0.5, 0.0, r - 1.0)
     row = jnp.clip(uv[..., 1] * r - 0.5, 0.0, r - 1.0)
     c0, r0 = jnp.floor(col).astype(jnp.int32), jnp.floor(row).astype(jnp.int32)
     c1, r1 = jnp.minimum(c0 + 1, r - 1), jnp.minimum(r0 + 1, r - 1)
     fc, fr = (col - c0)[..., None], (row - r0)[..., None]
-
-    def at(i, j):
-        return texels[fill_index[i * r + j]]
-
     top = at(r0, c0) * (1 - fc) + at(r0, c1) * fc
     bottom = at(r1, c0) * (1 - fc) + at(r1, c1) * fc
     return top * (1 - fr) + bottom * fr
