@@ -83,9 +83,8 @@ SUMMARY_SCHEMA: dict[str, str] = {
                               "machine",
     "roofline": "the timed frame against its roofline (jprt.eval.roofline): matmul_gflops, bandwidth_gbs (a STREAM "
                 "triad in JAX over 256 MiB arrays, written in place, measured in the same process), frame_flops, "
-                "frame_bytes (XLA's "
-                "bytes accessed, a table read only through gathers charged for the rows they read: "
-                "jprt.eval.xla_cost), intensity, attainable_gflops = min(matmul, intensity x bandwidth), bound, "
+                "frame_bytes (XLA's bytes accessed, a table read only through gathers charged for the rows they "
+                "read: jprt.eval.xla_cost), intensity, attainable_gflops = min(matmul, intensity x bandwidth), bound, "
                 "fraction_of_roofline = achieved / attainable",
     "model_bytes": "bytes of the arrays the evaluator needs at run time (FitResult.info['model_bytes'] when the "
                    "method states it, else every array of the params)",

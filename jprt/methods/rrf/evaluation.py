@@ -215,8 +215,9 @@ def network_rate_gflops(params, config: dict | None, slots: int, repeats: int = 
     """The rate (GFLOP/s, ``model.frame_flops``'s count) at which this process runs the evaluator's
     networks by themselves: leaf 0's network, as the tiled renderer applies it (features x pixels
     products of ``chunk`` x tile^2 columns, the rational tanh, one light), over ``slots`` pixel
-    slots (16 chunks at least) in a loop of chunks, without the tiles' gathers, masks and indexed adds. What the
-    frame's products would attain if they were all it did: RRF's compute roof (``model.frame_work``).
+    slots (16 chunks at least) in a loop of chunks, without the tiles' gathers, masks and indexed
+    adds. What the frame's products would attain if they were all it did: RRF's compute roof
+    (``model.frame_work``).
 
     Numerics: not differentiable (a timing).
     """

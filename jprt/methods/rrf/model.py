@@ -411,9 +411,10 @@ def frame_work(params, config: dict | None, inputs, lights) -> dict:
     n_leaves = int(np.asarray(params["leaves"]["layers"][0]["w"]).shape[0])
     idx, leaf, k = _pixel_leaves(params, config, inputs, lights)
     tw = -(-w // tile)
+    n_tiles = -(-h // tile) * tw
     tiles = (idx // w) // tile * tw + (idx % w) // tile
-    pairs = np.unique((leaf * (-(-h // tile) * tw) + tiles[None, :]).reshape(-1))  # (leaf, tile) items
-    count = np.bincount(pairs // (-(-h // tile) * tw), minlength=n_leaves)
+    pairs = np.unique((leaf * n_tiles + tiles[None, :]).reshape(-1))  # (leaf, tile) items
+    count = np.bincount(pairs // n_tiles, minlength=n_leaves)
     items = int(count.sum())
     slots = int(np.sum(-(-count // chunk) * chunk)) * tile * tile
     shared, per_light = network_flops(sizes)
