@@ -122,11 +122,7 @@ def four_lights(run) -> dict:
            # the floor under the time ratio: the light-free part of the first layer is shared only
            # between lights in one leaf (``rrf.frame_flops``)
            "frame_flops_4lights_over_1light": t["flops4"] / s["frame_flops"] if s.get("frame_flops") else None,
-           "gbuffer_ms": g,
-           # what bounds the one-light frame: its networks' products (rrf.evaluation.network_roofline)
-           "roofline_network": ev.network_roofline(run.result.params, run.method_config, run.state["timing_gbuffer"],
-                                                   run.state["lightings"][0], s["frame_ms"],
-                                                   int(run.config["eval"]["timing_repeats"]))}
+           "gbuffer_ms": g}
     if s.get("pathtrace_ms_equal_error"):
         out["speedup_equal_error_with_gbuffer"] = s["pathtrace_ms_equal_error"] / (s["frame_ms"] + g)
     run.say(f"4 lights {t['ms4']:.2f} ms, one light {t['ms1']:.2f} ms, interleaved ({t['ms4'] / t['ms1']:.2f}x); "

@@ -85,7 +85,9 @@ SUMMARY_SCHEMA: dict[str, str] = {
                 "triad in JAX over 256 MiB arrays, written in place, measured in the same process), frame_flops, "
                 "frame_bytes (XLA's bytes accessed, a table read only through gathers charged for the rows they "
                 "read: jprt.eval.xla_cost), intensity, attainable_gflops = min(matmul, intensity x bandwidth), bound, "
-                "fraction_of_roofline = achieved / attainable",
+                "fraction_of_roofline = achieved / attainable, roof (what the compute roof is: \"matmul\", or the "
+                "method's own where Method.frame_roofline names what bounds it, e.g. RRF's networks; then "
+                "extra.roofline_xla is the matmul one and extra.roofline_detail the method's counts)",
     "model_bytes": "bytes of the arrays the evaluator needs at run time (FitResult.info['model_bytes'] when the "
                    "method states it, else every array of the params)",
     "train_s": "seconds of the fit",
@@ -172,11 +174,12 @@ def _timing(run: Run, experiment: ModuleType, repeats: int) -> None:
     s["frame_ms"] = timed["median_ms"]
     s["extra"]["frame_ms_min"] = timed["min_ms"]  # the program's cost with the least interference
     s["frame_resolution"] = list(np.shape(fast(inputs, lighting))[:2])
-    own = run.method.frame_flops
-    flops = own(run.result.params, run.method_config, inputs, lighting) if own else None
-    roof = jeval.roofline(fast, inputs, lighting, frame_ms=s["frame_ms"], flops=flops)
+    roof = run.method.frame_report(run.result.params, run.method_config, fast, inputs, lighting, s["frame_ms"],
+                                   repeats=repeats)
     s.update({k: roof[k] for k in ("frame_flops", "matmul_peak_gflops", "flops_fraction_of_peak", "roofline")})
-    s["extra"]["frame_flops_source"] = "method" if own else "xla"
+    s["extra"]["frame_flops_source"] = roof["frame_flops_source"]
+    if roof["roofline_xla"] is not None:  # the method's own roof is the summary's; the generic one stays beside it
+        s["extra"].update(roofline_xla=roof["roofline_xla"], roofline_detail=roof["roofline_detail"])
     r = roof["roofline"]
     frac = "" if roof["flops_fraction_of_peak"] is None else (
         f", {roof['frame_flops'] / 1e6:.1f} MFLOP = {100 * roof['flops_fraction_of_peak']:.1f} % of the "

@@ -117,6 +117,11 @@ class Method(NamedTuple):
         reverse-mode differentiation (``jax.grad`` in the lighting) goes through, where
         ``evaluator``'s does not (``model.gradient_evaluator``; RRF's tiled renderer loops a
         data-dependent number of times); None: ``evaluator`` is one. ``jprt.design`` uses it.
+      frame_roofline: optional ``(params, config, inputs, lighting, frame_ms, *, repeats,
+        bandwidth_gbs) -> {"roofline", "detail"}``: the timed frame against what bounds it by the
+        method's own model (``model.frame_roofline``; RRF: its networks' products timed alone),
+        where the matmul peak and XLA's counts are the wrong roof; None: ``jprt.eval.roofline``.
+        ``frame_report`` chooses.
     """
 
     name: str
@@ -137,6 +142,32 @@ class Method(NamedTuple):
     predicts: str = "indirect"
     view_environments: Callable | None = None
     gradient_evaluator: Callable | None = None
+    frame_roofline: Callable | None = None
+
+    def frame_report(self, params, config: dict, jitted: Callable, inputs, lighting, frame_ms: float, *,
+                     peak_gflops: float | None = None, repeats: int = 10) -> dict:
+        """The timed frame (``jitted(inputs, lighting)`` taking ``frame_ms``) against the machine:
+        {"frame_flops" (``frame_flops``'s count where the method has one, else XLA's),
+        "frame_flops_source" ("method" or "xla"), "matmul_peak_gflops" (``peak_gflops``, measured
+        now unless given), "flops_fraction_of_peak", "roofline" (``frame_roofline``'s where the
+        method has one, else ``jprt.eval.roofline``'s, whose "roof" is "matmul"), "roofline_xla"
+        (``jprt.eval.roofline``'s, kept beside the method's own; None without one),
+        "roofline_detail" (the method's own counts; None without)}. Both rooflines share one
+        measured bandwidth."""
+        from jprt import eval as jeval
+
+        flops = self.frame_flops(params, config, inputs, lighting) if self.frame_flops else None
+        generic = jeval.roofline(jitted, inputs, lighting, frame_ms=frame_ms, flops=flops, peak_gflops=peak_gflops)
+        generic["roofline"]["roof"] = "matmul"
+        out = {"frame_flops": generic["frame_flops"], "frame_flops_source": "method" if flops is not None else "xla",
+               "matmul_peak_gflops": generic["matmul_peak_gflops"],
+               "flops_fraction_of_peak": generic["flops_fraction_of_peak"], "roofline": generic["roofline"],
+               "roofline_xla": None, "roofline_detail": None}
+        if self.frame_roofline is not None:
+            own = self.frame_roofline(params, config, inputs, lighting, frame_ms, repeats=repeats,
+                                      bandwidth_gbs=generic["roofline"]["bandwidth_gbs"])
+            out.update(roofline=own["roofline"], roofline_xla=generic["roofline"], roofline_detail=own["detail"])
+        return out
 
     def resolve(self, config: Mapping | None = None) -> dict:
         """``default_config`` deep-merged with ``config``; an unknown key raises ConfigError."""
@@ -149,7 +180,8 @@ class Method(NamedTuple):
         ``data.make_dataset``, ``model.fit`` (or ``fit``), ``model.evaluator``, ``model.example``;
         ``model.frame_flops``, ``data.self_check`` and the task and viewer adapters
         (``data.TASK_LIGHTINGS``, ``task_inputs``, ``task_lighting``, ``VIEW_LIGHTINGS``,
-        ``PREDICTS``, ``view_environments``) and ``model.gradient_evaluator`` where the package has them.
+        ``PREDICTS``, ``view_environments``), ``model.gradient_evaluator`` and ``model.frame_roofline``
+        where the package has them.
 
         Raises TypeError when the package declares lightings (task or view) without both
         adapter functions, or a lighting kind or ``PREDICTS`` value the contract does not know."""
@@ -170,7 +202,7 @@ class Method(NamedTuple):
                    getattr(data, "self_check", None), task_lightings, task_inputs, task_lighting, view_lightings,
                    predicts, getattr(data, "view_environments", None),
                    checked_evaluator(model.gradient_evaluator, lighting) if hasattr(model, "gradient_evaluator")
-                   else None)
+                   else None, getattr(model, "frame_roofline", None))
 
 
 def checked_evaluator(evaluator: Callable, lighting_type: type) -> Callable:

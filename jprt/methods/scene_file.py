@@ -75,8 +75,8 @@ def fit_and_score(name: str, s: dict, cameras: list, cfg: dict, e: dict, peak_gf
     t2 = time.perf_counter()
     evaluate, preds, timed = _predictions(m, s, cameras, dataset, result, cfg, baked)
     timing = jeval.time_call(evaluate, *timed, repeats=int(e["timing_repeats"]))
-    own = m.frame_flops(result.params, cfg, *timed) if m.frame_flops else None
-    roof = jeval.roofline(evaluate, *timed, frame_ms=timing["median_ms"], flops=own, peak_gflops=peak_gflops)
+    roof = m.frame_report(result.params, cfg, evaluate, *timed, timing["median_ms"], peak_gflops=peak_gflops,
+                          repeats=int(e["timing_repeats"]))
     scores = jeval.object_scores(preds, s["refs"], s["ids"], s["names"])
     for obj, v in scores.items():
         v["noise_floor"] = s["floor"][obj]["rel_rmse"]
@@ -96,8 +96,8 @@ def fit_and_score(name: str, s: dict, cameras: list, cfg: dict, e: dict, peak_gf
              "worst_rel_rmse_noise_removed": worst, "mean_rel_rmse_noise_removed": mean,
              "target_met": bool(worst <= float(e["target"]) and mean <= float(e["target_mean"])),
              "self_check": check, "frame_ms": timing["median_ms"], "frame_flops": roof["frame_flops"],
-             "frame_flops_source": "method" if own else "xla", "flops_fraction_of_peak": roof["flops_fraction_of_peak"],
-             "roofline": roof["roofline"],
+             "frame_flops_source": roof["frame_flops_source"], "flops_fraction_of_peak": roof["flops_fraction_of_peak"],
+             "roofline": roof["roofline"], "roofline_xla": roof["roofline_xla"], "roofline_detail": roof["roofline_detail"],
              "speedup_vs_reference_render": s["peer"]["ms"] / timing["median_ms"] if s["peer"] else None,
              "frame_resolution": list(np.shape(preds[0])[:2]), "dataset_s": t1 - t0, "fit_s": t2 - t1, "info": info,
              "grouped_objects": report.get("grouped", {}), "skipped_objects": report.get("skipped", {}),

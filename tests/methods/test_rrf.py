@@ -222,8 +222,9 @@ def test_frame_flops_count_the_shared_layer_once_per_distinct_leaf(model):
 def test_frame_work_counts_the_tiles_slots(model):
     """With one-pixel tiles and one-item chunks every slot is one needed pixel-leaf network, so
     one light executes exactly what it needs; larger tiles and chunks only add masked slots
-    (occupancy <= 1), in whole tiles and chunks. The network rate is measured and positive."""
-    from jprt.methods.rrf import evaluation
+    (occupancy <= 1), in whole tiles and chunks. The network rate is measured and positive, and
+    the method contract's frame report takes it as RRF's roof."""
+    from jprt.methods.rrf import METHOD
 
     params, _ = model
     gb = _fake_gbuffer(h=12, w=10, seed=4, n_objects=2)
@@ -235,10 +236,18 @@ def test_frame_work_counts_the_tiles_slots(model):
     assert tiled["useful_flops"] == exact["useful_flops"] == rrf.frame_flops(params, None, gb, one)
     assert tiled["slots"] % (4 * 4 * 3) == 0 and tiled["executed_flops"] >= exact["executed_flops"]
     assert 0 < tiled["occupancy"] <= 1 and tiled["bytes"] > 0
-    roof = evaluation.network_roofline(params, {"render": {"tile": 4, "chunk": 3}}, gb, one, frame_ms=1.0, repeats=2)
-    assert roof["network_gflops"] > 0 and roof["roofline"]["matmul_gflops"] == roof["network_gflops"]
+    cfg = {"render": {"tile": 4, "chunk": 3}}
+    roof = rrf.frame_roofline(params, cfg, gb, one, frame_ms=1.0, repeats=2)
+    detail = roof["detail"]
+    assert detail["network_gflops"] > 0 and roof["roofline"]["matmul_gflops"] == detail["network_gflops"]
     assert roof["roofline"]["frame_flops"] == tiled["executed_flops"]
-    assert 0 < roof["useful_over_executed"] <= 1
+    assert 0 < detail["useful_over_executed"] <= 1
+    # the contract's report takes RRF's own roof and keeps the generic one beside it
+    report = METHOD.frame_report(params, cfg, jax.jit(rrf.evaluator(params, cfg)), gb, one, 1.0, peak_gflops=100.0,
+                                 repeats=2)
+    assert report["roofline"]["roof"] != "matmul" and report["roofline_xla"]["roof"] == "matmul"
+    assert report["roofline_xla"]["matmul_gflops"] == 100.0 and report["frame_flops_source"] == "method"
+    assert report["roofline_detail"]["work"]["slots"] == tiled["slots"]
 
 
 def test_traversal_in_evaluator_matches_brute_force(model):

@@ -16,15 +16,11 @@ import numpy as np
 from jprt import eval as jeval
 from jprt.inputs import PointLights
 from jprt.methods.rrf import data as rrf_data
-from jprt.methods.base import resolve
 from jprt.methods.rrf import model as rrf
-from jprt.methods.rrf import renderer
-from jprt.methods.rrf.fitting import layer_sizes
 from jprt.solve import adam
 
 __all__ = ["NOISE_SEED_OFFSET", "held_out_pairs", "held_out_inputs", "held_out_references", "predict", "tail",
-           "timing_camera", "four_light_inputs", "single_mlp", "material_edit", "light_times", "network_rate_gflops",
-           "network_roofline", "tree_stats",
+           "timing_camera", "four_light_inputs", "single_mlp", "material_edit", "light_times", "tree_stats",
            "timing_frame", "pathtracer", "reference_noise", "robustness",
            "worst_pixels", "tail_figure"]
 
@@ -209,56 +205,6 @@ def light_times(evaluators: dict, gbuffer, one: PointLights, four: PointLights, 
                    "flops1": rrf.frame_flops(params, cfg, gbuffer, one),
                    "flops4": rrf.frame_flops(params, cfg, gbuffer, four)}
             for name, (params, cfg) in evaluators.items()}
-
-
-def network_rate_gflops(params, config: dict | None, slots: int, repeats: int = 10) -> float:
-    """The rate (GFLOP/s, ``model.frame_flops``'s count) at which this process runs the evaluator's
-    networks by themselves: leaf 0's network, as the tiled renderer applies it (features x pixels
-    products of ``chunk`` x tile^2 columns, the rational tanh, one light), over ``slots`` pixel
-    slots (16 chunks at least) in a loop of chunks, without the tiles' gathers, masks and indexed
-    adds. What the frame's products would attain if they were all it did: RRF's compute roof
-    (``model.frame_work``).
-
-    Numerics: not differentiable (a timing).
-    """
-    tile, chunk = renderer.render_layout(resolve(rrf.DEFAULT_CONFIG, config)["render"])
-    n = chunk * tile * tile
-    layers = [{"w": jnp.asarray(layer["w"][0]), "b": jnp.asarray(layer["b"][0])}
-              for layer in params["leaves"]["layers"]]
-    sizes = layer_sizes(params["leaves"]["layers"])
-    steps = max(16, -(-int(slots) // n))  # at least 16 chunks: the products' rate, not one call's overhead
-    z = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (sizes[0] - 3, n)), jnp.float32)
-
-    @jax.jit
-    def run(layers, z):
-        def body(i, acc):
-            # acc enters the product's operand, so XLA cannot hoist the product out of the loop
-            h = layers[0]["w"][:-3].T @ (z + acc[:1, :1] * 0.0) + layers[0]["b"][:, None]
-            h = renderer.rational_tanh(h)
-            for j, layer in enumerate(layers[1:], start=1):
-                h = layer["w"].T @ h + layer["b"][:, None]
-                h = renderer.rational_tanh(h) if j < len(layers) - 1 else h
-            return acc + h
-        return jax.lax.fori_loop(0, steps, body, jnp.zeros((sizes[-1], n), jnp.float32))
-
-    ms = jeval.time_call(run, layers, z, repeats=repeats)["median_ms"]
-    shared, per_light = rrf.network_flops(sizes)
-    return steps * n * (shared + per_light) / (ms * 1e-3) / 1e9
-
-
-def network_roofline(params, config: dict | None, gbuffer, lights, frame_ms: float, repeats: int = 10) -> dict:
-    """RRF's frame against what bounds it: the networks' products. ``model.frame_work`` counts
-    what the tiled frame executes; ``network_rate_gflops`` measures, in this process, the rate
-    of those products by themselves; the roofline (``jprt.eval.roofline_of``) takes that rate as
-    its compute roof, the executed FLOPs and the work's stated byte model. Returns {"work",
-    "network_gflops", "roofline", "useful_over_executed"}: the last is the share of the executed
-    network work the image needs (``frame_flops`` / executed; masked slots of shared tiles and
-    padding items are the rest)."""
-    work = rrf.frame_work(params, config, gbuffer, lights)
-    rate = network_rate_gflops(params, config, work["slots"], repeats=repeats)
-    roof = jeval.roofline_of(work["executed_flops"], work["bytes"], frame_ms=frame_ms, peak_gflops=rate)
-    return {"work": work, "network_gflops": rate, "roofline": roof["roofline"],
-            "useful_over_executed": work["useful_flops"] / work["executed_flops"] if work["executed_flops"] else None}
 
 
 def tree_stats(params, info: dict) -> dict:

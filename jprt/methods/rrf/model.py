@@ -45,6 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jprt import eval as jeval
 from jprt.inputs import GBuffer, PointLights
 from jprt.methods.base import FitResult, resolve
 from jprt.methods.rrf import fitting, kdtree, renderer
@@ -55,7 +56,7 @@ from jprt.methods.rrf.renderer import RENDER_LAYOUTS, raw_thresholds, render_lay
 
 __all__ = ["DEFAULT_CONFIG", "gradient_evaluator", "ATTRIBUTE_SETS", "RRFData", "EditInputs", "features", "brdf_vector", "data_features",
            "split_samples", "split_dims", "input_size", "fit", "fit_arrays", "evaluator", "frame_flops", "frame_work",
-           "network_flops", "check_inputs", "example",
+           "network_flops", "network_rate_gflops", "frame_roofline", "check_inputs", "example",
            "refit_leaves", "parameter_count", "light_box", "raw_thresholds", "RENDER_LAYOUTS", "render_layout"]
 
 DEFAULT_CONFIG: dict = {
@@ -427,6 +428,64 @@ def frame_work(params, config: dict | None, inputs, lights) -> dict:
             "slots": slots, "occupancy": needed / slots if slots else None, "tile": tile, "chunk": chunk,
             "bytes": float(moved)}
 
+
+def network_rate_gflops(params, config: dict | None, slots: int, repeats: int = 10) -> float:
+    """The rate (GFLOP/s, ``model.frame_flops``'s count) at which this process runs the evaluator's
+    networks by themselves: leaf 0's network, as the tiled renderer applies it (features x pixels
+    products of ``chunk`` x tile^2 columns, the rational tanh, one light), over ``slots`` pixel
+    slots (16 chunks at least) in a loop of chunks, without the tiles' gathers, masks and indexed
+    adds. What the frame's products would attain if they were all it did: RRF's compute roof
+    (``frame_work``).
+
+    Numerics: not differentiable (a timing).
+    """
+    tile, chunk = renderer.render_layout(_cfg(config)["render"])
+    n = chunk * tile * tile
+    layers = [{"w": jnp.asarray(layer["w"][0]), "b": jnp.asarray(layer["b"][0])}
+              for layer in params["leaves"]["layers"]]
+    sizes = layer_sizes(params["leaves"]["layers"])
+    steps = max(16, -(-int(slots) // n))  # at least 16 chunks: the products' rate, not one call's overhead
+    z = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (sizes[0] - 3, n)), jnp.float32)
+
+    @jax.jit
+    def run(layers, z):
+        def body(i, acc):
+            # acc enters the product's operand, so XLA cannot hoist the product out of the loop
+            h = layers[0]["w"][:-3].T @ (z + acc[:1, :1] * 0.0) + layers[0]["b"][:, None]
+            h = renderer.rational_tanh(h)
+            for j, layer in enumerate(layers[1:], start=1):
+                h = layer["w"].T @ h + layer["b"][:, None]
+                h = renderer.rational_tanh(h) if j < len(layers) - 1 else h
+            return acc + h
+        return jax.lax.fori_loop(0, steps, body, jnp.zeros((sizes[-1], n), jnp.float32))
+
+    ms = jeval.time_call(run, layers, z, repeats=repeats)["median_ms"]
+    shared, per_light = network_flops(sizes)
+    return steps * n * (shared + per_light) / (ms * 1e-3) / 1e9
+
+
+def frame_roofline(params, config: dict | None, inputs, lights, frame_ms: float, *, repeats: int = 10,
+                   bandwidth_gbs: float | None = None) -> dict:
+    """RRF's frame against what bounds it (``Method.frame_roofline``): its networks' products.
+    ``frame_work`` counts what the tiled frame executes; ``network_rate_gflops`` measures, in this
+    process, the rate of those products by themselves; the roofline (``jprt.eval.roofline_of``)
+    takes that rate as its compute roof, the executed FLOPs and the work's stated byte model
+    (``bandwidth_gbs``: the triad's, measured now unless given). Returns {"roofline" (with "roof",
+    what its compute roof is), "detail": {"work", "network_gflops", "useful_over_executed"}}: the
+    last is the share of the executed network work the image needs (``frame_flops`` / executed;
+    masked slots of shared tiles and padding items are the rest).
+
+    Numerics: not differentiable (a timing).
+    """
+    work = frame_work(params, config, inputs, lights)
+    rate = network_rate_gflops(params, config, work["slots"], repeats=repeats)
+    roof = jeval.roofline_of(work["executed_flops"], work["bytes"], frame_ms=frame_ms, peak_gflops=rate,
+                             bandwidth_gbs=bandwidth_gbs)["roofline"]
+    roof["roof"] = "the networks' products timed alone (network_gflops), on the executed FLOPs"
+    return {"roofline": roof,
+            "detail": {"work": work, "network_gflops": rate,
+                       "useful_over_executed": work["useful_flops"] / work["executed_flops"]
+                       if work["executed_flops"] else None}}
 
 def check_inputs(params, gbuffer, lights, *, extrapolation: str = "error", tolerance: float = 0.02) -> None:
     """Raise ValueError for an empty G-buffer, NaN attributes at valid pixels, no or NaN lights,

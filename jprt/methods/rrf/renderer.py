@@ -62,7 +62,7 @@ _TANH_Q = (1.19825839466702e-06, 1.18534705686654e-04, 2.26843463243900e-03, 4.8
 
 def rational_tanh(x):
     """tanh by the rational approximation above (float32): the renderer's, and the network rate's
-    (``evaluation.network_rate_gflops``).
+    (``model.network_rate_gflops``).
 
     Numerics: not differentiable (the float32 run-time tanh of the networks, tested against tanh in float64).
     """
