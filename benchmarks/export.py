@@ -71,8 +71,7 @@ def measure(name: str, run: str | None, size: int, repeats: int, work: str) -> d
     fast = jax.jit(back.evaluate)
     want = np.asarray(fast(inputs, lighting))
     jax_ms = jeval.time_call(fast, inputs, lighting, repeats=repeats)["median_ms"]
-    roof = jeval.roofline(fast, inputs, lighting, frame_ms=jax_ms,
-                          flops=m.frame_flops(back.params, back.config, inputs, lighting) if m.frame_flops else None)
+    roof = m.frame_report(back.params, back.config, fast, inputs, lighting, jax_ms, repeats=repeats)
 
     import onnxruntime as ort
 
@@ -85,7 +84,8 @@ def measure(name: str, run: str | None, size: int, repeats: int, work: str) -> d
     return {"frame_resolution": [size, size], "jax_frame_ms": jax_ms, "onnx_frame_ms": onnx_ms,
             "onnx_over_jax": onnx_ms / jax_ms, "max_abs_difference_over_peak": float(np.abs(got - want).max()) / peak,
             "frame_peak": peak, "export_s": export_s,
-            "roofline": roof["roofline"],  # the JAX frame's (jprt.eval.roofline), measured in this process
+            # the JAX frame's (Method.frame_report: the method's own roof where it has one), measured in this process
+            "roofline": roof["roofline"], "roofline_xla": roof["roofline_xla"],
             "onnx_bytes": os.path.getsize(os.path.join(out, "evaluator.onnx")),
             "hand_written": sorted(manifest["onnx"]["hand_written"]), "onnx_opset": manifest["onnx"]["opset"],
             "inputs": {i["name"]: i["shape"] for i in manifest["onnx"]["inputs"]},
