@@ -6,8 +6,9 @@ folder given with ``--run NAME=FOLDER``), exported with ``jprt.export.export_run
 and lighting: the jitted JAX evaluator and onnxruntime's CPU provider on ``evaluator.onnx``, each
 timed as the median of ``repeats`` calls after warm-up, in one process on one machine, with the
 largest difference between their frames relative to the frame's peak, and the JAX frame against
-its roofline (``jprt.eval.roofline``: matmul rate and triad bandwidth measured in the same
-process, XLA's FLOP and byte counts). The device (CPU model, thread counts, versions) is recorded
+its roofline (``Method.frame_report``: the method's own roof where it has one, RRF's networks,
+else the matmul rate; the triad bandwidth measured in the same process; the method's or XLA's FLOP
+count and XLA's bytes). The device (CPU model, thread counts, versions) is recorded
 with the numbers.
 
     python benchmarks/export.py                          # -> benchmarks/results/export.json
@@ -85,7 +86,7 @@ def measure(name: str, run: str | None, size: int, repeats: int, work: str) -> d
             "onnx_over_jax": onnx_ms / jax_ms, "max_abs_difference_over_peak": float(np.abs(got - want).max()) / peak,
             "frame_peak": peak, "export_s": export_s,
             # the JAX frame's (Method.frame_report: the method's own roof where it has one), measured in this process
-            "roofline": roof["roofline"], "roofline_xla": roof["roofline_xla"],
+            "roofline": roof["roofline"], "roofline_matmul": roof["roofline_matmul"],
             "onnx_bytes": os.path.getsize(os.path.join(out, "evaluator.onnx")),
             "hand_written": sorted(manifest["onnx"]["hand_written"]), "onnx_opset": manifest["onnx"]["opset"],
             "inputs": {i["name"]: i["shape"] for i in manifest["onnx"]["inputs"]},

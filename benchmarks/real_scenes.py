@@ -29,7 +29,7 @@ ROOT = os.path.dirname(HERE)
 #: per-method keys copied from the report as they are
 METHOD_KEYS = ("lighting", "worst_rel_rmse", "worst_rel_rmse_noise_removed", "mean_rel_rmse_noise_removed",
                "target_met", "frame_ms", "frame_flops", "frame_flops_source", "flops_fraction_of_peak",
-               "speedup_vs_reference_render", "roofline", "roofline_xla", "roofline_detail", "frame_resolution",
+               "speedup_vs_reference_render", "roofline", "roofline_matmul", "roofline_detail", "frame_resolution",
                "dataset_s", "fit_s", "grouped_objects", "skipped_objects", "failed")
 
 

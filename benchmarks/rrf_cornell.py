@@ -23,7 +23,7 @@ KEYS = ("indirect_rmse", "indirect_rel_rmse", "p999_abs_error", "psnr_indirect",
         "frame_ms_4lights", "frame_ms_4lights_min", "frame_ms_1light_interleaved", "frame_ms_1light_interleaved_min",
         "frame_ms_4lights_over_1light", "frame_flops",
         "frame_flops_4lights_over_1light",
-        "roofline", "roofline_xla", "roofline_detail", "frame_flops_4lights", "matmul_peak_gflops",
+        "roofline", "roofline_matmul", "roofline_detail", "frame_flops_4lights", "matmul_peak_gflops",
         "flops_fraction_of_peak", "flops_fraction_of_peak_4lights", "gbuffer_ms", "speedup_equal_error",
         "speedup_equal_error_with_gbuffer", "n_leaves", "model_bytes", "train_s", "dataset_s", "rmse_basic_attributes",
         "rmse_augmented", "rmse_single_mlp_same_params", "std_subsets", "std_inits")

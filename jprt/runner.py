@@ -81,13 +81,15 @@ SUMMARY_SCHEMA: dict[str, str] = {
     "matmul_peak_gflops": "f32 JAX matmul rate (GFLOP/s, 1024^3, fastest of 10) measured in the same run",
     "flops_fraction_of_peak": "frame_flops / frame_ms against matmul_peak_gflops: the evaluator judged against the "
                               "machine",
-    "roofline": "the timed frame against its roofline (jprt.eval.roofline): matmul_gflops, bandwidth_gbs (a STREAM "
-                "triad in JAX over 256 MiB arrays, written in place, measured in the same process), frame_flops, "
-                "frame_bytes (XLA's bytes accessed, a table read only through gathers charged for the rows they "
-                "read: jprt.eval.xla_cost), intensity, attainable_gflops = min(matmul, intensity x bandwidth), bound, "
-                "fraction_of_roofline = achieved / attainable, roof (what the compute roof is: \"matmul\", or the "
-                "method's own where Method.frame_roofline names what bounds it, e.g. RRF's networks; then "
-                "extra.roofline_xla is the matmul one and extra.roofline_detail the method's counts)",
+    "roofline": "the timed frame against its roofline (Method.frame_report): matmul_gflops (the compute roof), "
+                "bandwidth_gbs (a STREAM triad in JAX over 256 MiB arrays, written in place, measured in the same "
+                "process), frame_flops, frame_bytes (XLA's bytes accessed, a table read only through gathers charged "
+                "for the rows they read: jprt.eval.xla_cost), intensity, attainable_gflops = min(matmul, intensity x "
+                "bandwidth), bound, fraction_of_roofline = achieved / attainable, roof: \"matmul\" (jprt.eval."
+                "roofline: the matmul rate, the summary's frame_flops) or the method's own where Method.frame_roofline "
+                "names what bounds it (\"networks\" for RRF: matmul_gflops is its networks' products timed alone, "
+                "frame_flops the FLOPs its tiles execute); then extra.roofline_matmul is the matmul one and "
+                "extra.roofline_detail the method's counts",
     "model_bytes": "bytes of the arrays the evaluator needs at run time (FitResult.info['model_bytes'] when the "
                    "method states it, else every array of the params)",
     "train_s": "seconds of the fit",
@@ -178,15 +180,16 @@ def _timing(run: Run, experiment: ModuleType, repeats: int) -> None:
                                    repeats=repeats)
     s.update({k: roof[k] for k in ("frame_flops", "matmul_peak_gflops", "flops_fraction_of_peak", "roofline")})
     s["extra"]["frame_flops_source"] = roof["frame_flops_source"]
-    if roof["roofline_xla"] is not None:  # the method's own roof is the summary's; the generic one stays beside it
-        s["extra"].update(roofline_xla=roof["roofline_xla"], roofline_detail=roof["roofline_detail"])
+    if roof["roofline_matmul"] is not None:  # the method's own roof is the summary's; the generic one stays beside it
+        s["extra"].update(roofline_matmul=roof["roofline_matmul"], roofline_detail=roof["roofline_detail"])
     r = roof["roofline"]
     frac = "" if roof["flops_fraction_of_peak"] is None else (
         f", {roof['frame_flops'] / 1e6:.1f} MFLOP = {100 * roof['flops_fraction_of_peak']:.1f} % of the "
         f"{roof['matmul_peak_gflops']:.0f} GFLOP/s matmul peak")
     if r["fraction_of_roofline"] is not None:
         frac += (f"; {r['frame_bytes'] / 1e6:.1f} MB moved at {r['bandwidth_gbs']:.1f} GB/s: {r['bound']}-bound, "
-                 f"{100 * r['fraction_of_roofline']:.1f} % of its roofline ({r['attainable_gflops']:.1f} GFLOP/s)")
+                 f"{100 * r['fraction_of_roofline']:.1f} % of its roofline ({r['attainable_gflops']:.1f} GFLOP/s, "
+                 f"roof: {r.get('roof', 'matmul')})")
     run.say(f"frame {s['frame_resolution'][0]}x{s['frame_resolution'][1]}: {s['frame_ms']:.2f} ms{frac}")
 
 

@@ -56,6 +56,30 @@ def test_run_writes_the_common_summary(fake):
         assert os.path.isfile(os.path.join(folder, name)), name
 
 
+def test_a_methods_own_roof_is_the_summarys(fake, monkeypatch):
+    """Without ``Method.frame_roofline`` the summary's roofline is the matmul one and nothing
+    else is added; with one, the method's roofline is the summary's, the matmul one stays beside
+    it under ``extra``, and both were judged against the same measured bandwidth."""
+    from jprt import eval as jeval
+
+    module, _ = fake
+    s = runner.run(module, {})
+    assert s["roofline"]["roof"] == "matmul" and s["roofline"]["matmul_gflops"] == s["matmul_peak_gflops"]
+    assert "roofline_matmul" not in s["extra"] and "roofline_detail" not in s["extra"]
+
+    def own(params, config, inputs, lighting, frame_ms, *, repeats, bandwidth_gbs):
+        roof = jeval.roofline_of(1e6, 1e3, frame_ms=frame_ms, peak_gflops=1.0, bandwidth_gbs=bandwidth_gbs)
+        return {"roofline": {**roof["roofline"], "roof": "own"}, "detail": {"repeats": repeats}}
+
+    monkeypatch.setitem(REGISTRY, "fake", REGISTRY["fake"]._replace(frame_roofline=own))
+    s = runner.run(module, {})
+    r, m = s["roofline"], s["extra"]["roofline_matmul"]
+    assert r["roof"] == "own" and r["matmul_gflops"] == 1.0 and r["frame_flops"] == 1e6
+    assert m["roof"] == "matmul" and m["matmul_gflops"] == s["matmul_peak_gflops"]
+    assert r["bandwidth_gbs"] == m["bandwidth_gbs"] > 0
+    assert s["extra"]["roofline_detail"] == {"repeats": module.CONFIG["eval"].get("timing_repeats", 10)}
+
+
 def test_equal_error_is_found_for_a_biased_method(fake):
     module, _ = fake
     s = runner.run(module, {"model": {"bias": 0.05}})

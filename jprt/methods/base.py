@@ -145,28 +145,29 @@ class Method(NamedTuple):
     frame_roofline: Callable | None = None
 
     def frame_report(self, params, config: dict, jitted: Callable, inputs, lighting, frame_ms: float, *,
-                     peak_gflops: float | None = None, repeats: int = 10) -> dict:
+                     peak_gflops: float | None = None, bandwidth_gbs: float | None = None, repeats: int = 10) -> dict:
         """The timed frame (``jitted(inputs, lighting)`` taking ``frame_ms``) against the machine:
         {"frame_flops" (``frame_flops``'s count where the method has one, else XLA's),
         "frame_flops_source" ("method" or "xla"), "matmul_peak_gflops" (``peak_gflops``, measured
         now unless given), "flops_fraction_of_peak", "roofline" (``frame_roofline``'s where the
-        method has one, else ``jprt.eval.roofline``'s, whose "roof" is "matmul"), "roofline_xla"
+        method has one, else ``jprt.eval.roofline``'s, whose "roof" is "matmul"), "roofline_matmul"
         (``jprt.eval.roofline``'s, kept beside the method's own; None without one),
         "roofline_detail" (the method's own counts; None without)}. Both rooflines share one
-        measured bandwidth."""
+        bandwidth (``bandwidth_gbs``, the triad measured now unless given)."""
         from jprt import eval as jeval
 
         flops = self.frame_flops(params, config, inputs, lighting) if self.frame_flops else None
-        generic = jeval.roofline(jitted, inputs, lighting, frame_ms=frame_ms, flops=flops, peak_gflops=peak_gflops)
+        generic = jeval.roofline(jitted, inputs, lighting, frame_ms=frame_ms, flops=flops, peak_gflops=peak_gflops,
+                                 bandwidth_gbs=bandwidth_gbs)
         generic["roofline"]["roof"] = "matmul"
         out = {"frame_flops": generic["frame_flops"], "frame_flops_source": "method" if flops is not None else "xla",
                "matmul_peak_gflops": generic["matmul_peak_gflops"],
                "flops_fraction_of_peak": generic["flops_fraction_of_peak"], "roofline": generic["roofline"],
-               "roofline_xla": None, "roofline_detail": None}
+               "roofline_matmul": None, "roofline_detail": None}
         if self.frame_roofline is not None:
             own = self.frame_roofline(params, config, inputs, lighting, frame_ms, repeats=repeats,
                                       bandwidth_gbs=generic["roofline"]["bandwidth_gbs"])
-            out.update(roofline=own["roofline"], roofline_xla=generic["roofline"], roofline_detail=own["detail"])
+            out.update(roofline=own["roofline"], roofline_matmul=generic["roofline"], roofline_detail=own["detail"])
         return out
 
     def resolve(self, config: Mapping | None = None) -> dict:

@@ -97,7 +97,7 @@ def fit_and_score(name: str, s: dict, cameras: list, cfg: dict, e: dict, peak_gf
              "target_met": bool(worst <= float(e["target"]) and mean <= float(e["target_mean"])),
              "self_check": check, "frame_ms": timing["median_ms"], "frame_flops": roof["frame_flops"],
              "frame_flops_source": roof["frame_flops_source"], "flops_fraction_of_peak": roof["flops_fraction_of_peak"],
-             "roofline": roof["roofline"], "roofline_xla": roof["roofline_xla"], "roofline_detail": roof["roofline_detail"],
+             "roofline": roof["roofline"], "roofline_matmul": roof["roofline_matmul"], "roofline_detail": roof["roofline_detail"],
              "speedup_vs_reference_render": s["peer"]["ms"] / timing["median_ms"] if s["peer"] else None,
              "frame_resolution": list(np.shape(preds[0])[:2]), "dataset_s": t1 - t0, "fit_s": t2 - t1, "info": info,
              "grouped_objects": report.get("grouped", {}), "skipped_objects": report.get("skipped", {}),

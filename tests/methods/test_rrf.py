@@ -237,17 +237,21 @@ def test_frame_work_counts_the_tiles_slots(model):
     assert tiled["slots"] % (4 * 4 * 3) == 0 and tiled["executed_flops"] >= exact["executed_flops"]
     assert 0 < tiled["occupancy"] <= 1 and tiled["bytes"] > 0
     cfg = {"render": {"tile": 4, "chunk": 3}}
-    roof = rrf.frame_roofline(params, cfg, gb, one, frame_ms=1.0, repeats=2)
+    roof = rrf.frame_roofline(params, cfg, gb, one, frame_ms=1.0, repeats=2, bandwidth_gbs=5.0)
     detail = roof["detail"]
     assert detail["network_gflops"] > 0 and roof["roofline"]["matmul_gflops"] == detail["network_gflops"]
     assert roof["roofline"]["frame_flops"] == tiled["executed_flops"]
     assert 0 < detail["useful_over_executed"] <= 1
     # the contract's report takes RRF's own roof and keeps the generic one beside it
     report = METHOD.frame_report(params, cfg, jax.jit(rrf.evaluator(params, cfg)), gb, one, 1.0, peak_gflops=100.0,
-                                 repeats=2)
-    assert report["roofline"]["roof"] != "matmul" and report["roofline_xla"]["roof"] == "matmul"
-    assert report["roofline_xla"]["matmul_gflops"] == 100.0 and report["frame_flops_source"] == "method"
-    assert report["roofline_detail"]["work"]["slots"] == tiled["slots"]
+                                 bandwidth_gbs=5.0, repeats=2)
+    own, matmul = report["roofline"], report["roofline_matmul"]
+    assert own["roof"] == "networks" and own["matmul_gflops"] == report["roofline_detail"]["network_gflops"]
+    assert own["frame_flops"] == tiled["executed_flops"] and report["roofline_detail"]["work"]["slots"] == tiled["slots"]
+    assert matmul["roof"] == "matmul" and matmul["matmul_gflops"] == 100.0
+    assert own["bandwidth_gbs"] == matmul["bandwidth_gbs"] == 5.0
+    assert report["frame_flops"] == matmul["frame_flops"] == rrf.frame_flops(params, cfg, gb, one)
+    assert report["frame_flops_source"] == "method"
 
 
 def test_traversal_in_evaluator_matches_brute_force(model):

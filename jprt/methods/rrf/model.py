@@ -470,8 +470,9 @@ def frame_roofline(params, config: dict | None, inputs, lights, frame_ms: float,
     ``frame_work`` counts what the tiled frame executes; ``network_rate_gflops`` measures, in this
     process, the rate of those products by themselves; the roofline (``jprt.eval.roofline_of``)
     takes that rate as its compute roof, the executed FLOPs and the work's stated byte model
-    (``bandwidth_gbs``: the triad's, measured now unless given). Returns {"roofline" (with "roof",
-    what its compute roof is), "detail": {"work", "network_gflops", "useful_over_executed"}}: the
+    (``bandwidth_gbs``: the triad's, measured now unless given). Returns {"roofline" (its "roof"
+    is "networks": ``matmul_gflops`` there is the networks' rate, ``frame_flops`` the executed
+    FLOPs), "detail": {"work", "network_gflops", "useful_over_executed"}}: the
     last is the share of the executed network work the image needs (``frame_flops`` / executed;
     masked slots of shared tiles and padding items are the rest).
 
@@ -481,11 +482,12 @@ def frame_roofline(params, config: dict | None, inputs, lights, frame_ms: float,
     rate = network_rate_gflops(params, config, work["slots"], repeats=repeats)
     roof = jeval.roofline_of(work["executed_flops"], work["bytes"], frame_ms=frame_ms, peak_gflops=rate,
                              bandwidth_gbs=bandwidth_gbs)["roofline"]
-    roof["roof"] = "the networks' products timed alone (network_gflops), on the executed FLOPs"
+    roof["roof"] = "networks"  # matmul_gflops is network_gflops, frame_flops the executed FLOPs
     return {"roofline": roof,
             "detail": {"work": work, "network_gflops": rate,
                        "useful_over_executed": work["useful_flops"] / work["executed_flops"]
                        if work["executed_flops"] else None}}
+
 
 def check_inputs(params, gbuffer, lights, *, extrapolation: str = "error", tolerance: float = 0.02) -> None:
     """Raise ValueError for an empty G-buffer, NaN attributes at valid pixels, no or NaN lights,
