@@ -388,6 +388,70 @@ def index(entries: list[tuple[str, dict]]) -> str:
         rows.append([f"[{INTROS.get(name, {}).get('title', name)}]({name}.md)", f"`{name}.json`",
                      text(str(date)[:10]) if date else "", text(str(ctx.get("device", ctx.get("device_kind", ""))))])
     lines += table(["benchmark", "file", "date", "device"], rows)
+    lines += ["[Every evaluator against its roofline](rooflines.md): the roofline records of all these "
+              "JSONs in one table.", ""]
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+#: The fraction of its roofline every evaluator is asked to reach (issue 49).
+ROOFLINE_TARGET = 0.5
+
+
+def _rooflines(v, path: tuple = ()):
+    """(path, roofline) of every roofline record in a JSON tree: a dict under a key that starts
+    with "roofline" and holds ``fraction_of_roofline``."""
+    if isinstance(v, dict):
+        for k, x in v.items():
+            if str(k).startswith("roofline") and isinstance(x, dict) and "fraction_of_roofline" in x:
+                yield path + (str(k),), x
+            else:
+                yield from _rooflines(x, path + (str(k),))
+    elif isinstance(v, list):
+        for i, x in enumerate(v):
+            yield from _rooflines(x, path + (str(i),))
+
+
+def _times_frames(v) -> bool:
+    """Whether a JSON tree times an evaluator's frame (a ``frame_ms`` key anywhere)."""
+    if isinstance(v, dict):
+        return "frame_ms" in v or any(_times_frames(x) for x in v.values())
+    return isinstance(v, list) and any(_times_frames(x) for x in v)
+
+
+def rooflines(entries: list[tuple[str, dict]]) -> str:
+    """The page of every roofline of every benchmark JSON (``_rooflines``), one row each, and the
+    JSONs that time a frame without one."""
+    lines = [GENERATED.format(name="*").replace("results/*.json", "results/*.json (every roofline)"),
+             "# Every evaluator against its roofline", "",
+             "Each row is one roofline record found in a benchmark JSON (`jprt.eval.roofline`, or the "
+             "method's own through `Method.frame_report`; `roof` says which compute roof it takes: "
+             "`matmul` is the f32 matmul rate, `networks` RRF's networks' products timed alone). The "
+             "attainable rate is min(compute roof, intensity x bandwidth), with the bandwidth a streaming "
+             "triad measured in the same process; the fraction is the frame's achieved rate over it. "
+             f"Issue 49 asks every evaluator at its default size for {ROOFLINE_TARGET} or more. Rows "
+             "without a `roof` predate the key (a matmul roof). Runs from before the triad wrote into its "
+             "own input (CHANGELOG.md, 2026-12-06, afternoon) timed page faults with it and read the "
+             "bandwidth several times too low, so their memory-bound fractions are too high (some above "
+             "1); each row's date is the run that wrote its JSON.", ""]
+    rows, missing = [], []
+    for name, data in entries:
+        found = list(_rooflines(data))
+        date = text(str(context_of(data).get("date", ""))[:10])
+        for path, r in found:
+            frac = r.get("fraction_of_roofline")
+            rows.append([f"[{name}]({name}.md)", text(".".join(path)), text(str(r.get("roof", ""))),
+                         text(str(r.get("bound", ""))), fmt(r.get("frame_flops") and r["frame_flops"] / 1e6),
+                         fmt(r.get("frame_bytes") and r["frame_bytes"] / 1e6), fmt(r.get("matmul_gflops")),
+                         fmt(r.get("bandwidth_gbs")), fmt(r.get("attainable_gflops")), fmt(frac),
+                         "" if frac is None else ("yes" if frac >= ROOFLINE_TARGET else "no"), date])
+        if not found and _times_frames(data):
+            missing.append(f"- [{name}]({name}.md) (`{name}.json`, {date or 'undated'})")
+    lines += table(["benchmark", "record", "roof", "bound", "MFLOP", "MB", "compute roof GFLOP/s", "GB/s",
+                    "attainable GFLOP/s", "fraction", f">= {ROOFLINE_TARGET}", "date"], rows)
+    if missing:
+        lines += ["## Timed without a roofline", "",
+                  "These JSONs time a frame (`frame_ms`) and carry no roofline yet; their next run adds one.",
+                  ""] + missing + [""]
     return "\n".join(lines).rstrip("\n") + "\n"
 
 
@@ -398,7 +462,7 @@ def pages() -> dict[str, str | bytes]:
         name = os.path.splitext(os.path.basename(path))[0]
         with open(path, encoding="utf-8") as f:
             entries.append((name, json.load(f)))
-    out: dict[str, str | bytes] = {"index.md": index(entries)}
+    out: dict[str, str | bytes] = {"index.md": index(entries), "rooflines.md": rooflines(entries)}
     for name, data in entries:
         out[f"{name}.md"] = render(name, data)
         for fig, _ in INTROS.get(name, {}).get("figures", []):
