@@ -126,9 +126,10 @@ def fit(run) -> FitResult:
 
 def held_out(run) -> HeldOut:
     """The held-out lighting configurations: each lightmap as an atlas image, predicted by the
-    evaluator on the atlas itself (``jprt.methods.lightmap_lookup.atlas_inputs``)."""
+    evaluator on the atlas itself (``jprt.methods.lightmap_lookup.atlas_inputs``), over the texels
+    whose atlas pixel shows them (an unseen texel's pixel shows a seen neighbour)."""
     data, params = run.dataset, run.result.params
-    inputs = atlas_inputs(int(data.atlas["resolution"]), data.atlas["texel_index"])
+    inputs = atlas_inputs(int(data.atlas["resolution"]), data.atlas["texel_index"], data.atlas["fill_index"])
     fine = np.asarray(params["fine_index"])
     preds = [np.asarray(run.evaluate(inputs, PointRadiance(d[fine]))) for d in data.direct_test]
     refs = [ev.lightmap_image(i, data.atlas) for i in data.indirect_test]

@@ -135,16 +135,21 @@ def atlas_image(texels, fill_index):
     return texels[fill_index].reshape(res, res, texels.shape[-1])
 
 
-def atlas_inputs(resolution: int, texel_index) -> GBuffer:
+def atlas_inputs(resolution: int, texel_index, fill_index=None) -> GBuffer:
     """A G-buffer of the atlas itself, (R, R): every pixel looks up its own texel centre; valid
     where a texel is covered. A lightmap evaluator given it returns the lightmap as an (R, R, 3)
     image (exactly the texel values: the lookups land on texel centres), so lightmap errors are
-    image errors over the valid pixels."""
+    image errors over the valid pixels. Given the atlas's ``fill_index``, a texel whose pixel shows
+    another texel (one no view sees: ``jprt.render.lightmap.build_atlas``' ``seen_from``) is not
+    valid: no image shows its value, and its pixel's value is its neighbour's."""
     res = int(resolution)
     centres = (np.arange(res, dtype=np.float32) + 0.5) / res
     uv = np.stack(np.meshgrid(centres, centres, indexing="xy"), axis=-1)
     valid = np.zeros(res * res, bool)
-    valid[np.asarray(texel_index)] = True
+    texel_index = np.asarray(texel_index)
+    shows_itself = (np.ones(texel_index.size, bool) if fill_index is None
+                    else np.asarray(fill_index)[texel_index] == np.arange(texel_index.size))
+    valid[texel_index[shows_itself]] = True
     zeros3 = np.zeros((res, res, 3), np.float32)
     return GBuffer(position=zeros3, normal=zeros3, view=zeros3, reflected=zeros3, uv=uv,
                    diffuse_albedo=zeros3, specular_albedo=zeros3, roughness=np.zeros((res, res), np.float32),

@@ -409,3 +409,14 @@ def test_texel_modulation_divides_out_texture_only():
     np.testing.assert_allclose(rel[2:4], diffuse[2:4] / 0.4, rtol=1e-6)
     np.testing.assert_allclose(rel[4:], 1.0)
     np.testing.assert_allclose(mean[2:], 0.0)
+
+
+def test_atlas_inputs_leave_out_texels_whose_pixel_shows_another():
+    """An unseen texel's atlas pixel shows a seen neighbour (``build_atlas``' fill): given the
+    fill, ``atlas_inputs`` marks only the texels that show themselves valid, so an atlas-image
+    score compares each valid pixel with its own texel."""
+    texel_index = np.array([0, 1, 2, 5])
+    fill = np.array([0, 1, 1, 1, 2, 3, 3, 3, 2])  # texel 2's pixel (2) shows texel 1
+    g = atlas_inputs(3, texel_index, fill)
+    assert np.flatnonzero(np.asarray(g.valid).reshape(-1)).tolist() == [0, 1, 5]
+    assert np.flatnonzero(np.asarray(atlas_inputs(3, texel_index).valid).reshape(-1)).tolist() == [0, 1, 2, 5]
