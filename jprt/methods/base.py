@@ -118,10 +118,11 @@ class Method(NamedTuple):
         ``evaluator``'s does not (``model.gradient_evaluator``; RRF's tiled renderer loops a
         data-dependent number of times); None: ``evaluator`` is one. ``jprt.design`` uses it.
       frame_roofline: optional ``(params, config, inputs, lighting, frame_ms, *, repeats,
-        bandwidth_gbs) -> {"roofline", "detail"}``: the timed frame against what bounds it by the
-        method's own model (``model.frame_roofline``; RRF: its networks' products timed alone),
-        where the matmul peak and XLA's counts are the wrong roof; None: ``jprt.eval.roofline``.
-        ``frame_report`` chooses.
+        bandwidth_gbs) -> {"roofline", "detail"[, "frame_flops"]}``: the timed frame against what
+        bounds it by the method's own model (``model.frame_roofline``; RRF: its networks' products
+        timed alone), where the matmul peak and XLA's counts are the wrong roof; its "frame_flops",
+        where given, is ``frame_flops``'s count, found on the way (so the report does not count
+        twice); None: ``jprt.eval.roofline``. ``frame_report`` chooses.
     """
 
     name: str
@@ -156,7 +157,14 @@ class Method(NamedTuple):
         bandwidth (``bandwidth_gbs``, the triad measured now unless given)."""
         from jprt import eval as jeval
 
-        flops = self.frame_flops(params, config, inputs, lighting) if self.frame_flops else None
+        own, flops = None, None
+        if self.frame_roofline is not None:
+            bandwidth_gbs = jeval.stream_bandwidth_gbs() if bandwidth_gbs is None else float(bandwidth_gbs)
+            own = self.frame_roofline(params, config, inputs, lighting, frame_ms, repeats=repeats,
+                                      bandwidth_gbs=bandwidth_gbs)
+            flops = own.get("frame_flops")
+        if flops is None and self.frame_flops:
+            flops = self.frame_flops(params, config, inputs, lighting)
         generic = jeval.roofline(jitted, inputs, lighting, frame_ms=frame_ms, flops=flops, peak_gflops=peak_gflops,
                                  bandwidth_gbs=bandwidth_gbs)
         generic["roofline"]["roof"] = "matmul"
@@ -164,9 +172,7 @@ class Method(NamedTuple):
                "matmul_peak_gflops": generic["matmul_peak_gflops"],
                "flops_fraction_of_peak": generic["flops_fraction_of_peak"], "roofline": generic["roofline"],
                "roofline_matmul": None, "roofline_detail": None}
-        if self.frame_roofline is not None:
-            own = self.frame_roofline(params, config, inputs, lighting, frame_ms, repeats=repeats,
-                                      bandwidth_gbs=generic["roofline"]["bandwidth_gbs"])
+        if own is not None:
             out.update(roofline=own["roofline"], roofline_matmul=generic["roofline"], roofline_detail=own["detail"])
         return out
 

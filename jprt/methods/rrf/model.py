@@ -472,9 +472,10 @@ def frame_roofline(params, config: dict | None, inputs, lights, frame_ms: float,
     takes that rate as its compute roof, the executed FLOPs and the work's stated byte model
     (``bandwidth_gbs``: the triad's, measured now unless given). Returns {"roofline" (its "roof"
     is "networks": ``matmul_gflops`` there is the networks' rate, ``frame_flops`` the executed
-    FLOPs), "detail": {"work", "network_gflops", "useful_over_executed"}}: the
-    last is the share of the executed network work the image needs (``frame_flops`` / executed;
-    masked slots of shared tiles and padding items are the rest).
+    FLOPs), "detail": {"work", "network_gflops", "useful_over_executed"}, "frame_flops"}: the
+    share of the executed network work the image needs (``frame_flops`` / executed; masked slots
+    of shared tiles and padding items are the rest), and ``frame_flops``' count (the work's
+    "useful_flops", from the same traversal).
 
     Numerics: not differentiable (a timing).
     """
@@ -483,7 +484,7 @@ def frame_roofline(params, config: dict | None, inputs, lights, frame_ms: float,
     roof = jeval.roofline_of(work["executed_flops"], work["bytes"], frame_ms=frame_ms, peak_gflops=rate,
                              bandwidth_gbs=bandwidth_gbs)["roofline"]
     roof["roof"] = "networks"  # matmul_gflops is network_gflops, frame_flops the executed FLOPs
-    return {"roofline": roof,
+    return {"roofline": roof, "frame_flops": work["useful_flops"],
             "detail": {"work": work, "network_gflops": rate,
                        "useful_over_executed": work["useful_flops"] / work["executed_flops"]
                        if work["executed_flops"] else None}}
