@@ -15,6 +15,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import re
 import statistics
 import time
 from typing import Callable, NamedTuple, Sequence
@@ -26,7 +27,8 @@ from jprt.metrics import error_map, tonemap
 
 __all__ = ["set_rmse", "object_scores", "noise_removed", "DARK_OBJECT_SCALE", "HeldOut", "SCORES", "SUMMARY_SCORES",
            "score_images", "score_held_out", "optional_metric", "time_call", "interleaved_times", "xla_flops",
-           "xla_cost", "gather_overcount", "matmul_peak_gflops", "stream_bandwidth_gbs", "roofline", "roofline_of",
+           "xla_cost", "loop_aware_cost", "gather_overcount", "matmul_peak_gflops", "stream_bandwidth_gbs", "roofline",
+           "roofline_of",
            "PathTracer", "EqualErrorCurve", "equal_error_spp", "side_by_side", "plot_series"]
 
 
@@ -290,29 +292,188 @@ def time_call(fn: Callable, *args, repeats: int = 10, warmup: int = 2) -> dict:
 
 def xla_cost(jitted: Callable, *args) -> dict:
     """XLA's cost analysis of one call of ``jitted`` (a ``jax.jit`` function) on ``args``, compiled
-    once: {"flops": multiply-adds count 2, gathers, sorts and scatters nothing; "bytes": the bytes
-    its fused operations read and write ("bytes accessed": each fusion's operands and results,
-    not what stays in registers or cache inside it), except that a table read only through gathers
-    is charged for the rows they read (``gather_overcount``), not its whole size as XLA charges it;
-    "bytes_xla": XLA's own figure}, each None when the backend reports none."""
+    once, with every loop counted as many times as it runs: {"flops": multiply-adds count 2,
+    gathers, sorts and scatters nothing; "transcendentals": exp, log, sqrt and the like, each
+    counted once (not in "flops"); "bytes": the bytes the frame moves to and from memory, by this
+    model: XLA's "bytes accessed" of its fused operations (each fusion's operands and results,
+    not what stays in registers or cache inside it), except that a table read only through
+    gathers is charged for the rows they read (``gather_overcount``), not its whole size as XLA
+    charges it, and that a loop moves each array it carries once (a tiled evaluator's ``lax.map``:
+    its inputs read and its output written once; a tile's intermediates are sized to stay in cache,
+    the reason it is tiled); "bytes_xla": XLA's own figure, every fusion of every loop iteration
+    counted; "loops": the trip counts of the while loops it multiplied, "loops_unknown": loops
+    without a static trip count, counted once}, each None when the backend reports none.
+
+    XLA's own analysis counts a while loop's body once whatever its trip count (a ``lax.map`` over
+    16 tiles reported 1/16 of the frame's FLOPs); ``loop_aware_cost`` costs each body as a module
+    of its own and counts it that many times.
+    """
     try:
         compiled = jitted.lower(*args).compile()
         cost = compiled.cost_analysis()
     except Exception:  # noqa: BLE001 - a backend without cost analysis
-        return {"flops": None, "bytes": None, "bytes_xla": None}
+        return {"flops": None, "transcendentals": None, "bytes": None, "bytes_xla": None, "loops": [],
+                "loops_unknown": 0}
     cost = cost[0] if isinstance(cost, (list, tuple)) and cost else cost
+    try:
+        text = compiled.as_text()
+    except Exception:  # noqa: BLE001 - no HLO text: XLA's figures stand
+        text = ""
+    looped = loop_aware_cost(text) if text else None
+    if looped is None:  # no loops (or a module the parser refuses): XLA's figures, once
+        looped = {"flops": cost.get("flops") if cost else None, "transcendentals": cost.get("transcendentals")
+                  if cost else None, "bytes_xla": cost.get("bytes accessed") if cost else None,
+                  "overcount": gather_overcount(text) if text else 0.0, "loops": [], "loops_unknown": 0}
     out = {}
-    for key, name in (("flops", "flops"), ("bytes", "bytes accessed")):
-        value = cost.get(name) if cost else None
+    for key in ("flops", "transcendentals", "bytes_xla"):
+        value = looped[key]
         out[key] = float(value) if value is not None and value > 0 else None
-    out["bytes_xla"] = out["bytes"]
-    if out["bytes"] is not None:
-        try:
-            text = compiled.as_text()
-        except Exception:  # noqa: BLE001 - no HLO text: XLA's figure stands
-            text = ""
-        out["bytes"] = max(out["bytes"] - gather_overcount(text), 0.0) or out["bytes"]
+    moved = looped.get("bytes_moved")
+    if moved is None and out["bytes_xla"] is not None:
+        moved = max(out["bytes_xla"] - looped["overcount"], 0.0) or out["bytes_xla"]
+    out["bytes"] = float(moved) if moved else None
+    out["loops"], out["loops_unknown"] = looped["loops"], looped["loops_unknown"]
     return out
+
+
+_COMP_HEAD = r"^(ENTRY )?%([\w.\-]+) \(.*\{\s*$"
+
+
+def _computation_blocks(text: str) -> tuple[str, dict, str | None]:
+    """An HLO module's text split into its header line and its computations: (header, {name:
+    (head line without ENTRY, body lines)}, the entry's name)."""
+    head = re.compile(_COMP_HEAD)
+    header, blocks, entry, current = "", {}, None, None
+    for line in text.splitlines():
+        if line.startswith("HloModule"):
+            header = line
+            continue
+        m = head.match(line)
+        if m:
+            current = m.group(2)
+            blocks[current] = (line[len("ENTRY "):] if m.group(1) else line, [])
+            entry = current if m.group(1) else entry
+            continue
+        if current is None:
+            continue
+        if line.startswith("}"):
+            current = None
+            continue
+        # stack frame ids point into a table the computations alone do not carry
+        blocks[current][1].append(re.sub(r"\s*stack_frame_id=\d+", "", line))
+    return header, blocks, entry
+
+
+def _module_as(header: str, blocks: dict, entry: str) -> str:
+    """The module text with ``entry`` as its entry computation and only the computations it reaches."""
+    names = set(blocks)
+    seen, order, frontier = set(), [], [entry]
+    while frontier:
+        name = frontier.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        order.append(name)
+        for line in blocks[name][1]:
+            frontier += [n for n in re.findall(r"%([\w.\-]+)", line) if n in names and n not in seen]
+    # the header's entry layout names the original entry's signature: left out
+    header = re.sub(r", entry_computation_layout=\{.*?\}(?=, [a-z_]+=|$)", "", header)
+    parts = [header, ""]
+    for name in reversed(order):  # callees first, as XLA prints them
+        head, body = blocks[name]
+        parts += [("ENTRY " if name == entry else "") + head] + body + ["}", ""]
+    return "\n".join(parts)
+
+
+def _module_cost(text: str) -> dict | None:
+    """XLA's cost analysis of an HLO module given as text (loops counted once): {"flops",
+    "transcendentals", "bytes_xla", "overcount" (``gather_overcount``)}, None if it does not parse."""
+    try:
+        from jax._src import xla_bridge
+        from jax._src.lib import xla_client
+        from jaxlib import _hlo
+
+        cost = xla_client._xla.hlo_module_cost_analysis(xla_bridge.get_backend(), _hlo.hlo_module_from_text(text))
+    except Exception:  # noqa: BLE001 - a module the parser or this jaxlib does not take
+        return None
+    return {"flops": float(cost.get("flops", 0.0)), "transcendentals": float(cost.get("transcendentals", 0.0)),
+            "bytes_xla": float(cost.get("bytes accessed", 0.0)), "overcount": gather_overcount(text)}
+
+
+def loop_aware_cost(hlo_text: str) -> dict | None:
+    """XLA's cost of a compiled module (its ``as_text()``) with each while loop of a known trip
+    count ("known_trip_count" in its backend config) counted that many times: cost(C) = XLA's
+    cost of C (every loop body in it once) + sum over C's loops of (trips x cost(body) - XLA's
+    cost of the body), recursively for loops in loops. Returns {"flops", "transcendentals",
+    "bytes_xla", "overcount" (``gather_overcount``, loops counted the same way), "bytes_moved"
+    (``xla_cost``'s model: the entry's fused operations outside its loops, gathered tables
+    charged for their rows, plus each loop's carried arrays once), "loops" (trip counts),
+    "loops_unknown"}, or None when the module has no while loop or does not parse."""
+    if " while(" not in hlo_text:
+        return None
+    header, blocks, entry = _computation_blocks(hlo_text)
+    if entry is None:
+        return None
+    loop_re = re.compile(r"\swhile\(.*?body=%?([\w.\-]+)")
+    trips_re = re.compile(r'"known_trip_count":\{"n":"(\d+)"\}')
+    names = set(blocks)
+    record = {"loops": [], "loops_unknown": 0}
+    keys = ("flops", "transcendentals", "bytes_xla", "overcount")
+
+    def loops_in(name: str) -> list:  # whiles of ``name`` and of what it calls, not inside other loops
+        found, frontier, seen = [], [name], set()
+        while frontier:
+            comp = frontier.pop()
+            if comp in seen:
+                continue
+            seen.add(comp)
+            for line in blocks[comp][1]:
+                m = loop_re.search(line)
+                if m:
+                    t = trips_re.search(line)
+                    found.append((m.group(1), int(t.group(1)) if t else None))
+                    continue
+                frontier += [n for n in re.findall(r"%([\w.\-]+)", line) if n in names]
+        return found
+
+    def cost(name: str) -> dict | None:
+        own = _module_cost(_module_as(header, blocks, name))
+        if own is None:
+            return None
+        for body, trips in loops_in(name):
+            if trips is None:
+                record["loops_unknown"] += 1
+                continue
+            once = _module_cost(_module_as(header, blocks, body))
+            full = cost(body)
+            if once is None or full is None:
+                return None
+            record["loops"].append(trips)
+            for k in keys:
+                own[k] += trips * full[k] - once[k]
+        return own
+
+    total = cost(entry)
+    if total is None:
+        return None
+    outer = _module_cost(_module_as(header, blocks, entry))
+    moved = outer["bytes_xla"] - outer["overcount"]
+    for line in blocks[entry][1]:  # the entry's own loops: their bodies' traffic becomes their carried arrays
+        m = loop_re.search(line)
+        if not m:
+            continue
+        once = _module_cost(_module_as(header, blocks, m.group(1)))
+        if once is None:
+            return None
+        carried = re.match(r"^\s*(?:ROOT )?%[\w.\-]+ = \((.*?)\) while\(", line)
+        moved += -(once["bytes_xla"] - once["overcount"]) + (_shapes_bytes(carried.group(1)) if carried else 0.0)
+    return {**total, **record, "bytes_moved": max(moved, 0.0)}
+
+
+def _shapes_bytes(shapes: str) -> float:
+    """The bytes of the arrays in an HLO tuple type's text ("s32[], f32[16,4096]{1,0}, ...")."""
+    return float(sum(_DTYPE_BYTES.get(dtype, 4) * math.prod(int(d) for d in dims.split(",") if d)
+                     for dtype, dims in re.findall(r"\b([a-z]+\d*)\[([\d,]*)\]", shapes)))
 
 
 _DTYPE_BYTES = {"pred": 1, "s8": 1, "u8": 1, "s16": 2, "u16": 2, "f16": 2, "bf16": 2, "s32": 4, "u32": 4,
@@ -476,8 +637,9 @@ def roofline(jitted: Callable, *args, frame_ms: float, peak_gflops: float | None
     ``flops_fraction_of_peak`` = achieved / peak, and ``roofline``: {``matmul_gflops``,
     ``bandwidth_gbs`` (``stream_bandwidth_gbs``, measured now unless given), ``frame_flops``,
     ``frame_bytes`` (``frame_bytes`` when given, else ``xla_cost``'s bytes: XLA's bytes accessed
-    with gathered tables charged for the rows read), ``frame_bytes_xla`` (XLA's own figure), ``intensity``
-    (FLOP per byte), ``attainable_gflops`` = min(peak, intensity x bandwidth), ``bound``
+    with gathered tables charged for the rows read and loops' carried arrays once), ``frame_bytes_xla``
+    (XLA's own figure, every loop iteration's fusions counted), ``frame_transcendentals`` (XLA's
+    count, loops counted), ``intensity`` (FLOP per byte), ``attainable_gflops`` = min(peak, intensity x bandwidth), ``bound``
     ("compute" or "memory": which of the two is the smaller), ``fraction_of_roofline`` =
     achieved / attainable}. None where nothing counts (no FLOP or byte count)."""
     cost = xla_cost(jitted, *args)
@@ -485,6 +647,7 @@ def roofline(jitted: Callable, *args, frame_ms: float, peak_gflops: float | None
                       cost["bytes"] if frame_bytes is None else float(frame_bytes), frame_ms=frame_ms,
                       peak_gflops=peak_gflops, bandwidth_gbs=bandwidth_gbs)
     out["roofline"]["frame_bytes_xla"] = cost.get("bytes_xla")
+    out["roofline"]["frame_transcendentals"] = cost.get("transcendentals")
     return out
 
 

@@ -76,15 +76,15 @@ SUMMARY_SCHEMA: dict[str, str] = {
                                 "of every spp the search tried",
     "speedup_equal_error": "pathtrace_ms_equal_error / frame_ms",
     "frame_flops": "FLOPs of the timed frame: the method's own count (Method.frame_flops) where it has one, else "
-                   "XLA's cost analysis of the compiled evaluator (jprt.eval.xla_flops: gathers, sorts and scatters "
-                   "count none, a loop's body once); extra.frame_flops_source says which",
+                   "XLA's cost analysis of the compiled evaluator (jprt.eval.xla_cost: gathers, sorts and scatters "
+                   "count none, a loop's body as many times as it runs); extra.frame_flops_source says which",
     "matmul_peak_gflops": "f32 JAX matmul rate (GFLOP/s, 1024^3, fastest of 10) measured in the same run",
     "flops_fraction_of_peak": "frame_flops / frame_ms against matmul_peak_gflops: the evaluator judged against the "
                               "machine",
     "roofline": "the timed frame against its roofline (Method.frame_report): matmul_gflops (the compute roof), "
                 "bandwidth_gbs (a STREAM triad in JAX over 256 MiB arrays, written in place, measured in the same "
                 "process), frame_flops, frame_bytes (XLA's bytes accessed, a table read only through gathers charged "
-                "for the rows they read: jprt.eval.xla_cost), intensity, attainable_gflops = min(matmul, intensity x "
+                "for the rows they read, a loop's carried arrays once: jprt.eval.xla_cost), intensity, attainable_gflops = min(matmul, intensity x "
                 "bandwidth), bound, fraction_of_roofline = achieved / attainable, roof: \"matmul\" (jprt.eval."
                 "roofline: the matmul rate, the summary's frame_flops) or the method's own where Method.frame_roofline "
                 "names what bounds it (\"networks\" for RRF: matmul_gflops is its networks' products timed alone, "

@@ -122,6 +122,38 @@ def test_a_gathered_table_is_charged_for_the_rows_read_not_its_size():
     assert both["bytes"] >= table.nbytes
 
 
+def test_a_loop_is_counted_as_many_times_as_it_runs():
+    """XLA's own analysis counts a while body once: a ``lax.map`` over 16 tiles reported 1/16 of
+    the FLOPs. ``xla_cost`` counts each body its trip count times, in nested loops too, so a tiled
+    program costs what the untiled one does (FLOPs and transcendentals); its bytes charge the
+    loop's carried arrays once (inputs read, output written), not each tile's intermediates."""
+    import jax
+    import jax.numpy as jnp
+
+    def body(t):
+        return jnp.sin(t) * t + t * t  # 3 FLOPs and 1 transcendental an element
+
+    n = 1 << 16
+    flat = jeval.xla_cost(jax.jit(body), jnp.ones((n,), jnp.float32))
+    assert flat["loops"] == [] and flat["flops"] == pytest.approx(3 * n)
+    for tiles in (4, 16):
+        tiled = jeval.xla_cost(jax.jit(lambda x: jax.lax.map(body, x)), jnp.ones((tiles, n // tiles), jnp.float32))
+        assert tiled["loops"] == [tiles]
+        assert tiled["flops"] == pytest.approx(3 * n, rel=1e-3)
+        assert tiled["transcendentals"] == pytest.approx(n)
+        assert 2 * 4 * n <= tiled["bytes"] <= tiled["bytes_xla"]
+    nested = jeval.xla_cost(jax.jit(lambda x: jax.lax.map(lambda t: jax.lax.map(body, t), x)),
+                            jnp.ones((4, 8, n // 32), jnp.float32))
+    assert sorted(nested["loops"]) == [4, 8] and nested["flops"] == pytest.approx(3 * n, rel=1e-3)
+    steps = jeval.xla_cost(jax.jit(lambda a: jax.lax.fori_loop(0, 5, lambda i, a: body(a), a)),
+                           jnp.ones((n,), jnp.float32))
+    assert steps["flops"] == pytest.approx(5 * 3 * n, rel=1e-3)
+    # a loop that runs until a condition holds has no trip count: counted once, and said so
+    until = jeval.xla_cost(jax.jit(lambda a: jax.lax.while_loop(lambda c: c.sum() < 1e6, lambda c: c * 2.0, a)),
+                           jnp.ones((100,), jnp.float32))
+    assert until["loops_unknown"] == 1
+
+
 def test_roofline_is_the_lower_of_the_peak_and_intensity_times_bandwidth():
     """attainable = min(peak, FLOP/byte x bandwidth); the bound names the smaller; the fraction is
     the achieved rate over it. XLA's bytes of a matmul are at least its operands and result."""
