@@ -419,8 +419,14 @@ def loop_aware_cost(hlo_text: str) -> dict | None:
     names = set(blocks)
     record = {"loops": [], "loops_unknown": 0}
     keys = ("flops", "transcendentals", "bytes_xla", "overcount")
+    once_cache: dict = {}
 
-    def loops_in(name: str) -> list:  # whiles of ``name`` and of what it calls, not inside other loops
+    def once(name: str) -> dict | None:  # XLA's cost of computation ``name`` as the entry (loops once)
+        if name not in once_cache:
+            once_cache[name] = _module_cost(_module_as(header, blocks, name))
+        return None if once_cache[name] is None else dict(once_cache[name])
+
+    def loops_in(name: str) -> list:  # (body, trips, line) of the whiles ``name`` reaches outside other loops
         found, frontier, seen = [], [name], set()
         while frontier:
             comp = frontier.pop()
@@ -431,42 +437,38 @@ def loop_aware_cost(hlo_text: str) -> dict | None:
                 m = loop_re.search(line)
                 if m:
                     t = trips_re.search(line)
-                    found.append((m.group(1), int(t.group(1)) if t else None))
+                    found.append((m.group(1), int(t.group(1)) if t else None, line))
                     continue
                 frontier += [n for n in re.findall(r"%([\w.\-]+)", line) if n in names]
         return found
 
     def cost(name: str) -> dict | None:
-        own = _module_cost(_module_as(header, blocks, name))
+        own = once(name)
         if own is None:
             return None
-        for body, trips in loops_in(name):
+        for body, trips, _ in loops_in(name):
             if trips is None:
                 record["loops_unknown"] += 1
                 continue
-            once = _module_cost(_module_as(header, blocks, body))
-            full = cost(body)
-            if once is None or full is None:
+            single, full = once(body), cost(body)
+            if single is None or full is None:
                 return None
             record["loops"].append(trips)
             for k in keys:
-                own[k] += trips * full[k] - once[k]
+                own[k] += trips * full[k] - single[k]
         return own
 
     total = cost(entry)
     if total is None:
         return None
-    outer = _module_cost(_module_as(header, blocks, entry))
+    outer = once(entry)
     moved = outer["bytes_xla"] - outer["overcount"]
-    for line in blocks[entry][1]:  # the entry's own loops: their bodies' traffic becomes their carried arrays
-        m = loop_re.search(line)
-        if not m:
-            continue
-        once = _module_cost(_module_as(header, blocks, m.group(1)))
-        if once is None:
+    for body, _, line in loops_in(entry):  # a loop's traffic: its carried arrays once, not its body's
+        single = once(body)
+        if single is None:
             return None
         carried = re.match(r"^\s*(?:ROOT )?%[\w.\-]+ = \((.*?)\) while\(", line)
-        moved += -(once["bytes_xla"] - once["overcount"]) + (_shapes_bytes(carried.group(1)) if carried else 0.0)
+        moved += -(single["bytes_xla"] - single["overcount"]) + (_shapes_bytes(carried.group(1)) if carried else 0.0)
     return {**total, **record, "bytes_moved": max(moved, 0.0)}
 
 
@@ -637,11 +639,12 @@ def roofline(jitted: Callable, *args, frame_ms: float, peak_gflops: float | None
     ``flops_fraction_of_peak`` = achieved / peak, and ``roofline``: {``matmul_gflops``,
     ``bandwidth_gbs`` (``stream_bandwidth_gbs``, measured now unless given), ``frame_flops``,
     ``frame_bytes`` (``frame_bytes`` when given, else ``xla_cost``'s bytes: XLA's bytes accessed
-    with gathered tables charged for the rows read and loops' carried arrays once), ``frame_bytes_xla``
-    (XLA's own figure, every loop iteration's fusions counted), ``frame_transcendentals`` (XLA's
-    count, loops counted), ``intensity`` (FLOP per byte), ``attainable_gflops`` = min(peak, intensity x bandwidth), ``bound``
-    ("compute" or "memory": which of the two is the smaller), ``fraction_of_roofline`` =
-    achieved / attainable}. None where nothing counts (no FLOP or byte count)."""
+    with gathered tables charged for the rows read and loops' carried arrays once),
+    ``frame_bytes_xla`` (XLA's own figure, every loop iteration's fusions counted),
+    ``frame_transcendentals`` (XLA's count, loops counted), ``intensity`` (FLOP per byte),
+    ``attainable_gflops`` = min(peak, intensity x bandwidth), ``bound`` ("compute" or "memory":
+    which of the two is the smaller), ``fraction_of_roofline`` = achieved / attainable}. None
+    where nothing counts (no FLOP or byte count)."""
     cost = xla_cost(jitted, *args)
     out = roofline_of(cost["flops"] if flops is None else float(flops),
                       cost["bytes"] if frame_bytes is None else float(frame_bytes), frame_ms=frame_ms,
