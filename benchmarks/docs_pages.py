@@ -432,7 +432,10 @@ def rooflines(entries: list[tuple[str, dict]]) -> str:
              "without a `roof` predate the key (a matmul roof). Runs from before the triad wrote into its "
              "own input (CHANGELOG.md, 2026-12-06, afternoon) timed page faults with it and read the "
              "bandwidth several times too low, so their memory-bound fractions are too high (some above "
-             "1); each row's date is the run that wrote its JSON.", ""]
+             "1). Rows without `frame_transcendentals` predate loop-aware counting (CHANGELOG.md, "
+             "2026-12-06, late): XLA's analysis counted a tiled evaluator's loop body once, so their "
+             "FLOPs and bytes for a `lax.map` over tiles (SG light-field and SG environment frames) are "
+             "one tile's. Each row's date is the run that wrote its JSON.", ""]
     rows, missing = [], []
     for name, data in entries:
         found = list(_rooflines(data))
