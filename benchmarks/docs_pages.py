@@ -433,7 +433,7 @@ def rooflines(entries: list[tuple[str, dict]]) -> str:
              "own input (CHANGELOG.md, 2026-12-06, afternoon) timed page faults with it and read the "
              "bandwidth several times too low, so their memory-bound fractions are too high (some above "
              "1). Rows without `frame_transcendentals` predate loop-aware counting (CHANGELOG.md, "
-             "2026-12-06, late): XLA's analysis counted a tiled evaluator's loop body once, so their "
+             "2026-12-06, from 20:00): XLA's analysis counted a tiled evaluator's loop body once, so their "
              "FLOPs and bytes for a `lax.map` over tiles (SG light-field and SG environment frames) are "
              "one tile's. Each row's date is the run that wrote its JSON.", ""]
     rows, missing = [], []

@@ -84,12 +84,12 @@ SUMMARY_SCHEMA: dict[str, str] = {
     "roofline": "the timed frame against its roofline (Method.frame_report): matmul_gflops (the compute roof), "
                 "bandwidth_gbs (a STREAM triad in JAX over 256 MiB arrays, written in place, measured in the same "
                 "process), frame_flops, frame_bytes (XLA's bytes accessed, a table read only through gathers charged "
-                "for the rows they read, a loop's carried arrays once: jprt.eval.xla_cost), intensity, attainable_gflops = min(matmul, intensity x "
-                "bandwidth), bound, fraction_of_roofline = achieved / attainable, roof: \"matmul\" (jprt.eval."
-                "roofline: the matmul rate, the summary's frame_flops) or the method's own where Method.frame_roofline "
-                "names what bounds it (\"networks\" for RRF: matmul_gflops is its networks' products timed alone, "
-                "frame_flops the FLOPs its tiles execute); then extra.roofline_matmul is the matmul one and "
-                "extra.roofline_detail the method's counts",
+                "for the rows they read, a loop's carried arrays once: jprt.eval.xla_cost), intensity, "
+                "attainable_gflops = min(matmul, intensity x bandwidth), bound, fraction_of_roofline = achieved / "
+                "attainable, roof: \"matmul\" (jprt.eval.roofline: the matmul rate, the summary's frame_flops) or "
+                "the method's own where Method.frame_roofline names what bounds it (\"networks\" for RRF: "
+                "matmul_gflops is its networks' products timed alone, frame_flops the FLOPs its tiles execute); "
+                "then extra.roofline_matmul is the matmul one and extra.roofline_detail the method's counts",
     "model_bytes": "bytes of the arrays the evaluator needs at run time (FitResult.info['model_bytes'] when the "
                    "method states it, else every array of the params)",
     "train_s": "seconds of the fit",

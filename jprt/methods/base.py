@@ -91,8 +91,8 @@ class Method(NamedTuple):
         shapes the evaluator is timed and exported at.
       frame_flops: optional ``(params, config, inputs, lighting) -> float``: the FLOPs one
         evaluator call needs by the method's own count (``model.frame_flops`` when the package
-        has one), for evaluators whose loops XLA's cost analysis counts once; None: the runner
-        reports XLA's count (``jprt.eval.xla_flops``).
+        has one), where it counts what XLA's cannot (the work a data-dependent traversal reaches);
+        None: the runner reports XLA's count (``jprt.eval.xla_flops``, every loop iteration counted).
       self_check: optional ``(dataset, result, config) -> dict`` (``data.self_check`` when the
         package has one): the fit scored on held-out lights or maps of its own training renders,
         {"rel_rmse", "per_object", "train_rel_rmse", "held_out", "warning"}
