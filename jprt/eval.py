@@ -302,7 +302,9 @@ def xla_cost(jitted: Callable, *args) -> dict:
     its inputs read and its output written once; a tile's intermediates are sized to stay in cache,
     the reason it is tiled); "bytes_xla": XLA's own figure, every fusion of every loop iteration
     counted; "loops": the trip counts of the while loops it multiplied, "loops_unknown": loops
-    without a static trip count, counted once}, each None when the backend reports none.
+    counted once (no static trip count, or inside a conditional's branch); both None when the
+    module's loops could not be counted (XLA's once-counted figures then stand)}, each None when
+    the backend reports none.
 
     XLA's own analysis counts a while loop's body once whatever its trip count (a ``lax.map`` over
     16 tiles reported 1/16 of the frame's FLOPs); ``loop_aware_cost`` costs each body as a module
@@ -319,11 +321,16 @@ def xla_cost(jitted: Callable, *args) -> dict:
         text = compiled.as_text()
     except Exception:  # noqa: BLE001 - no HLO text: XLA's figures stand
         text = ""
-    looped = loop_aware_cost(text) if text else None
-    if looped is None:  # no loops (or a module the parser refuses): XLA's figures, once
+    try:
+        looped = loop_aware_cost(text) if text else None
+    except Exception:  # noqa: BLE001 - HLO text this parser does not follow: XLA's figures stand
+        looped = None
+    if looped is None:  # no loops, or loops this module's text did not let us count (``loops`` None)
+        uncounted = " while(" in text or not text
         looped = {"flops": cost.get("flops") if cost else None, "transcendentals": cost.get("transcendentals")
                   if cost else None, "bytes_xla": cost.get("bytes accessed") if cost else None,
-                  "overcount": gather_overcount(text) if text else 0.0, "loops": [], "loops_unknown": 0}
+                  "overcount": gather_overcount(text) if text else 0.0, "loops": None if uncounted else [],
+                  "loops_unknown": None if uncounted else 0}
     out = {}
     for key in ("flops", "transcendentals", "bytes_xla"):
         value = looped[key]
@@ -331,7 +338,7 @@ def xla_cost(jitted: Callable, *args) -> dict:
     moved = looped.get("bytes_moved")
     if moved is None and out["bytes_xla"] is not None:
         moved = max(out["bytes_xla"] - looped["overcount"], 0.0) or out["bytes_xla"]
-    out["bytes"] = float(moved) if moved else None
+    out["bytes"] = None if moved is None else float(moved)
     out["loops"], out["loops_unknown"] = looped["loops"], looped["loops_unknown"]
     return out
 
@@ -404,11 +411,16 @@ def loop_aware_cost(hlo_text: str) -> dict | None:
     """XLA's cost of a compiled module (its ``as_text()``) with each while loop of a known trip
     count ("known_trip_count" in its backend config) counted that many times: cost(C) = XLA's
     cost of C (every loop body in it once) + sum over C's loops of (trips x cost(body) - XLA's
-    cost of the body), recursively for loops in loops. Returns {"flops", "transcendentals",
+    cost of the body), recursively for loops in loops. A loop without a known trip count is
+    counted once (its inner loops at their trip counts), and so is a loop inside a conditional's
+    branch (XLA costs a conditional as its larger branch, which a loop's extra iterations would
+    not stay inside); both are counted in "loops_unknown". Returns {"flops", "transcendentals",
     "bytes_xla", "overcount" (``gather_overcount``, loops counted the same way), "bytes_moved"
     (``xla_cost``'s model: the entry's fused operations outside its loops, gathered tables
-    charged for their rows, plus each loop's carried arrays once), "loops" (trip counts),
-    "loops_unknown"}, or None when the module has no while loop or does not parse."""
+    charged for their rows, plus each loop's carried arrays once: what a body reads and writes
+    in an iteration is taken to stay in cache, true of a tile; for a loop over state larger than
+    the cache it is a lower bound), "loops" (trip counts), "loops_unknown"}, or None when the
+    module has no while loop or does not parse."""
     if " while(" not in hlo_text:
         return None
     header, blocks, entry = _computation_blocks(hlo_text)
@@ -416,6 +428,8 @@ def loop_aware_cost(hlo_text: str) -> dict | None:
         return None
     loop_re = re.compile(r"\swhile\(.*?body=%?([\w.\-]+)")
     trips_re = re.compile(r'"known_trip_count":\{"n":"(\d+)"\}')
+    branch_re = re.compile(r"(?:branch_computations=\{([^}]*)\}|true_computation=%?([\w.\-]+)|"
+                           r"false_computation=%?([\w.\-]+))")
     names = set(blocks)
     record = {"loops": [], "loops_unknown": 0}
     keys = ("flops", "transcendentals", "bytes_xla", "overcount")
@@ -426,8 +440,21 @@ def loop_aware_cost(hlo_text: str) -> dict | None:
             once_cache[name] = _module_cost(_module_as(header, blocks, name))
         return None if once_cache[name] is None else dict(once_cache[name])
 
-    def loops_in(name: str) -> list:  # (body, trips, line) of the whiles ``name`` reaches outside other loops
-        found, frontier, seen = [], [name], set()
+    def reachable(roots) -> set:
+        seen, frontier = set(), list(roots)
+        while frontier:
+            comp = frontier.pop()
+            if comp in seen or comp not in names:
+                continue
+            seen.add(comp)
+            for line in blocks[comp][1]:
+                frontier += [n for n in re.findall(r"%([\w.\-]+)", line) if n in names]
+        return seen
+
+    def loops_in(name: str) -> tuple[list, int]:
+        """(body, trips, line) of the whiles ``name`` reaches outside other loops and outside
+        conditionals' branches, and the number of whiles inside those branches."""
+        found, in_branches, frontier, seen = [], 0, [name], set()
         while frontier:
             comp = frontier.pop()
             if comp in seen:
@@ -439,21 +466,29 @@ def loop_aware_cost(hlo_text: str) -> dict | None:
                     t = trips_re.search(line)
                     found.append((m.group(1), int(t.group(1)) if t else None, line))
                     continue
+                if " conditional(" in line:
+                    branches = [n for g in branch_re.findall(line) for part in g
+                                for n in re.findall(r"%?([\w.\-]+)", part) if n in names]
+                    in_branches += sum(" while(" in x for b in reachable(branches) for x in blocks[b][1])
+                    continue
                 frontier += [n for n in re.findall(r"%([\w.\-]+)", line) if n in names]
-        return found
+        return found, in_branches
 
     def cost(name: str) -> dict | None:
         own = once(name)
         if own is None:
             return None
-        for body, trips, _ in loops_in(name):
-            if trips is None:
-                record["loops_unknown"] += 1
-                continue
+        found, in_branches = loops_in(name)
+        record["loops_unknown"] += in_branches
+        for body, trips, _ in found:
             single, full = once(body), cost(body)
             if single is None or full is None:
                 return None
-            record["loops"].append(trips)
+            if trips is None:  # run count unknown: once, with the loops inside it counted
+                record["loops_unknown"] += 1
+                trips = 1
+            else:
+                record["loops"].append(trips)
             for k in keys:
                 own[k] += trips * full[k] - single[k]
         return own
@@ -463,7 +498,7 @@ def loop_aware_cost(hlo_text: str) -> dict | None:
         return None
     outer = once(entry)
     moved = outer["bytes_xla"] - outer["overcount"]
-    for body, _, line in loops_in(entry):  # a loop's traffic: its carried arrays once, not its body's
+    for body, _, line in loops_in(entry)[0]:  # a loop's traffic: its carried arrays once, not its body's
         single = once(body)
         if single is None:
             return None
