@@ -371,10 +371,10 @@ def _computation_blocks(text: str) -> tuple[str, dict, str | None]:
     return header, blocks, entry
 
 
-def _module_as(header: str, blocks: dict, entry: str) -> str:
-    """The module text with ``entry`` as its entry computation and only the computations it reaches."""
-    names = set(blocks)
-    seen, order, frontier = set(), [], [entry]
+def _reachable(blocks: dict, roots) -> list:
+    """The computations of ``blocks`` (``_computation_blocks``) that ``roots`` reach through the
+    names their lines mention, ``roots`` included, in the order first reached."""
+    seen, order, frontier = set(), [], [r for r in roots if r in blocks]
     while frontier:
         name = frontier.pop()
         if name in seen:
@@ -382,7 +382,13 @@ def _module_as(header: str, blocks: dict, entry: str) -> str:
         seen.add(name)
         order.append(name)
         for line in blocks[name][1]:
-            frontier += [n for n in re.findall(r"%([\w.\-]+)", line) if n in names and n not in seen]
+            frontier += [n for n in re.findall(r"%([\w.\-]+)", line) if n in blocks and n not in seen]
+    return order
+
+
+def _module_as(header: str, blocks: dict, entry: str) -> str:
+    """The module text with ``entry`` as its entry computation and only the computations it reaches."""
+    order = _reachable(blocks, [entry])
     # the header's entry layout names the original entry's signature: left out
     header = re.sub(r", entry_computation_layout=\{.*?\}(?=, [a-z_]+=|$)", "", header)
     parts = [header, ""]
@@ -440,17 +446,6 @@ def loop_aware_cost(hlo_text: str) -> dict | None:
             once_cache[name] = _module_cost(_module_as(header, blocks, name))
         return None if once_cache[name] is None else dict(once_cache[name])
 
-    def reachable(roots) -> set:
-        seen, frontier = set(), list(roots)
-        while frontier:
-            comp = frontier.pop()
-            if comp in seen or comp not in names:
-                continue
-            seen.add(comp)
-            for line in blocks[comp][1]:
-                frontier += [n for n in re.findall(r"%([\w.\-]+)", line) if n in names]
-        return seen
-
     def loops_in(name: str) -> tuple[list, int]:
         """(body, trips, line) of the whiles ``name`` reaches outside other loops and outside
         conditionals' branches, and the number of whiles inside those branches."""
@@ -469,7 +464,8 @@ def loop_aware_cost(hlo_text: str) -> dict | None:
                 if " conditional(" in line:
                     branches = [n for g in branch_re.findall(line) for part in g
                                 for n in re.findall(r"%?([\w.\-]+)", part) if n in names]
-                    in_branches += sum(" while(" in x for b in reachable(branches) for x in blocks[b][1])
+                    in_branches += sum(" while(" in x for b in _reachable(blocks, branches)
+                                      for x in blocks[b][1])
                     continue
                 frontier += [n for n in re.findall(r"%([\w.\-]+)", line) if n in names]
         return found, in_branches
@@ -525,7 +521,7 @@ def _hlo_computations(text: str) -> dict:
     import re
 
     comps, current = {}, None
-    head = re.compile(r"^(ENTRY )?%([\w.\-]+) \(.*\{\s*$")
+    head = re.compile(_COMP_HEAD)
     line_re = re.compile(r"^\s*(?:ROOT )?%([\w.\-]+) = (\w+)\[([\d,]*)\]\S* ([\w\-]+)\((.*)$")
     for line in text.splitlines():
         m = head.match(line)
