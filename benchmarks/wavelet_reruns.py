@@ -60,7 +60,7 @@ def child(preset: str, out: str) -> None:
     data = method.make_dataset(config["scene"], cfg)
     dataset_s = time.perf_counter() - t0
     result = wp.fit(data, cfg, progress=False)
-    scores = module._map_scores(wp.evaluator(result.params, cfg), data, float(config["eval"]["exposure"]))
+    scores = module.far_map_scores(wp.evaluator(result.params, cfg), data, float(config["eval"]["exposure"]))
     with open(out, "w") as f:
         json.dump({**scores, "run_key": wp.run_key(cfg), "dataset_s": dataset_s,
                    "train_s": float(result.info["train_s"]), "final_loss": float(np.asarray(result.info["losses"])[-1]),

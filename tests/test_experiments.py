@@ -342,3 +342,25 @@ _SMALL_ROOM = """<scene version="3.0.0">
     <transform name="to_world"><scale value="0.4"/><translate y="0.4"/></transform></shape>
 </scene>
 """
+
+
+@pytest.mark.slow  # ~15 s: a test-preset dataset, fit and scoring in this process (the suite's budget)
+def test_wavelet_reruns_child_scores_like_the_experiment(mi, tmp_path, monkeypatch):
+    """``benchmarks/wavelet_reruns.py``'s child trains the preset's model and scores it with the
+    experiment's own far-view scores (``far_map_scores``), so the spread it records is the PSNR of
+    ``wavelet_prt.json``."""
+    import importlib.util
+
+    monkeypatch.setenv("JPRT_CACHE", str(tmp_path / "cache"))
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    spec = importlib.util.spec_from_file_location("bench_wavelet_reruns",
+                                                  os.path.join(root, "benchmarks", "wavelet_reruns.py"))
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = str(tmp_path / "run.json")
+    bench.child("test", out)
+    with open(out) as f:
+        run = json.load(f)
+    assert set(run["psnr_indirect_far_by_map"]) == {"synthetic_held_out"}
+    assert np.isfinite(run["psnr_indirect_far"]) and run["psnr_indirect_far"] == run["psnr_indirect_far_worst"]
+    assert run["run_key"] and run["train_s"] > 0 and np.isfinite(run["final_loss"])
