@@ -116,7 +116,7 @@ def main() -> int:
                     preset=args.preset,
                     notes="each rerun: a fresh process, an empty dataset cache (renders redone), JAX's "
                           "compilation cache off, its own XLA_FLAGS; PSNR as in wavelet_prt.json (far views, "
-                          "every held-out map, tonemapped, K = 64)")
+                          "every held-out map, tonemapped, the default K)")
     print(f"psnr_spread_reruns {result['psnr_spread_reruns']:.3f} dB (per map up to "
           f"{result['psnr_spread_reruns_worst_map']:.3f}) -> {args.out}")
     return 0

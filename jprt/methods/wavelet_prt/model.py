@@ -238,7 +238,9 @@ DEFAULT_CONFIG = {
         "fine_levels": 2,  # how many of the finest Haar detail levels fine_penalty counts
     },
     "render": {
-        "k": 64,  # K: the largest area-weighted wavelets of a lighting the evaluator sums (Algorithm 1)
+        # K: the largest area-weighted wavelets of a lighting the evaluator sums (Algorithm 1); 32, not
+        # the paper's 64 (its faces are 16x larger): chosen and validated by measurement (docs/methods/wavelet_prt.md)
+        "k": 32,
         # pixels per step of the render loop; 0 -> ``auto_chunk``: 8192 // K on a CPU, about 8192
         # (pixel, wavelet) rows per product, which keeps a 2 x 128 MLP's activations in cache;
         # 2^22 // K on a GPU (each the fastest measured on its kind of device, ``CHUNK_ROWS``)
