@@ -54,13 +54,15 @@ def child(preset: str, out: str) -> None:
     import numpy as np
 
     from jprt.methods.wavelet_prt import model as wp
+    from jprt.methods.wavelet_prt.evaluation import far_map_scores
 
     module, config, method, cfg = experiment_config(preset)
     t0 = time.perf_counter()
     data = method.make_dataset(config["scene"], cfg)
     dataset_s = time.perf_counter() - t0
     result = wp.fit(data, cfg, progress=False)
-    scores = module.far_map_scores(wp.evaluator(result.params, cfg), data, float(config["eval"]["exposure"]))
+    scores = far_map_scores(wp.evaluator(result.params, cfg), data, float(config["eval"]["exposure"]),
+                            module.ORIGINAL_PAIR)
     with open(out, "w") as f:
         json.dump({**scores, "run_key": wp.run_key(cfg), "dataset_s": dataset_s,
                    "train_s": float(result.info["train_s"]), "final_loss": float(np.asarray(result.info["losses"])[-1]),

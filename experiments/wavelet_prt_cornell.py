@@ -106,13 +106,6 @@ def _train(run, cfg: dict, data, label: str, progress: bool = True) -> FitResult
     return ev.resumable_fit(cfg, data, run.say, label, progress)
 
 
-def far_map_scores(evaluate, data, exposure: float) -> dict:
-    """Far-view PSNR per held-out map, their mean, the worst and the original pair's mean
-    (``evaluation.map_scores``): the scores of the generalisation rows and of
-    ``benchmarks/wavelet_reruns.py``."""
-    return ev.map_scores(ev.predict_split(evaluate, data, "far"), data, exposure, ORIGINAL_PAIR)
-
-
 def _scores(evaluate, data, exposure: float) -> dict:
     return ev.split_scores(ev.predict_split(evaluate, data, "far"), data.tests["far"], exposure)
 
@@ -265,7 +258,7 @@ def generalisation(run) -> dict:
     probe = run.state.get("transport_rel_err_learned")  # set by gt_transport_check when it ran
 
     def scores(evaluate, data, params, cfg) -> dict:
-        out = far_map_scores(evaluate, data, e["exposure"])
+        out = ev.far_map_scores(evaluate, data, e["exposure"], ORIGINAL_PAIR)
         return out | ({} if probe is None else {"transport_rel_err_learned_by_k": probe(params, cfg)})
 
     rows = {"default": scores(run.evaluate, run.dataset, run.result.params, run.method_config)}

@@ -346,9 +346,9 @@ _SMALL_ROOM = """<scene version="3.0.0">
 
 @pytest.mark.slow  # ~15 s: a test-preset dataset, fit and scoring in this process (the suite's budget)
 def test_wavelet_reruns_child_scores_like_the_experiment(mi, tmp_path, monkeypatch):
-    """``benchmarks/wavelet_reruns.py``'s child trains the preset's model and scores it with the
-    experiment's own far-view scores (``far_map_scores``), so the spread it records is the PSNR of
-    ``wavelet_prt.json``."""
+    """``benchmarks/wavelet_reruns.py``'s child trains the preset's model and scores it as the
+    experiment does (``evaluation.far_map_scores`` with its original pair), so the spread it
+    records is the PSNR of ``wavelet_prt.json``."""
     import importlib.util
 
     monkeypatch.setenv("JPRT_CACHE", str(tmp_path / "cache"))

@@ -233,6 +233,12 @@ def map_scores(far_predictions, data, exposure: float, pair) -> dict:
             "psnr_indirect_far_original_pair": pair_mean(by, pair), "psnr_indirect_far_by_map": by}
 
 
+def far_map_scores(evaluate, data, exposure: float, pair) -> dict:
+    """``map_scores`` of ``evaluate``'s images of the far views (``predict_split``): the
+    experiment's generalisation rows and ``benchmarks/wavelet_reruns.py`` score with it."""
+    return map_scores(predict_split(evaluate, data, "far"), data, exposure, pair)
+
+
 def by_map(far_predictions, baseline, data, categories: dict, exposure: float, pair) -> dict:
     """The held-out protocol by map: PSNR per map of the far predictions and of ``baseline`` (one
     image per far view), each map's category (``categories``: {map: category}), the smallest mean
