@@ -197,6 +197,10 @@ def main(argv: list[str] | None = None) -> int:
                                                     "colour for an environment (default rotation,scale)")
     p.add_argument("--env", default=None, help="the environment map to turn and scale: one of the run's by name "
                                                "(default the first) or an environment-map file")
+    p.add_argument("--start", choices=("spread", "search"), default="spread",
+                   help="point lights: start spread over the light region (default), or at the candidates a "
+                        "search of traced positions finds best (jprt.design.search_start; for lights to recover "
+                        "from an image, whose shadows the gradient alone does not move)")
     p.add_argument("--verify-spp", type=int, default=256, help="Mitsuba's spp for the verification render")
     p.add_argument("--out", default=None, help="write the report here (JSON)")
     args = parser.parse_args(argv)
@@ -263,6 +267,7 @@ def _design(args) -> int:
     check_run_folder(args.folder)
     report = design_run(args.folder, args.objective, lights=args.lights, size=args.size, steps=args.steps,
                         learning_rate=args.lr, verify_spp=args.verify_spp, env=args.env, progress=True,
+                        start="search" if args.start == "search" else None,
                         optimise=None if args.optimise is None else [s.strip() for s in args.optimise.split(",")
                                                                       if s.strip()])
     if "rotation_deg" in report["found"]:

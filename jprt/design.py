@@ -53,8 +53,8 @@ from jprt.progress import bar as progress_bar
 
 __all__ = ["ObjectiveError", "ImageTarget", "ObjectTarget", "Objective", "load_objective", "object_masks",
            "objective_terms", "LightParams", "to_params", "from_params", "point_direct", "irradiance_from",
-           "point_visibility", "DesignResult", "design", "design_frame", "rendered_terms", "gradient_check",
-           "object_means", "bounds_report", "rendered_environment_terms",
+           "point_visibility", "DesignResult", "design", "search_start", "design_frame", "rendered_terms",
+           "gradient_check", "object_means", "bounds_report", "rendered_environment_terms",
            "Problem", "POINT_METHODS", "measurement_points", "load_problem", "design_run", "EnvironmentResult",
            "environment_transfer", "environment_frame", "design_environment", "ENVIRONMENT_METHODS", "OBJECTIVE_KEYS", "QUANTITIES"]
 
@@ -450,6 +450,86 @@ class DesignResult(NamedTuple):
     visibility_updates: int
     means: dict | None = None
     step_cost: dict | None = None
+
+
+def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights: int, *,
+                 visibility_fn: Callable | None = None, candidates: int = 64, rounds: int = 2,
+                 level: float = 1.0, reference_power: float | None = None, seed: int = 0,
+                 progress: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Starting lights for ``design`` from a search over candidate positions: (position (K, 3),
+    intensity (K, 3)) float64, white.
+
+    Why: ``design`` holds visibility constant between its traces, so its gradient sees the
+    lights' shadows as painted on the surfaces and never moves them; from a start whose shadows
+    fall elsewhere than the target's, it settles where the lit parts match and the shadows do not
+    (CHANGELOG.md, 2026-12-07, has the measurement). The search looks at the shadows themselves:
+    every candidate is traced.
+
+    ``candidates`` positions of a scrambled Sobol set in [``lo``, ``hi``] (seeded by ``seed``),
+    each traced once (``visibility_fn``, all candidates in one call) and rendered once as a white
+    light of unit intensity through ``frame_fn``. The frame is taken to be linear in the lights'
+    intensities and a sum over the lights (point lights in a PRT model are: the direct term and
+    the transport are both linear in the emitted power), so a light's frame at intensity s is s
+    times its unit frame and the lights' frames add. Greedy: light k goes to the candidate and
+    white intensity (``level`` x 2^-6 ... 2^6, 49 steps) that minimise the objective beside the
+    lights placed before it; then ``rounds`` passes move each light in turn to its best candidate
+    and intensity given the others (cyclic matching pursuit). ``reference_power``: the power the
+    objective's power penalty is relative to (default ``lights`` x 3 x ``level``, ``design``'s
+    sum of the starting intensities).
+
+    Numerics: not differentiable (a discrete search; each candidate's frame evaluated once).
+    """
+    from scipy.stats import qmc
+
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    k_lights, m = int(lights), int(candidates)
+    if k_lights < 1 or m < 1:
+        raise ValueError(f"search_start needs lights >= 1 and candidates >= 1, got {lights} and {candidates}")
+    pos = lo + (hi - lo) * qmc.Sobol(3, scramble=True, seed=int(seed)).random(m)
+    reference = float(3 * k_lights * level) if reference_power is None else float(reference_power)
+    vis = (None if visibility_fn is None else
+           jax.tree_util.tree_map(jnp.asarray, visibility_fn(pos)))  # last axis: the candidates
+    unit = jnp.ones((1, 3), jnp.float32)
+    frame = jax.jit(frame_fn)
+    units = []
+    for c in progress_bar(range(m), progress=progress, desc="candidate lights", unit="light"):
+        v = ({"pixels": jnp.ones((1, 1, 1), jnp.float32)} if vis is None else
+             jax.tree_util.tree_map(lambda a, c=c: a[..., c:c + 1], vis))
+        units.append(frame(jnp.asarray(pos[c:c + 1], jnp.float32), unit, v))
+    units = [jnp.stack([u[i] for u in units]) for i in range(3)]  # (M, H, W, 3) full, indirect, irradiance
+    scales = jnp.asarray(float(level) * 2.0 ** np.linspace(-6.0, 6.0, 49), jnp.float32)
+
+    @jax.jit
+    def best(units, others, other_power):
+        """The objective's least value over candidates x scales beside ``others`` (the frames of the
+        lights not being placed; ``other_power`` their summed intensity, (1, 3): the power penalty
+        reads only the sum) and its (candidate, scale). The frames are arguments, not constants of
+        the program, and every call has the same shapes: one compilation, small."""
+        def at(c, s):
+            frames = [o + s * u[c] for o, u in zip(others, units)]
+            inten = jnp.concatenate([other_power, jnp.full((1, 3), s)], axis=0)
+            return sum(objective_terms(objective, masks, *frames, inten, reference).values())
+
+        values = jax.lax.map(lambda c: jax.vmap(lambda s: at(c, s))(scales), jnp.arange(m))  # (M, scales)
+        flat = jnp.argmin(values)
+        return values.reshape(-1)[flat], flat // scales.shape[0], scales[flat % scales.shape[0]]
+
+    chosen, level_of = [], []
+
+    def placed(skip: int | None):
+        idx = [j for j in range(len(chosen)) if j != skip]
+        frames = [sum((level_of[j] * u[chosen[j]] for j in idx), jnp.zeros_like(u[0])) for u in units]
+        return units, frames, jnp.full((1, 3), sum(level_of[j] for j in idx), jnp.float32)
+
+    for _ in range(k_lights):  # greedy
+        _, c, s = best(*placed(None))
+        chosen.append(int(c))
+        level_of.append(float(s))
+    for _ in range(int(rounds)):  # each light again, given the others
+        for k in range(k_lights):
+            _, c, s = best(*placed(k))
+            chosen[k], level_of[k] = int(c), float(s)
+    return pos[chosen], np.repeat(np.asarray(level_of, np.float64).reshape(-1, 1), 3, axis=1)
 
 
 def _light_map(p0: LightParams, optimise: Sequence[str], lo, hi) -> Callable:
@@ -1046,14 +1126,16 @@ def load_problem(folder: str, objective_path, *, size: int = 64, env: str | None
 
 def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int = 64, steps: int = 200,
                learning_rate: float = 0.05, visibility_every: int = 10,
-               optimise: Sequence[str] | None = None, start: dict | None = None, verify_spp: int = 256,
+               optimise: Sequence[str] | None = None, start: dict | str | None = None, verify_spp: int = 256,
                seed: int = 0, env: str | None = None, progress: bool | None = None) -> dict:
     """Design the lighting of the run folder ``folder`` for the objective file ``objective_path``:
     point lights (RRF, data-driven PRT, MRT) or the turn and scale of an environment map (``env``,
     one of the run's maps; default the first: neural-wavelet PRT, SH PRT, ``_design_environment_run``).
     ``optimise``: what moves (default position and power, or rotation and scale). Point lights:
     (``load_problem``); ``lights`` point lights start at ``start`` ({"position", "intensity"},
-    (K, 3) each) or spread over the light region (seeded). Then the **verification**: the found
+    (K, 3) each), at the lights ``search_start`` finds among candidate positions (``start``
+    "search": traced candidates, the frame linear in the lights) or spread over the light region
+    (None; seeded). Then the **verification**: the found
     lighting rendered by Mitsuba at ``verify_spp`` (full and indirect), the objective's terms on
     that render (``rendered_terms``) beside the model's. Returns the report (a dict, JSON-ready).
 
@@ -1065,10 +1147,18 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
                                        learning_rate=learning_rate, optimise=optimise, verify_spp=verify_spp,
                                        seed=seed, progress=progress)
     lo, hi, gb, handle = pb.lo, pb.hi, pb.gbuffer, pb.session.handle
+    search_s = None
     if start is None:
         rng = np.random.default_rng(seed)
         pos0 = lo + (hi - lo) * rng.uniform(0.25, 0.75, (int(lights), 3))
         inten0 = np.ones((int(lights), 3))
+    elif isinstance(start, str):
+        if start != "search":
+            raise ValueError(f"start is a dict of lights, 'search' or None, got {start!r}")
+        t0 = time.perf_counter()
+        pos0, inten0 = search_start(pb.frame, pb.objective, pb.masks, lo, hi, int(lights),
+                                    visibility_fn=pb.visibility, seed=seed, progress=progress)
+        search_s = time.perf_counter() - t0
     else:
         pos0 = np.asarray(start["position"], np.float64).reshape(-1, 3)
         inten0 = np.asarray(start["intensity"], np.float64).reshape(-1, 3)
@@ -1087,7 +1177,8 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
             "frame": list(np.shape(gb.valid)), "light_region": {"lo": lo.tolist(), "hi": hi.tolist()},
             "start": {"position": pos0.tolist(), "intensity": inten0.tolist()},
             "found": {"position": result.position.tolist(), "intensity": result.intensity.tolist()},
-            "steps": int(steps), "design_s": result.seconds, "step_cost": result.step_cost,
+            "steps": int(steps), "search_s": search_s,
+            "design_s": result.seconds + (search_s or 0.0), "step_cost": result.step_cost,
             "visibility_updates": result.visibility_updates,
             "history": result.history.tolist(), "model_terms": result.terms,
             "model_objective": float(sum(result.terms.values())), "verified_terms": verified,

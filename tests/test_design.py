@@ -152,6 +152,52 @@ def test_design_finds_the_known_optimum_of_a_synthetic_linear_model():
     assert result.step_cost["flops"] > 16 * 16 * 3 and result.step_cost["bytes"] > 16 * 16 * 3 * 4
 
 
+def test_search_start_then_design_recovers_a_light_whose_shadow_moves_with_it():
+    """A point light over a floor casting a shadow edge that moves with it (a blade: a pixel more
+    than 0.4 left of the light is shadowed), plus an indirect term linear in the total power: the
+    target is this model's image under a known light. The search among traced candidates puts the
+    light near it, and the design from there recovers it; with two lights the search returns two
+    lights in the region."""
+    from scipy.optimize import linear_sum_assignment
+
+    gb = _floor(n=16)
+    pattern = jnp.asarray(0.05 + 0.05 * np.linspace(0, 1, 16)[None, :, None] * np.ones((16, 16, 3)), jnp.float32)
+
+    def indirect(position, intensity, visibility):
+        return pattern * jnp.sum(intensity) / 3.0  # a sum over the lights, as transport is
+
+    def visibility(position):
+        x = np.asarray(gb.position)[..., 0]
+        lights = np.asarray(position, np.float64).reshape(-1, 3)
+        return {"pixels": (x[..., None] > lights[None, None, :, 0] - 0.4).astype(np.float32)}
+
+    frame = design.design_frame(gb, indirect, glossy=False)
+    lo, hi = np.array([-0.8, 0.6, -0.8]), np.array([0.8, 1.6, 0.8])
+    true_pos, true_int = np.array([[0.3, 1.1, -0.25]]), np.full((1, 3), 3.0)
+    target, _, _ = frame(true_pos, true_int, {k: jnp.asarray(v) for k, v in visibility(true_pos).items()})
+    obj = design.Objective(design.ImageTarget(np.asarray(target), None, "full", 1.0), (), 0.0, "synthetic")
+    masks = np.zeros((0, 16, 16))
+    diagonal = float(np.linalg.norm(hi - lo))
+
+    def errors(found):
+        cost = np.linalg.norm(found[:, None] - true_pos[None], axis=-1)
+        rows, cols = linear_sum_assignment(cost)
+        return cost[rows, cols] / diagonal
+
+    pos0, int0 = design.search_start(frame, obj, masks, lo, hi, 1, visibility_fn=visibility, candidates=64,
+                                     progress=False)
+    assert pos0.shape == (1, 3) and int0.shape == (1, 3)
+    assert errors(pos0)[0] < 0.15  # 64 candidates in the box: about 0.1 of its diagonal apart
+    two = design.search_start(frame, obj, masks, lo, hi, 2, visibility_fn=visibility, candidates=16, progress=False)
+    assert two[0].shape == (2, 3) and np.all(two[0] >= lo) and np.all(two[0] <= hi) and np.all(two[1] > 0)
+    result = design.design(frame, obj, masks, pos0, int0, lo, hi, visibility_fn=visibility, steps=300,
+                           learning_rate=0.05, progress=False)
+    assert errors(result.position)[0] < 0.01
+    np.testing.assert_allclose(result.intensity, true_int, rtol=0.03)
+    with pytest.raises(ValueError, match="lights >= 1"):
+        design.search_start(frame, obj, masks, lo, hi, 0)
+
+
 def test_visibility_is_traced_by_mitsuba(mi):
     """In the Cornell box, a light just under the ceiling sees the floor's centre; one behind the
     back wall sees no pixel."""
