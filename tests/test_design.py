@@ -262,6 +262,15 @@ def test_jprt_design_on_a_test_preset_rrf_writes_a_verified_report(tmp_path, fit
             assert low + high == pytest.approx(report[f"{side}_terms"][key], rel=1e-4, abs=1e-9)
             assert b[f"met_{side}" if side == "verified" else "met_on_model"] == (low + high == 0.0)
     assert report["bounds_met_verified"] == all(b["met_verified"] for b in report["bounds"].values())
+    # from the search's lights: two white lights inside the region, the search timed in design_s
+    assert main(["design", run, "--objective", objective, "--size", "12", "--steps", "6", "--lights", "2",
+                 "--start", "search", "--verify-spp", "4", "--out", out]) == 0
+    with open(out) as f:
+        report = json.load(f)
+    start = np.asarray(report["start"]["position"])
+    assert start.shape == (2, 3) and np.all(start >= lo) and np.all(start <= hi)
+    assert np.all(np.asarray(report["start"]["intensity"]) > 0)
+    assert 0.0 < report["search_s"] < report["design_s"]
 
 
 @pytest.mark.parametrize("name", ["datadriven", "mrt"])
