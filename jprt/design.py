@@ -519,15 +519,15 @@ def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights
     def placed(skip: int | None):
         idx = [j for j in range(len(chosen)) if j != skip]
         frames = [sum((level_of[j] * u[chosen[j]] for j in idx), jnp.zeros_like(u[0])) for u in units]
-        return units, frames, jnp.full((1, 3), sum(level_of[j] for j in idx), jnp.float32)
+        return frames, jnp.full((1, 3), sum(level_of[j] for j in idx), jnp.float32)
 
     for _ in range(k_lights):  # greedy
-        _, c, s = best(*placed(None))
+        _, c, s = best(units, *placed(None))
         chosen.append(int(c))
         level_of.append(float(s))
     for _ in range(int(rounds)):  # each light again, given the others
         for k in range(k_lights):
-            _, c, s = best(*placed(k))
+            _, c, s = best(units, *placed(k))
             chosen[k], level_of[k] = int(c), float(s)
     return pos[chosen], np.repeat(np.asarray(level_of, np.float64).reshape(-1, 1), 3, axis=1)
 
