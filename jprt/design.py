@@ -408,7 +408,7 @@ def point_visibility(handle, gbuffer, position) -> np.ndarray:
 
     Numerics: not differentiable (Mitsuba's shadow rays: a 0/1 visibility).
     """
-    from jprt.render.lightmap import intersect, ray_offset
+    from jprt.render.lightmap import ray_offset, unoccluded
 
     valid = np.asarray(gbuffer.valid, bool)
     shape = valid.shape
@@ -420,14 +420,7 @@ def point_visibility(handle, gbuffer, position) -> np.ndarray:
     out = np.zeros((pos.shape[0], lights.shape[0]), np.float32)
     if idx.size == 0:
         return out.reshape(shape + (lights.shape[0],))
-    origin = pos[idx] + eps * nrm[idx]
-    for k, light in enumerate(lights):
-        d = light[None, :] - origin
-        dist = np.linalg.norm(d, axis=1)
-        si = intersect(handle, origin, d / np.maximum(dist, 1e-12)[:, None])
-        hit = np.asarray(si.is_valid(), bool).reshape(-1)
-        t = np.asarray(si.t, np.float64).reshape(-1)
-        out[idx, k] = (~hit | (t >= dist - 2.0 * eps)).astype(np.float32)
+    out[idx] = unoccluded(handle, pos[idx] + eps * nrm[idx], lights, slack=2.0 * eps).T
     return out.reshape(shape + (lights.shape[0],))
 
 

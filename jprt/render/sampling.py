@@ -143,7 +143,7 @@ def lit_fraction(handle, positions, size: int = 32, view=None) -> np.ndarray | N
     those points, computed once by a caller that asks many times) that a point light at each of
     ``positions`` lights directly: the surface faces it and nothing is in between. None for a
     scene without a camera of its own."""
-    from jprt.render.lightmap import intersect
+    from jprt.render.lightmap import unoccluded
 
     view = view_points(handle, size) if view is None else view
     if view is None:
@@ -152,17 +152,8 @@ def lit_fraction(handle, positions, size: int = 32, view=None) -> np.ndarray | N
     if not len(origins):
         return np.zeros(len(np.atleast_2d(positions)))
     lights = np.asarray(positions, np.float64).reshape(-1, 3)
-    out = np.zeros(len(lights))
-    step = max(1, (1 << 20) // len(origins))  # lights per ray batch: about a million rays
-    for a in range(0, len(lights), step):
-        to_light = lights[a:a + step, None] - origins[None]  # (L, N, 3)
-        dist = np.linalg.norm(to_light, axis=2)
-        d = to_light / np.maximum(dist, 1e-12)[..., None]
-        si = intersect(handle, np.broadcast_to(origins, d.shape).reshape(-1, 3), d.reshape(-1, 3))
-        t = np.where(np.array(si.is_valid(), bool).reshape(-1), np.array(si.t, np.float64).reshape(-1), np.inf)
-        lit = (np.sum(d * normals[None], axis=2) > 0) & (t.reshape(dist.shape) > dist * (1.0 - 1e-4))
-        out[a:a + step] = lit.mean(axis=1)
-    return out
+    facing = np.einsum("lnk,nk->ln", lights[:, None] - origins[None], normals) > 0
+    return (facing & unoccluded(handle, origins, lights, rel=1e-4)).mean(axis=1)
 
 
 def serves_view(handle, positions, view) -> np.ndarray:
