@@ -429,7 +429,7 @@ def point_visibility(handle, gbuffer, position) -> np.ndarray:
 
 
 class DesignResult(NamedTuple):
-    """What ``design`` found: ``position``, ``intensity`` (K, 3) float64, ``history`` (steps,)
+    """What ``design`` found: ``position``, ``intensity`` (K, 3) float64, ``history`` (steps taken,)
     objective per step (with the visibility of that step), ``terms`` {name: value} at the end,
     ``seconds`` the loop's wall time, ``visibility_updates`` how often visibility was traced,
     ``means`` the object targets' means at the end (``object_means``, floats), ``step_cost``
@@ -448,7 +448,7 @@ class DesignResult(NamedTuple):
 def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights: int, *,
                  visibility_fn: Callable | None = None, candidates: int = 64, rounds: int = 2,
                  level: float = 1.0, reference_power: float | None = None, seed: int = 0,
-                 progress: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 mode: str = "joint", progress: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Starting lights for ``design`` from a search over candidate positions: (position (K, 3),
     intensity (K, 3)) float64, white.
 
@@ -463,10 +463,20 @@ def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights
     light of unit intensity through ``frame_fn``. The frame is taken to be linear in the lights'
     intensities and a sum over the lights (point lights in a PRT model are: the direct term and
     the transport are both linear in the emitted power), so a light's frame at intensity s is s
-    times its unit frame and the lights' frames add. Greedy: light k goes to the candidate and
-    white intensity (``level`` x 2^-6 ... 2^6, 49 steps) that minimise the objective beside the
-    lights placed before it; then ``rounds`` passes move each light in turn to its best candidate
-    and intensity given the others (cyclic matching pursuit). ``reference_power``: the power the
+    times its unit frame and the lights' frames add.
+
+    ``mode`` "joint" (default): every candidate gets a non-negative white intensity at once,
+    minimising the objective (``_candidate_weights``: the objective is convex in them, since every
+    term is a convex function of frames linear in them); neighbouring candidates that share one
+    light's weight are merged into K lights (``_merge_candidates``: weighted k-means, each light at
+    its group's weighted centroid with the group's summed intensity, its frame their weighted
+    sum); lights no weight is left for are placed greedily. ``mode`` "greedy": light k goes to the
+    candidate and white intensity (``level`` x 2^-6 ... 2^6, 49 steps) that minimise the objective
+    beside the lights placed before it; it explains two nearby lights with one bright candidate
+    first. Then, either way, ``rounds`` passes move each light in turn to its best candidate and
+    intensity given the others, where that lowers the objective (cyclic matching pursuit).
+    "joint" was chosen on `staircase` and validated on the Cornell box (CHANGELOG.md, 2026-12-07
+    (from 03:36)). ``reference_power``: the power the
     objective's power penalty is relative to (default ``lights`` x 3 x ``level``, ``design``'s
     sum of the starting intensities).
 
@@ -478,6 +488,8 @@ def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights
     k_lights, m = int(lights), int(candidates)
     if k_lights < 1 or m < 1:
         raise ValueError(f"search_start needs lights >= 1 and candidates >= 1, got {lights} and {candidates}")
+    if mode not in ("joint", "greedy"):
+        raise ValueError(f"search_start's mode is 'joint' or 'greedy', got {mode!r}")
     pos = lo + (hi - lo) * qmc.Sobol(3, scramble=True, seed=int(seed)).random(m)
     reference = float(3 * k_lights * level) if reference_power is None else float(reference_power)
     vis = (None if visibility_fn is None else
@@ -507,22 +519,105 @@ def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights
         flat = jnp.argmin(values)
         return values.reshape(-1)[flat], flat // scales.shape[0], scales[flat % scales.shape[0]]
 
-    chosen, level_of = [], []
+    @jax.jit
+    def value(frames, power):
+        return sum(objective_terms(objective, masks, *frames, power, reference).values())
+
+    found = []  # the lights so far: (position (3,), white intensity, their three frames)
 
     def placed(skip: int | None):
-        idx = [j for j in range(len(chosen)) if j != skip]
-        frames = [sum((level_of[j] * u[chosen[j]] for j in idx), jnp.zeros_like(u[0])) for u in units]
-        return frames, jnp.full((1, 3), sum(level_of[j] for j in idx), jnp.float32)
+        """The frames and summed intensity ((1, 3): the power penalty reads only the sum) of the
+        lights found, but light ``skip``."""
+        rest = [f for j, f in enumerate(found) if j != skip]
+        frames = [sum((f[2][i] for f in rest), jnp.zeros_like(u[0])) for i, u in enumerate(units)]
+        return frames, jnp.full((1, 3), sum(f[1] for f in rest), jnp.float32)
 
-    for _ in range(k_lights):  # greedy
+    def candidate(c, s):
+        return pos[int(c)], float(s), [float(s) * u[int(c)] for u in units]
+
+    if mode == "joint":
+        weights = _candidate_weights(units, objective, masks, reference, scales / m)
+        for g in _merge_candidates((pos - lo) / np.where(hi > lo, hi - lo, 1.0), weights, k_lights):
+            w = jnp.asarray(weights[g], jnp.float32)
+            found.append((np.sum(weights[g, None] * pos[g], axis=0) / np.sum(weights[g]), float(np.sum(weights[g])),
+                          [jnp.tensordot(w, u[g], axes=1) for u in units]))
+    while len(found) < k_lights:  # greedy, beside the lights found
         _, c, s = best(units, *placed(None))
-        chosen.append(int(c))
-        level_of.append(float(s))
-    for _ in range(int(rounds)):  # each light again, given the others
+        found.append(candidate(c, s))
+    for _ in range(int(rounds)):  # each light again, given the others, where that is better
         for k in range(k_lights):
-            _, c, s = best(units, *placed(k))
-            chosen[k], level_of[k] = int(c), float(s)
-    return pos[chosen], np.repeat(np.asarray(level_of, np.float64).reshape(-1, 1), 3, axis=1)
+            v, c, s = best(units, *placed(k))
+            if float(v) <= float(value(*placed(None))):
+                found[k] = candidate(c, s)
+    return (np.stack([f[0] for f in found]),
+            np.repeat(np.asarray([f[1] for f in found], np.float64).reshape(-1, 1), 3, axis=1))
+
+
+def _candidate_weights(units, objective: Objective, masks, reference: float, levels, steps: int = 600) -> np.ndarray:
+    """Non-negative white intensities (M,) float64 of M candidate lights, each with unit frames
+    ``units`` (three (M, H, W, 3) arrays: full, indirect, irradiance), that minimise ``objective``
+    of their summed frames. The objective is convex in them (the image term is quadratic and the
+    bounds' hinges squared in frames linear in the intensities, the power penalty linear), so
+    projected descent finds its minimum: Adam on the intensities in units of the best common
+    intensity among ``levels`` (every candidate equally bright), clipped at 0 after every step,
+    the rate decaying on a cosine from 1 to 0.01 over ``steps`` steps.
+
+    Numerics: not differentiable (an optimisation).
+    """
+    import optax
+
+    m = units[0].shape[0]
+
+    def value(w, units):
+        frames = [jnp.tensordot(w, u, axes=1) for u in units]
+        return sum(objective_terms(objective, masks, *frames, jnp.full((1, 3), jnp.sum(w)), reference).values())
+
+    @jax.jit
+    def solve(units, levels):  # the frames are arguments, not constants of the program
+        common = levels[jnp.argmin(jax.vmap(lambda s: value(jnp.full((m,), s), units))(levels))]
+        opt = optax.adam(optax.cosine_decay_schedule(1.0, steps, alpha=0.01))
+
+        def body(carry, _):
+            v, state = carry
+            g = jax.grad(lambda v: value(common * v, units))(v)
+            upd, state = opt.update(g, state, v)
+            return (jnp.maximum(optax.apply_updates(v, upd), 0.0), state), None
+
+        v0 = jnp.ones((m,), jnp.float32)
+        (v, _), _ = jax.lax.scan(body, (v0, opt.init(v0)), None, length=int(steps))
+        return common * v
+
+    return np.asarray(solve(units, jnp.asarray(levels, jnp.float32)), np.float64)
+
+
+def _merge_candidates(x: np.ndarray, weights: np.ndarray, k: int, iterations: int = 20) -> list[np.ndarray]:
+    """At most ``k`` groups (index arrays) of the candidates at ``x`` (M, 3) with positive
+    ``weights``: weighted k-means (Lloyd), its centres started at the heaviest candidate and then,
+    each, at the candidate of largest weight x squared distance to the centres so far. One light's
+    weight spread over neighbouring candidates becomes one group; fewer than ``k`` candidates with
+    weight give fewer groups.
+
+    Numerics: not differentiable (a clustering).
+    """
+    idx = np.flatnonzero(weights > 0)
+    if idx.size == 0:
+        return []
+    pts, w = x[idx], weights[idx]
+    k = min(int(k), idx.size)
+    centres = [pts[np.argmax(w)]]
+    while len(centres) < k:
+        d2 = np.min(np.sum((pts[:, None] - np.asarray(centres)[None]) ** 2, axis=-1), axis=1)
+        centres.append(pts[np.argmax(w * d2)])
+    centres = np.asarray(centres)
+    for _ in range(int(iterations)):
+        label = np.argmin(np.sum((pts[:, None] - centres[None]) ** 2, axis=-1), axis=1)
+        new = np.asarray([np.sum(w[label == j, None] * pts[label == j], axis=0) / np.sum(w[label == j])
+                          if np.any(label == j) else centres[j] for j in range(k)])
+        if np.allclose(new, centres):
+            break
+        centres = new
+    label = np.argmin(np.sum((pts[:, None] - centres[None]) ** 2, axis=-1), axis=1)
+    return [idx[label == j] for j in range(k) if np.any(label == j)]
 
 
 def _light_map(p0: LightParams, optimise: Sequence[str], lo, hi) -> Callable:
@@ -557,7 +652,7 @@ def _light_map(p0: LightParams, optimise: Sequence[str], lo, hi) -> Callable:
 def design(frame_fn: Callable, objective: Objective, masks, position, intensity, lo, hi, *,
            visibility_fn: Callable | None = None, steps: int = 200, learning_rate: float = 0.05,
            visibility_every: int = 10, optimise: Sequence[str] = ("position", "power"),
-           progress: bool | None = None) -> DesignResult:
+           keep_best: bool = True, tol: float = 1e-3, progress: bool | None = None) -> DesignResult:
     """Optimise K point lights with optax Adam (the rate decaying to 1 % of ``learning_rate`` on a
     cosine) so that ``objective`` is smallest.
 
@@ -568,7 +663,12 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
     light visible everywhere). ``lo``,
     ``hi``: the light region. ``optimise``: which of "position", "power" (the overall intensity
     per light) and "colour" (its RGB ratios) move; the rest keep their starting values. The
-    gradient is reverse mode (``_adam``): ``frame_fn`` must go through ``jax.grad``.
+    gradient is reverse mode (``_adam``): ``frame_fn`` must go through ``jax.grad``. ``keep_best``:
+    at every trace, return to the best traced point and halve the steps where the objective with
+    the fresh visibility is worse (``_adam``'s ``keep_best``); the result is the best traced point.
+    ``tol``: with ``keep_best``, stop before ``steps`` once three traces in a row have not lowered
+    the best traced objective by more than ``tol`` of it (0: run every step). Both defaults were
+    chosen on `staircase` and validated on the Cornell box (CHANGELOG.md, 2026-12-07 (from 03:36)).
 
     Numerics: not differentiable (an optimisation loop over ``objective_terms``, ``point_direct`` and the model).
     """
@@ -591,7 +691,7 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
 
     params, history, (terms, means), seconds, updates, cost = _adam(
         model, loss, p0, steps=steps, learning_rate=learning_rate, refresh=refresh, every=visibility_every,
-        progress=progress)
+        progress=progress, keep_best=keep_best, tol=tol)
     pos, inten = lights(params)
     return DesignResult(np.asarray(pos, np.float64), np.asarray(inten, np.float64), history, terms, seconds,
                         updates if visibility_fn is not None else 0, means, cost)
@@ -651,7 +751,7 @@ def mitsuba_design(peer, position, intensity, lo, hi, *, steps: int = 200, learn
 
 
 def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_rate: float, refresh: Callable,
-          every: int, progress: bool | None):
+          every: int, progress: bool | None, keep_best: bool = False, tol: float = 0.0, patience: int = 3):
     """Adam on ``objective(*model(params, aux)) -> (value, (terms, means))`` for ``steps`` steps, the rate
     decaying on a cosine to 1 %; ``aux = refresh(params)`` first, every ``every`` steps and at the
     end. ``model(params, aux) -> (frames, lighting)`` (arrays) must be reverse-mode differentiable
@@ -659,20 +759,31 @@ def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_
     is one compiled program, the objective's value and its gradient in the parameters
     (``jax.value_and_grad``) and the update. Returns (params, history, (terms, means) at the end
     as floats, seconds, refreshes, XLA's count of one step: ``jprt.eval.xla_cost``, compiled
-    again after the loop, outside ``seconds``)."""
+    again after the loop, outside ``seconds``).
+
+    ``keep_best``: at every refresh the objective is evaluated with the fresh ``aux``; where it is
+    worse than at the best refresh so far, the parameters, Adam's state and ``aux`` return there
+    and the steps from then on are halved; the result is the best refreshed point. The refreshed
+    objective is the true one (for point lights: visibility traced where the lights are), while
+    the steps between refreshes follow a gradient that holds ``aux``; this is a trust region on
+    the true objective around that gradient's steps. With ``keep_best`` and ``tol`` > 0 the loop
+    also stops early, once ``patience`` refreshes in a row have not lowered the best refreshed
+    objective by more than ``tol`` of it (converged: the returned history is shorter)."""
     import optax
 
     # cosine decay to 1 % of the rate: the last steps settle instead of circling the optimum
     opt = optax.adam(optax.cosine_decay_schedule(float(learning_rate), max(int(steps), 1), alpha=0.01))
 
     @jax.jit
-    def step(params, state, aux):
+    def step(params, state, aux, scale):
         (value, _), grads = jax.value_and_grad(lambda p: objective(*model(p, aux)), has_aux=True)(params)
         updates, state = opt.update(grads, state, params)
-        return optax.apply_updates(params, updates), state, value
+        return optax.apply_updates(params, jax.tree_util.tree_map(lambda u: scale * u, updates)), state, value
 
+    evaluate = jax.jit(lambda p, a: objective(*model(p, a)))
     state = opt.init(params)
     aux, refreshes, history = None, 0, []
+    best, scale, stale = None, 1.0, 0
     every = max(int(every), 1)
     t0 = time.perf_counter()
     bar = progress_bar(range(int(steps)), progress=progress, desc="design", unit="step")
@@ -680,18 +791,31 @@ def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_
         if i % every == 0:
             aux = refresh(params)
             refreshes += 1
-        params, state, value = step(params, state, aux)
+            if keep_best:
+                now = float(evaluate(params, aux)[0])
+                stale = 0 if best is None or now < best[0] * (1.0 - tol) else stale + 1
+                if best is None or now <= best[0]:
+                    best = (now, params, state, aux)
+                else:  # the held gradient's steps made the true objective worse: back, shorter steps
+                    _, params, state, aux = best
+                    scale *= 0.5
+                if tol > 0 and stale >= int(patience):
+                    break
+        params, state, value = step(params, state, aux, jnp.float32(scale))
         history.append(float(value))
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(objective=f"{history[-1]:.3g}")
     aux = refresh(params)
     refreshes += 1
-    _, end = jax.jit(lambda p, a: objective(*model(p, a)))(params, aux)
+    if keep_best and best is not None and float(evaluate(params, aux)[0]) > best[0]:
+        _, params, _, aux = best
+    _, end = evaluate(params, aux)
     terms, means = ({k: float(v) for k, v in d.items()} for d in end)
     seconds = time.perf_counter() - t0
     from jprt.eval import xla_cost
 
-    return params, np.asarray(history), (terms, means), seconds, refreshes, xla_cost(step, params, state, aux)
+    return params, np.asarray(history), (terms, means), seconds, refreshes, xla_cost(step, params, state, aux,
+                                                                                      jnp.float32(1.0))
 
 
 def design_frame(gbuffer, indirect_fn: Callable, *, glossy: bool = True) -> Callable:
@@ -1170,7 +1294,7 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
             "frame": list(np.shape(gb.valid)), "light_region": {"lo": lo.tolist(), "hi": hi.tolist()},
             "start": {"position": pos0.tolist(), "intensity": inten0.tolist()},
             "found": {"position": result.position.tolist(), "intensity": result.intensity.tolist()},
-            "steps": int(steps), "search_s": search_s,
+            "steps": int(steps), "steps_taken": int(len(result.history)), "search_s": search_s,
             "design_s": result.seconds + (search_s or 0.0), "step_cost": result.step_cost,
             "visibility_updates": result.visibility_updates,
             "history": result.history.tolist(), "model_terms": result.terms,

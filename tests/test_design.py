@@ -416,3 +416,60 @@ def test_what_is_not_optimised_keeps_its_starting_value():
     power = design.design(frame, obj, np.zeros((0, 8, 8)), start_p, start_i, lo, hi, steps=50, optimise=["power"],
                           progress=False)
     np.testing.assert_allclose(power.intensity[0] / power.intensity[0, 0], 1.0, rtol=1e-5)
+
+
+def test_merge_candidates_makes_one_light_of_neighbours_that_share_its_weight():
+    """Weight spread over three neighbouring candidates and over two far from them: two groups,
+    one per cluster, whatever K asks beyond; no weight anywhere: no group."""
+    x = np.array([[0.1, 0.1, 0.1], [0.15, 0.1, 0.1], [0.1, 0.16, 0.1], [0.9, 0.9, 0.8], [0.85, 0.9, 0.8],
+                  [0.5, 0.5, 0.5]])
+    w = np.array([1.0, 0.5, 0.5, 2.0, 0.1, 0.0])
+    groups = design._merge_candidates(x, w, 2)
+    assert sorted(sorted(g.tolist()) for g in groups) == [[0, 1, 2], [3, 4]]
+    assert len(design._merge_candidates(x, w, 9)) == 5  # one group per candidate with weight at most
+    assert design._merge_candidates(x, np.zeros(6), 2) == []
+
+
+def test_candidate_weights_recover_the_lights_that_made_the_target():
+    """Four candidates with independent unit frames; the target is 2 x the first plus 0.5 x the
+    third: the non-negative weights that minimise the image objective are (2, 0, 0.5, 0)."""
+    rng = np.random.default_rng(3)
+    unit = rng.uniform(0.0, 1.0, (4, 8, 8, 3)).astype(np.float32)
+    units = [jnp.asarray(unit), jnp.asarray(unit), jnp.asarray(unit)]
+    target = 2.0 * unit[0] + 0.5 * unit[2]
+    obj = design.Objective(design.ImageTarget(target, None, "full", 1.0), (), 0.0, "synthetic")
+    w = design._candidate_weights(units, obj, np.zeros((0, 8, 8)), 1.0, 2.0 ** np.linspace(-6, 6, 49) / 4)
+    np.testing.assert_allclose(w, [2.0, 0.0, 0.5, 0.0], atol=0.02)
+
+
+def test_design_keeps_its_best_traced_point_and_stops_when_converged():
+    """A light over a floor whose shadow edge moves with it (the blade of the search test), started
+    at the light that made the target: with ``keep_best`` the design never ends worse than where
+    it started (the objective with visibility traced at the result), and with ``tol`` it stops
+    before its step budget once the traces stop improving; without ``tol`` it runs every step."""
+    gb = _floor(n=16)
+
+    def visibility(position):
+        x = np.asarray(gb.position)[..., 0]
+        lights = np.asarray(position, np.float64).reshape(-1, 3)
+        return {"pixels": (x[..., None] > lights[None, None, :, 0] - 0.4).astype(np.float32)}
+
+    frame = design.design_frame(gb, lambda p, i, v: 0.02 * jnp.sum(i) * jnp.ones((16, 16, 3)), glossy=False)
+    lo, hi = np.array([-0.8, 0.6, -0.8]), np.array([0.8, 1.6, 0.8])
+    true_pos, true_int = np.array([[0.3, 1.1, -0.25]]), np.full((1, 3), 3.0)
+
+    def traced(position, intensity):
+        frames = frame(position, intensity, {k: jnp.asarray(v) for k, v in visibility(position).items()})
+        return float(sum(design.objective_terms(obj, np.zeros((0, 16, 16)), *frames, jnp.asarray(intensity),
+                                                3.0).values()))
+
+    target = np.asarray(frame(true_pos, true_int, {k: jnp.asarray(v) for k, v in visibility(true_pos).items()})[0])
+    obj = design.Objective(design.ImageTarget(target, None, "full", 1.0), (), 0.0, "synthetic")
+    start_pos, start_int = true_pos + np.array([[0.05, 0.0, 0.0]]), np.full((1, 3), 2.5)
+    kept = design.design(frame, obj, np.zeros((0, 16, 16)), start_pos, start_int, lo, hi, visibility_fn=visibility,
+                         steps=400, learning_rate=0.02, tol=1e-3, progress=False)
+    assert traced(kept.position, kept.intensity) <= traced(start_pos, start_int)
+    assert len(kept.history) < 400
+    full = design.design(frame, obj, np.zeros((0, 16, 16)), start_pos, start_int, lo, hi, visibility_fn=visibility,
+                         steps=40, learning_rate=0.02, tol=0.0, progress=False)
+    assert len(full.history) == 40
