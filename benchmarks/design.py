@@ -104,12 +104,13 @@ def _step_speed(rep: dict) -> dict:
     """A design's step judged against this machine: ms per step (the loop's wall time over its
     steps, visibility refreshes included) and its roofline (``jprt.eval.roofline_of``: XLA's
     FLOPs and bytes of one compiled step; the f32 matmul rate and the triad bandwidth measured
-    once in this process)."""
+    once in this process). The steps are those the design took (``steps_taken``: it stops early once
+    its traces stop improving), not its budget."""
     from jprt import eval as jeval
 
     if not _MACHINE:
         _MACHINE.update(matmul_gflops=jeval.matmul_peak_gflops(), bandwidth_gbs=jeval.stream_bandwidth_gbs())
-    ms = 1e3 * (rep["design_s"] - (rep.get("search_s") or 0.0)) / max(int(rep["steps"]), 1)
+    ms = 1e3 * (rep["design_s"] - (rep.get("search_s") or 0.0)) / max(int(rep.get("steps_taken", rep["steps"])), 1)
     cost = rep.get("step_cost") or {}
     roof = jeval.roofline_of(cost.get("flops"), cost.get("bytes"), frame_ms=ms,
                              peak_gflops=_MACHINE["matmul_gflops"], bandwidth_gbs=_MACHINE["bandwidth_gbs"])
@@ -122,7 +123,8 @@ def _bounds_result(label: str, chosen: list, spec: dict, rep: dict) -> dict:
     print(f"{label} on {chosen}: every bound met on Mitsuba's render: {rep['bounds_met_verified']} "
           f"({ {k: round(v['verified_mean'], 4) for k, v in rep['bounds'].items()} })", flush=True)
     return {"objective": spec, "found": rep["found"], "bounds": rep["bounds"],
-            "bounds_met_verified": rep["bounds_met_verified"], "design_s": rep["design_s"], **_step_speed(rep),
+            "bounds_met_verified": rep["bounds_met_verified"], "design_s": rep["design_s"],
+            "steps_taken": rep.get("steps_taken"), **_step_speed(rep),
             "verify_spp": rep["verify_spp"], "target": "every bound met on the Mitsuba verification render"}
 
 
@@ -228,7 +230,8 @@ def _inverse(args, folder: str, pb, lo, hi, diagonal: float, rng, work: str) -> 
             "intensity_ratio": ratio.mean(axis=1).tolist(),
             "model_objective": rep["model_objective"], "verified_objective": rep["verified_objective"],
             "design_s": rep["design_s"], "search_s": rep.get("search_s"), "start_from": args.start,
-            "verify_s": rep["verify_s"], "steps": rep["steps"], **_step_speed(rep),
+            "verify_s": rep["verify_s"], "steps": rep["steps"], "steps_taken": rep.get("steps_taken"),
+            **_step_speed(rep),
             "position_within_3_percent": bool(np.all(cost[rows, cols] / diagonal <= 0.03)),
             "intensity_within_10_percent": bool(np.all(np.abs(ratio - 1.0) <= 0.10)),
             "mitsuba": peer if peer is not None else "not run (--peer-steps 0)",
