@@ -419,8 +419,9 @@ def test_what_is_not_optimised_keeps_its_starting_value():
 
 
 def test_merge_candidates_makes_one_light_of_neighbours_that_share_its_weight():
-    """Weight spread over three neighbouring candidates and over two far from them: two groups,
-    one per cluster, whatever K asks beyond; no weight anywhere: no group."""
+    """Weight spread over three neighbouring candidates and over two far from them: K = 2 gives
+    one group per cluster; a K beyond the candidates with weight gives one group each; no weight
+    anywhere: no group."""
     x = np.array([[0.1, 0.1, 0.1], [0.15, 0.1, 0.1], [0.1, 0.16, 0.1], [0.9, 0.9, 0.8], [0.85, 0.9, 0.8],
                   [0.5, 0.5, 0.5]])
     w = np.array([1.0, 0.5, 0.5, 2.0, 0.1, 0.0])
@@ -444,7 +445,7 @@ def test_candidate_weights_recover_the_lights_that_made_the_target():
 
 def test_design_keeps_its_best_traced_point_and_stops_when_converged():
     """A light over a floor whose shadow edge moves with it (the blade of the search test), started
-    at the light that made the target: with ``keep_best`` the design never ends worse than where
+    beside the light that made the target: with ``keep_best`` the design never ends worse than where
     it started (the objective with visibility traced at the result), and with ``tol`` it stops
     before its step budget once the traces stop improving; without ``tol`` it runs every step."""
     gb = _floor(n=16)
