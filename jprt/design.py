@@ -658,7 +658,8 @@ def _light_map(p0: LightParams, optimise: Sequence[str], lo, hi) -> Callable:
 def design(frame_fn: Callable, objective: Objective, masks, position, intensity, lo, hi, *,
            visibility_fn: Callable | None = None, steps: int = 200, learning_rate: float = 0.05,
            visibility_every: int = 10, optimise: Sequence[str] = ("position", "power"),
-           keep_best: bool = True, tol: float = 1e-3, progress: bool | None = None) -> DesignResult:
+           keep_best: bool = True, tol: float = 1e-3, reference_power: float | None = None,
+           progress: bool | None = None) -> DesignResult:
     """Optimise K point lights with optax Adam (the rate decaying to 1 % of ``learning_rate`` on a
     cosine) so that ``objective`` is smallest.
 
@@ -675,11 +676,14 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
     ``tol``: with ``keep_best``, stop before ``steps`` once three traces in a row have not lowered
     the best traced objective by more than ``tol`` of it (0: run every step). Both defaults were
     chosen on `staircase` and validated on the Cornell box (CHANGELOG.md, 2026-12-07 (from 03:36)).
+    ``reference_power``: the power the objective's power penalty is relative to (default the sum of
+    the starting intensities; a start from ``search_start`` passes the search's, so both score the
+    same objective).
 
     Numerics: not differentiable (an optimisation loop over ``objective_terms``, ``point_direct`` and the model).
     """
     p0 = to_params(position, intensity, lo, hi)
-    reference = float(np.sum(intensity))
+    reference = float(np.sum(intensity)) if reference_power is None else float(reference_power)
     lights = _light_map(p0, optimise, lo, hi)
 
     def model(params, vis):
@@ -1271,7 +1275,7 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
                                        learning_rate=learning_rate, optimise=optimise, verify_spp=verify_spp,
                                        seed=seed, progress=progress)
     lo, hi, gb, handle = pb.lo, pb.hi, pb.gbuffer, pb.session.handle
-    search_s = None
+    search_s, reference = None, None
     if start is None:
         rng = np.random.default_rng(seed)
         pos0 = lo + (hi - lo) * rng.uniform(0.25, 0.75, (int(lights), 3))
@@ -1280,21 +1284,25 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
         if start != "search":
             raise ValueError(f"start is a dict of lights, 'search' or None, got {start!r}")
         t0 = time.perf_counter()
+        reference = 3.0 * int(lights)  # search_start's reference at its default level 1
         pos0, inten0 = search_start(pb.frame, pb.objective, pb.masks, lo, hi, int(lights),
-                                    visibility_fn=pb.visibility, seed=seed, progress=progress)
+                                    visibility_fn=pb.visibility, seed=seed, reference_power=reference,
+                                    progress=progress)
         search_s = time.perf_counter() - t0
     else:
         pos0 = np.asarray(start["position"], np.float64).reshape(-1, 3)
         inten0 = np.asarray(start["intensity"], np.float64).reshape(-1, 3)
+    # the power penalty's reference, one for the search, the design and the verification
+    reference = float(np.sum(inten0)) if reference is None else reference
     optimise = ("position", "power") if optimise is None else optimise
     result = design(pb.frame, pb.objective, pb.masks, pos0, inten0, lo, hi, visibility_fn=pb.visibility,
                     steps=steps, learning_rate=learning_rate, visibility_every=visibility_every, optimise=optimise,
-                    progress=progress)
+                    reference_power=reference, progress=progress)
     # verification: Mitsuba under the found lights, the objective on its render
     t0 = time.perf_counter()
     verified, verified_means = rendered_terms(handle, pb.camera, gb, pb.objective, pb.masks, result.position,
                                               result.intensity, spp=int(verify_spp), seed=int(seed) + 101,
-                                              reference_power=float(np.sum(inten0)), means=True)
+                                              reference_power=reference, means=True)
     verify_s = time.perf_counter() - t0
     return {"run": os.path.abspath(folder), "method": pb.session.method.name,
             "objective": os.path.abspath(objective_path),
