@@ -818,9 +818,10 @@ def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_
     else:
         aux = refresh(params)
         refreshes += 1
-    if keep_best and best is not None and float(evaluate(params, aux)[0]) > best[0]:
+    last, end = evaluate(params, aux)
+    if keep_best and best is not None and float(last) > best[0]:
         _, params, _, aux = best
-    _, end = evaluate(params, aux)
+        _, end = evaluate(params, aux)
     terms, means = ({k: float(v) for k, v in d.items()} for d in end)
     seconds = time.perf_counter() - t0
     from jprt.eval import xla_cost
