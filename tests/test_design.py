@@ -188,7 +188,8 @@ def test_search_start_then_design_recovers_a_light_whose_shadow_moves_with_it():
                                      progress=False)
     assert pos0.shape == (1, 3) and int0.shape == (1, 3)
     assert errors(pos0)[0] < 0.15  # 64 candidates in the box: about 0.1 of its diagonal apart
-    two = design.search_start(frame, obj, masks, lo, hi, 2, visibility_fn=visibility, candidates=16, progress=False)
+    two = design.search_start(frame, obj, masks, lo, hi, 2, visibility_fn=visibility, candidates=16, refine=0,
+                              progress=False)
     assert two[0].shape == (2, 3) and np.all(two[0] >= lo) and np.all(two[0] <= hi) and np.all(two[1] > 0)
     result = design.design(frame, obj, masks, pos0, int0, lo, hi, visibility_fn=visibility, steps=300,
                            learning_rate=0.05, progress=False)
@@ -196,6 +197,56 @@ def test_search_start_then_design_recovers_a_light_whose_shadow_moves_with_it():
     np.testing.assert_allclose(result.intensity, true_int, rtol=0.03)
     with pytest.raises(ValueError, match="lights >= 1"):
         design.search_start(frame, obj, masks, lo, hi, 0)
+
+
+def test_refinement_splits_a_light_that_explains_two_nearby_ones():
+    """Two lights 0.2 apart over a floor, each casting two shadow edges (x and z blades) that move
+    with it: the start explains both with one light of their summed power at their midpoint and
+    puts the second light far away and dim (what a coarse candidate grid gives). The traced local
+    search splits the bright light: both hidden lights are found within 2 % of the region's
+    diagonal, with their powers, and the objective falls a hundredfold."""
+    from scipy.optimize import linear_sum_assignment
+
+    n = 32
+    gb = _floor(n=n)
+    pattern = jnp.asarray(0.05 + 0.05 * np.linspace(0, 1, n)[None, :, None] * np.ones((n, n, 3)), jnp.float32)
+
+    def indirect(position, intensity, visibility):
+        return pattern * jnp.sum(intensity) / 3.0
+
+    def visibility(position):
+        x, z = np.asarray(gb.position)[..., 0, None], np.asarray(gb.position)[..., 2, None]
+        p = np.asarray(position, np.float64).reshape(-1, 3)
+        return {"pixels": jnp.asarray(((x > p[:, 0] - 0.4) & (z > p[:, 2] - 0.4)).astype(np.float32))}
+
+    frame = design.design_frame(gb, indirect, glossy=False)
+
+    def render(p):
+        out = [frame(jnp.asarray(p[c:c + 1], jnp.float32), jnp.ones((1, 3), jnp.float32), visibility(p[c:c + 1]))
+               for c in range(len(p))]
+        return [jnp.stack([u[i] for u in out]) for i in range(3)]
+
+    lo, hi = np.array([-0.8, 1.0, -0.8]), np.array([0.8, 1.2, 0.8])
+    true_pos = np.array([[0.3, 1.1, -0.25], [0.1, 1.1, -0.25]])
+    target, _, _ = frame(true_pos, np.ones((2, 3)), visibility(true_pos))
+    obj = design.Objective(design.ImageTarget(np.asarray(target), None, "full", 1.0), (), 0.0, "synthetic")
+    masks = np.zeros((0, n, n))
+    mid, far = true_pos.mean(axis=0), np.array([-0.6, 1.1, 0.6])
+    units = render(np.stack([mid, far]))
+    start = [(mid, 2.0, [2.0 * u[0] for u in units]), (far, 0.05, [0.05 * u[1] for u in units])]
+
+    def value(lights):
+        frames = [sum(light[2][i] for light in lights) for i in range(3)]
+        return float(sum(design.objective_terms(obj, masks, *frames, jnp.ones((1, 3)), 6.0).values()))
+
+    found = design._refine_lights(render, obj, masks, start, lo, hi, 6.0, refine=4, radius=(hi - lo) / 8, seed=0)
+    pos, power = np.stack([f[0] for f in found]), np.array([f[1] for f in found])
+    cost = np.linalg.norm(pos[:, None] - true_pos[None], axis=-1)
+    rows, cols = linear_sum_assignment(cost)
+    assert np.all(cost[rows, cols] < 0.02 * np.linalg.norm(hi - lo))
+    np.testing.assert_allclose(power[rows], 1.0, rtol=0.03)
+    assert np.all(pos >= lo) and np.all(pos <= hi)
+    assert value(found) < 0.01 * value(start)
 
 
 def test_visibility_is_traced_by_mitsuba(mi):
