@@ -53,7 +53,7 @@ from jprt.progress import bar as progress_bar
 
 __all__ = ["ObjectiveError", "ImageTarget", "ObjectTarget", "Objective", "load_objective", "object_masks",
            "objective_terms", "LightParams", "to_params", "from_params", "point_direct", "irradiance_from",
-           "point_visibility", "DesignResult", "design", "search_start", "design_frame", "rendered_terms",
+           "point_visibility", "DesignResult", "design", "search_start", "corrected_objective", "design_frame", "rendered_terms",
            "gradient_check", "object_means", "bounds_report", "rendered_environment_terms",
            "Problem", "POINT_METHODS", "measurement_points", "load_problem", "design_run", "EnvironmentResult",
            "environment_transfer", "environment_frame", "design_environment", "ENVIRONMENT_METHODS", "OBJECTIVE_KEYS", "QUANTITIES"]
@@ -448,7 +448,8 @@ class DesignResult(NamedTuple):
 def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights: int, *,
                  visibility_fn: Callable | None = None, candidates: int = 64, rounds: int = 2,
                  level: float = 1.0, reference_power: float | None = None, seed: int = 0,
-                 mode: str = "joint", refine: int = 8, progress: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 mode: str = "joint", refine: int | None = None,
+                 progress: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Starting lights for ``design`` from a search over candidate positions: (position (K, 3),
     intensity (K, 3)) float64, white.
 
@@ -481,11 +482,13 @@ def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights
     traced local search (``_refine_lights``) move the lights off the candidates' grid, and split a
     light that explains two nearby ones: 64 candidates lie about a quarter of the light region
     apart per axis, too coarse for two lights a few percent of the scene apart, and ``design``'s
-    held-visibility gradient does not reach them from there. ``refine`` = 8 was chosen on
-    `staircase` (three lights, two of them 3.8 % of the diagonal apart: 0.26 / 0.41 / 0.60 % and
-    powers 0.92-1.04 against 1.0 / 1.3 / 11.5 % and 0.12-1.43 without it) and validated on the
-    Cornell box (one and three lights within 0.5 % and 7 % before the design, as close after it
-    as without it), CHANGELOG.md, 2026-12-07 (from 06:10). ``reference_power``: the power the
+    held-visibility gradient does not reach them from there. ``refine`` None (default): 8 passes
+    for two or more lights, none for one. Chosen on `staircase` (three lights, two of them 3.8 %
+    of the diagonal apart: 0.26 / 0.41 / 0.60 % and powers 0.92-1.04 after the design, against
+    1.0 / 1.3 / 11.5 % and 0.12-1.43 without it; one light 1.08 % against 0.61 %, since the
+    design goes further from the grid's start) and validated on the Cornell box (three lights
+    within 0.5 % and 7 % as without it; one light 0.09 % against 0.06 %), CHANGELOG.md,
+    2026-12-07 (from 06:10). ``reference_power``: the power the
     objective's power penalty is relative to (default ``lights`` x 3 x ``level``, ``design``'s
     sum of the starting intensities).
 
@@ -551,8 +554,9 @@ def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights
     def candidate(c, s):
         return pos[int(c)], float(s), [float(s) * u[int(c)] for u in units]
 
+    solver = _weights_solver(objective, masks, reference)
     if mode == "joint":
-        weights = _candidate_weights(units, objective, masks, reference, scales / m)
+        weights = _candidate_weights(units, objective, masks, reference, scales / m, solver=solver)
         for g in _merge_candidates((pos - lo) / np.where(hi > lo, hi - lo, 1.0), weights, k_lights):
             w = jnp.asarray(weights[g], jnp.float32)
             found.append((np.sum(weights[g, None] * pos[g], axis=0) / np.sum(weights[g]), float(np.sum(weights[g])),
@@ -565,15 +569,16 @@ def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights
             v, c, s = best(units, *placed(k))
             if float(v) <= float(value(*placed(None))):
                 found[k] = candidate(c, s)
-    if int(refine) > 0:
+    refine = (8 if k_lights > 1 else 0) if refine is None else int(refine)
+    if refine > 0:
         found = _refine_lights(render, objective, masks, found, lo, hi, reference, refine=int(refine),
-                               radius=0.5 * (hi - lo) * m ** (-1.0 / 3.0), seed=int(seed))
+                               radius=0.5 * (hi - lo) * m ** (-1.0 / 3.0), seed=int(seed), solver=solver)
     return (np.stack([f[0] for f in found]),
             np.repeat(np.asarray([f[1] for f in found], np.float64).reshape(-1, 1), 3, axis=1))
 
 
 def _refine_lights(render: Callable, objective: Objective, masks, found: list, lo, hi, reference: float, *,
-                   refine: int, radius, seed: int, local: int = 16) -> list:
+                   refine: int, radius, seed: int, local: int = 16, solver: Callable | None = None) -> list:
     """Lights ``found`` ((position (3,), white intensity, frames) each) moved by a traced local
     search: around every light ``local`` scrambled Sobol points in a box of half-width ``radius``
     (per axis, (3,)); the intensities of the lights and their local points solved jointly
@@ -591,6 +596,7 @@ def _refine_lights(render: Callable, objective: Objective, masks, found: list, l
     """
     from scipy.stats import qmc
 
+    solver = _weights_solver(objective, masks, reference) if solver is None else solver
     k = len(found)
     pos = np.stack([f[0] for f in found])
     inten = np.asarray([f[1] for f in found], np.float64)
@@ -601,7 +607,7 @@ def _refine_lights(render: Callable, objective: Objective, masks, found: list, l
                                          reference).values()))
 
     units = render(pos)
-    inten = _candidate_weights(units, objective, masks, reference, None, init=inten)
+    inten = _candidate_weights(units, objective, masks, reference, None, init=inten, solver=solver)
     current = value_of(units, inten)
     for r in range(int(refine)):
         qmc_points = qmc.Sobol(3, scramble=True, seed=int(seed) + 1 + r).random(local) * 2.0 - 1.0
@@ -609,7 +615,8 @@ def _refine_lights(render: Callable, objective: Objective, masks, found: list, l
                               axis=1).reshape(-1, 3)  # (K * (local + 1), 3), light-major
         start = np.zeros((k, local + 1))
         start[:, 0] = inten
-        w = _candidate_weights(render(cand), objective, masks, reference, None, init=start.reshape(-1))
+        w = _candidate_weights(render(cand), objective, masks, reference, None, init=start.reshape(-1),
+                               solver=solver)
         w = w.reshape(k, local + 1)
         total = w.sum(axis=1)
         if np.any(total <= 0):
@@ -617,7 +624,7 @@ def _refine_lights(render: Callable, objective: Objective, masks, found: list, l
             continue
         new_pos = np.einsum("kc,kcd->kd", w, cand.reshape(k, local + 1, 3)) / total[:, None]
         new_units = render(new_pos)
-        total = _candidate_weights(new_units, objective, masks, reference, None, init=total)
+        total = _candidate_weights(new_units, objective, masks, reference, None, init=total, solver=solver)
         v = value_of(new_units, total)
         if v < current:
             pos, inten, units, current = new_pos, total, new_units, v
@@ -635,7 +642,7 @@ def _refine_lights(render: Callable, objective: Objective, masks, found: list, l
                      for u in units]
             cu = render(cloud)
             w = _candidate_weights(cu, objective, masks, reference, None, init=start, fixed=fixed,
-                                   fixed_power=float(np.sum(inten[rest])))
+                                   fixed_power=float(np.sum(inten[rest])), solver=solver)
             groups = _merge_candidates((cloud - lo) / np.where(hi > lo, hi - lo, 1.0), w, 2)
             if len(groups) < 2:
                 continue
@@ -644,7 +651,8 @@ def _refine_lights(render: Callable, objective: Objective, masks, found: list, l
                 trial_pos[i] = np.sum(w[g, None] * cloud[g], axis=0) / np.sum(w[g])
                 trial_int[i] = np.sum(w[g])
             trial_units = render(trial_pos)
-            trial_int = _candidate_weights(trial_units, objective, masks, reference, None, init=trial_int)
+            trial_int = _candidate_weights(trial_units, objective, masks, reference, None, init=trial_int,
+                                           solver=solver)
             v = value_of(trial_units, trial_int)
             if v < current:
                 pos, inten, units, current, moved = trial_pos, trial_int, trial_units, v, True
@@ -655,7 +663,8 @@ def _refine_lights(render: Callable, objective: Objective, masks, found: list, l
 
 
 def _candidate_weights(units, objective: Objective, masks, reference: float, levels, steps: int = 200,
-                       init: np.ndarray | None = None, fixed=None, fixed_power: float = 0.0) -> np.ndarray:
+                       init: np.ndarray | None = None, fixed=None, fixed_power: float = 0.0,
+                       solver: Callable | None = None) -> np.ndarray:
     """Non-negative white intensities (M,) float64 of M candidate lights, each with unit frames
     ``units`` (three (M, H, W, 3) arrays: full, indirect, irradiance), that minimise ``objective``
     of their summed frames. The objective is convex in them (the image term is quadratic and the
@@ -669,41 +678,61 @@ def _candidate_weights(units, objective: Objective, masks, reference: float, lev
     0.50-0.67 % and 0.87; one light alike), in a third less time (CHANGELOG.md, 2026-12-07
     (from 03:36)). ``init`` (M,): start there instead (Adam's unit then the largest of it;
     ``levels`` unused). ``fixed``: three frames of lights held, added to the candidates' sum,
-    ``fixed_power`` their summed intensity (the power penalty reads the total).
+    ``fixed_power`` their summed intensity (the power penalty reads the total). ``solver``: a
+    ``_weights_solver`` of the same objective, masks, reference and steps to reuse (its programs
+    are compiled once per candidate count, not once per call).
 
     Numerics: not differentiable (an optimisation).
     """
+    best_common, descend = _weights_solver(objective, masks, reference, steps) if solver is None else solver
+    m = units[0].shape[0]
+    fixed = [jnp.zeros_like(u[0]) for u in units] if fixed is None else list(fixed)
+    power = jnp.float32(fixed_power)
+    if init is None:
+        common = best_common(units, jnp.asarray(levels, jnp.float32), fixed, power)
+        v0 = jnp.ones((m,), jnp.float32)
+    else:
+        v0 = jnp.asarray(init, jnp.float32)
+        common = jnp.maximum(jnp.max(v0), 1e-30)
+        v0 = v0 / common
+    return np.asarray(descend(units, common, v0, fixed, power), np.float64)
+
+
+def _weights_solver(objective: Objective, masks, reference: float, steps: int = 200) -> tuple[Callable, Callable]:
+    """The two compiled programs of ``_candidate_weights`` for one objective: ``best_common(units,
+    levels, fixed, fixed_power)``, the level among ``levels`` best for every candidate at once,
+    and ``descend(units, common, v0, fixed, fixed_power)``, ``steps`` projected Adam steps from
+    ``v0`` in units of ``common``. The frames are arguments, not constants of the programs, so
+    each compiles once per candidate count.
+
+    Numerics: not differentiable (builds an optimisation).
+    """
     import optax
 
-    m = units[0].shape[0]
-
-    def value(w, units, fixed):
+    def value(w, units, fixed, fixed_power):
         frames = [jnp.tensordot(w, u, axes=1) + f for u, f in zip(units, fixed)]
         power = jnp.full((1, 3), jnp.sum(w) + fixed_power)
         return sum(objective_terms(objective, masks, *frames, power, reference).values())
 
     @jax.jit
-    def solve(units, levels, v0, fixed):  # the frames are arguments, not constants of the program
-        common = (jnp.max(levels) if init is not None else
-                  levels[jnp.argmin(jax.vmap(lambda s: value(jnp.full((m,), s), units, fixed))(levels))])
-        v0 = jnp.ones_like(v0) if init is None else v0 / common
+    def best_common(units, levels, fixed, fixed_power):
+        m = units[0].shape[0]
+        return levels[jnp.argmin(jax.vmap(lambda s: value(jnp.full((m,), s), units, fixed, fixed_power))(levels))]
+
+    @jax.jit
+    def descend(units, common, v0, fixed, fixed_power):
         opt = optax.adam(optax.cosine_decay_schedule(1.0, steps, alpha=0.01))
 
         def body(carry, _):
             v, state = carry
-            g = jax.grad(lambda v: value(common * v, units, fixed))(v)
+            g = jax.grad(lambda v: value(common * v, units, fixed, fixed_power))(v)
             upd, state = opt.update(g, state, v)
             return (jnp.maximum(optax.apply_updates(v, upd), 0.0), state), None
 
         (v, _), _ = jax.lax.scan(body, (v0, opt.init(v0)), None, length=int(steps))
         return common * v
 
-    fixed = [jnp.zeros_like(u[0]) for u in units] if fixed is None else list(fixed)
-    if init is None:
-        return np.asarray(solve(units, jnp.asarray(levels, jnp.float32), jnp.ones((m,), jnp.float32), fixed),
-                          np.float64)
-    v0 = jnp.asarray(init, jnp.float32)
-    return np.asarray(solve(units, v0, v0, fixed), np.float64)
+    return best_common, descend
 
 
 def _merge_candidates(x: np.ndarray, weights: np.ndarray, k: int, iterations: int = 20) -> list[np.ndarray]:
@@ -1366,7 +1395,7 @@ def load_problem(folder: str, objective_path, *, size: int = 64, env: str | None
 def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int = 64, steps: int = 200,
                learning_rate: float = 0.05, visibility_every: int = 10,
                optimise: Sequence[str] | None = None, start: dict | str | None = None, verify_spp: int = 256,
-               seed: int = 0, env: str | None = None, progress: bool | None = None) -> dict:
+               seed: int = 0, env: str | None = None, corrections: int = 1, progress: bool | None = None) -> dict:
     """Design the lighting of the run folder ``folder`` for the objective file ``objective_path``:
     point lights (RRF, data-driven PRT, MRT) or the turn and scale of an environment map (``env``,
     one of the run's maps; default the first: neural-wavelet PRT, SH PRT, ``_design_environment_run``).
@@ -1376,7 +1405,13 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
     "search": traced candidates, the frame linear in the lights) or spread over the light region
     (None; seeded). Then the **verification**: the found
     lighting rendered by Mitsuba at ``verify_spp`` (full and indirect), the objective's terms on
-    that render (``rendered_terms``) beside the model's. Returns the report (a dict, JSON-ready).
+    that render (``rendered_terms``) beside the model's. Where an object bound is missed on the
+    render, up to ``corrections`` times (point lights): each bounded object's model mean is
+    scaled by its render-to-model ratio at the found lights (``corrected_objective``: its bounds
+    divided by the ratio), the design goes on from there and is verified again; the report's
+    ``corrections`` lists each round. A fitted model's error in an object's light (RRF's on
+    `staircase`: about 25 % low) otherwise lands a design that meets the bounds on the model
+    outside them on the render. Returns the report (a dict, JSON-ready).
 
     Numerics: not differentiable (loads a run folder, designs, renders with Mitsuba).
     """
@@ -1415,13 +1450,39 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
                                               result.intensity, spp=int(verify_spp), seed=int(seed) + 101,
                                               reference_power=reference, means=True)
     verify_s = time.perf_counter() - t0
+    rounds, design_s = [], result.seconds + (search_s or 0.0)
+    for _ in range(int(corrections)):
+        if not pb.objective.objects or all(v["met"] for v in bounds_report(pb.objective, verified_means).values()):
+            break
+        corrected, ratio = corrected_objective(pb.objective, result.means, verified_means)
+        result = design(pb.frame, corrected, pb.masks, result.position, result.intensity, lo, hi,
+                        visibility_fn=pb.visibility, steps=steps, learning_rate=learning_rate,
+                        visibility_every=visibility_every, optimise=optimise, reference_power=reference,
+                        progress=progress)
+        t0 = time.perf_counter()
+        verified, verified_means = rendered_terms(handle, pb.camera, gb, pb.objective, pb.masks, result.position,
+                                                  result.intensity, spp=int(verify_spp), seed=int(seed) + 101,
+                                                  reference_power=reference, means=True)
+        verify_s += time.perf_counter() - t0
+        design_s += result.seconds
+        rounds.append({"render_to_model": ratio, "found": {"position": result.position.tolist(),
+                                                            "intensity": result.intensity.tolist()},
+                       "model_means": result.means, "verified_means": verified_means,
+                       "bounds_met_verified": all(v["met"] for v in
+                                                  bounds_report(pb.objective, verified_means).values())})
+    if rounds:  # the model's terms on the objective as written, not the corrected one
+        vis = jax.tree_util.tree_map(jnp.asarray, pb.visibility(result.position))
+        frames = pb.frame(jnp.asarray(result.position, jnp.float32), jnp.asarray(result.intensity, jnp.float32), vis)
+        terms = {k: float(v) for k, v in objective_terms(pb.objective, pb.masks, *frames,
+                                                         jnp.asarray(result.intensity), reference).items()}
+        result = result._replace(terms=terms)
     return {"run": os.path.abspath(folder), "method": pb.session.method.name,
             "objective": os.path.abspath(objective_path),
             "frame": list(np.shape(gb.valid)), "light_region": {"lo": lo.tolist(), "hi": hi.tolist()},
             "start": {"position": pos0.tolist(), "intensity": inten0.tolist()},
             "found": {"position": result.position.tolist(), "intensity": result.intensity.tolist()},
             "steps": int(steps), "steps_taken": int(len(result.history)), "search_s": search_s,
-            "design_s": result.seconds + (search_s or 0.0), "step_cost": result.step_cost,
+            "design_s": design_s, "step_cost": result.step_cost, "corrections": rounds,
             "visibility_updates": result.visibility_updates,
             "history": result.history.tolist(), "model_terms": result.terms,
             "model_objective": float(sum(result.terms.values())), "verified_terms": verified,
@@ -1483,6 +1544,26 @@ def rendered_environment_terms(pb: Problem, angle: float, scale, *, spp: int, se
                             EnvMap.create(render_equirect(found.astype(np.float32))),
                             lambda: np.einsum("hwj,jc->hwc", pb.transfer, found.reshape(-1, 3)), scale,
                             spp=int(spp), seed=int(seed), reference_power=3.0, means=means)
+
+
+def corrected_objective(objective: Objective, model_means: dict, verified_means: dict) -> tuple[Objective, dict]:
+    """``objective`` with each object target's bounds divided by its render-to-model ratio
+    (``verified_means`` / ``model_means``, as ``object_means`` keys them) and that ratio
+    {"name.quantity": float}: a model whose mean on an object is ratio x too low then meets the
+    corrected bounds where a render meets the written ones, as long as the ratio holds near the
+    lights. A target whose model mean or render mean is not positive keeps its bounds (ratio 1).
+
+    Numerics: not differentiable (rescales bounds).
+    """
+    ratio, objects = {}, []
+    for target in objective.objects:
+        key = f"{target.name}.{target.quantity}"
+        m, v = float(model_means[key]), float(verified_means[key])
+        r = v / m if m > 0 and v > 0 else 1.0
+        ratio[key] = r
+        objects.append(target._replace(min=None if target.min is None else target.min / r,
+                                       max=None if target.max is None else target.max / r))
+    return objective._replace(objects=tuple(objects)), ratio
 
 
 def _bounds(objective: Objective, model_means: dict, verified_means: dict) -> dict:
