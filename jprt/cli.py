@@ -202,9 +202,6 @@ def main(argv: list[str] | None = None) -> int:
                         "search of traced positions finds best (jprt.design.search_start; for lights to recover "
                         "from an image, whose shadows the gradient alone does not move)")
     p.add_argument("--verify-spp", type=int, default=256, help="Mitsuba's spp for the verification render")
-    p.add_argument("--corrections", type=int, default=1,
-                   help="point lights: where a bound is missed on the verification render, this many times "
-                        "scale each object's model light by its render-to-model ratio, design on and verify again")
     p.add_argument("--out", default=None, help="write the report here (JSON)")
     args = parser.parse_args(argv)
 
@@ -270,7 +267,6 @@ def _design(args) -> int:
     check_run_folder(args.folder)
     report = design_run(args.folder, args.objective, lights=args.lights, size=args.size, steps=args.steps,
                         learning_rate=args.lr, verify_spp=args.verify_spp, env=args.env, progress=True,
-                        corrections=args.corrections,
                         start="search" if args.start == "search" else None,
                         optimise=None if args.optimise is None else [s.strip() for s in args.optimise.split(",")
                                                                       if s.strip()])
@@ -283,9 +279,6 @@ def _design(args) -> int:
                   f"{', '.join(f'{v:.4g}' for v in i)}")
     print(f"objective: model {report['model_objective']:.4g}, Mitsuba at {report['verify_spp']} spp "
           f"{report['verified_objective']:.4g} (design {report['design_s']:.1f} s, verification {report['verify_s']:.1f} s)")
-    for k, r in enumerate(report.get("corrections", [])):
-        print(f"correction {k + 1}: render / model " + ", ".join(f"{key} {v:.3g}" for key, v in
-                                                               r["render_to_model"].items()))
     for key, b in report.get("bounds", {}).items():
         within = " and ".join(x for x in (f">= {b['min']:.4g}" if b["min"] is not None else "",
                                           f"<= {b['max']:.4g}" if b["max"] is not None else "") if x)

@@ -53,7 +53,7 @@ from jprt.progress import bar as progress_bar
 
 __all__ = ["ObjectiveError", "ImageTarget", "ObjectTarget", "Objective", "load_objective", "object_masks",
            "objective_terms", "LightParams", "to_params", "from_params", "point_direct", "irradiance_from",
-           "point_visibility", "DesignResult", "design", "search_start", "corrected_objective", "design_frame", "rendered_terms",
+           "point_visibility", "DesignResult", "design", "search_start", "design_frame", "rendered_terms",
            "gradient_check", "object_means", "bounds_report", "rendered_environment_terms",
            "Problem", "POINT_METHODS", "measurement_points", "load_problem", "design_run", "EnvironmentResult",
            "environment_transfer", "environment_frame", "design_environment", "ENVIRONMENT_METHODS", "OBJECTIVE_KEYS", "QUANTITIES"]
@@ -371,21 +371,23 @@ def point_direct(gbuffer, position, intensity, visibility, *, glossy: bool = Tru
     n = jnp.where(valid, jnp.asarray(gbuffer.normal), up)
     lead = (1,) * (p.ndim - 2)
     position = jnp.asarray(position).reshape(lead + (-1, 3))  # (1, 1, K, 3)
-    intensity = jnp.asarray(intensity).reshape(lead + (-1, 3))
+    intensity = jnp.asarray(intensity).reshape(-1, 3)  # (K, 3)
     d = position - p  # (H, W, K, 3)
     r2 = jnp.maximum(jnp.sum(d * d, axis=-1), 1e-12)
     w = d * jax.lax.rsqrt(r2)[..., None]
     cos = jnp.maximum(jnp.sum(n[..., None, :] * w, axis=-1), 0.0)  # (H, W, K)
     vis = jax.lax.stop_gradient(jnp.asarray(visibility))
-    e_k = (cos * vis / r2)[..., None] * intensity  # (H, W, K, 3)
-    irradiance = jnp.sum(e_k, axis=-2)
+    # the sums over the lights are contractions (einsum), not a broadcast product summed over K:
+    # XLA:CPU (jax 0.10.2) compiled that form wrongly for K = 2 when the intensities came from a
+    # mean over RGB broadcast back (``_light_map``'s power), about half the light or NaN
+    irradiance = jnp.einsum("...k,kc->...c", cos * vis / r2, intensity)
     radiance = jnp.asarray(gbuffer.diffuse_albedo) / jnp.pi * irradiance
     if glossy:
         spec = jnp.asarray(gbuffer.specular_albedo)
         view = jnp.where(valid, jnp.asarray(gbuffer.view), up)
         rough = jnp.where(valid[..., 0], jnp.asarray(gbuffer.roughness), 1.0)
         f = _ggx_brdf_cos(n[..., None, :], view[..., None, :], w, rough[..., None], spec[..., None, :])
-        radiance = radiance + jnp.sum(f * (vis / r2)[..., None] * intensity, axis=-2)
+        radiance = radiance + jnp.einsum("...kc,...k,kc->...c", f, vis / r2, intensity)
     return jnp.where(valid, radiance, 0.0), jnp.where(valid, irradiance, 0.0)
 
 
@@ -785,7 +787,9 @@ def _light_map(p0: LightParams, optimise: Sequence[str], lo, hi) -> Callable:
         # stop_gradient: Adam's per-element steps would let a held mean drift)
         u = params.u if free_u else u0
         s = params.log_intensity
-        mean = jnp.mean(s, axis=-1, keepdims=True)
+        # the mean over RGB as a product with a constant, not a reduction broadcast back: the
+        # latter met an XLA:CPU miscompilation for two lights (``point_direct``'s note)
+        mean = s @ jnp.full((3, 1), 1.0 / 3.0, s.dtype)
         level = mean if free_power else level0
         tint = s - mean if free_colour else tint0
         position, _ = from_params(LightParams(u, s), lo, hi)
@@ -1395,7 +1399,7 @@ def load_problem(folder: str, objective_path, *, size: int = 64, env: str | None
 def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int = 64, steps: int = 200,
                learning_rate: float = 0.05, visibility_every: int = 10,
                optimise: Sequence[str] | None = None, start: dict | str | None = None, verify_spp: int = 256,
-               seed: int = 0, env: str | None = None, corrections: int = 1, progress: bool | None = None) -> dict:
+               seed: int = 0, env: str | None = None, progress: bool | None = None) -> dict:
     """Design the lighting of the run folder ``folder`` for the objective file ``objective_path``:
     point lights (RRF, data-driven PRT, MRT) or the turn and scale of an environment map (``env``,
     one of the run's maps; default the first: neural-wavelet PRT, SH PRT, ``_design_environment_run``).
@@ -1405,13 +1409,7 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
     "search": traced candidates, the frame linear in the lights) or spread over the light region
     (None; seeded). Then the **verification**: the found
     lighting rendered by Mitsuba at ``verify_spp`` (full and indirect), the objective's terms on
-    that render (``rendered_terms``) beside the model's. Where an object bound is missed on the
-    render, up to ``corrections`` times (point lights): each bounded object's model mean is
-    scaled by its render-to-model ratio at the found lights (``corrected_objective``: its bounds
-    divided by the ratio), the design goes on from there and is verified again; the report's
-    ``corrections`` lists each round. A fitted model's error in an object's light (RRF's on
-    `staircase`: about 25 % low) otherwise lands a design that meets the bounds on the model
-    outside them on the render. Returns the report (a dict, JSON-ready).
+    that render (``rendered_terms``) beside the model's. Returns the report (a dict, JSON-ready).
 
     Numerics: not differentiable (loads a run folder, designs, renders with Mitsuba).
     """
@@ -1450,39 +1448,13 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
                                               result.intensity, spp=int(verify_spp), seed=int(seed) + 101,
                                               reference_power=reference, means=True)
     verify_s = time.perf_counter() - t0
-    rounds, design_s = [], result.seconds + (search_s or 0.0)
-    for _ in range(int(corrections)):
-        if not pb.objective.objects or all(v["met"] for v in bounds_report(pb.objective, verified_means).values()):
-            break
-        corrected, ratio = corrected_objective(pb.objective, result.means, verified_means)
-        result = design(pb.frame, corrected, pb.masks, result.position, result.intensity, lo, hi,
-                        visibility_fn=pb.visibility, steps=steps, learning_rate=learning_rate,
-                        visibility_every=visibility_every, optimise=optimise, reference_power=reference,
-                        progress=progress)
-        t0 = time.perf_counter()
-        verified, verified_means = rendered_terms(handle, pb.camera, gb, pb.objective, pb.masks, result.position,
-                                                  result.intensity, spp=int(verify_spp), seed=int(seed) + 101,
-                                                  reference_power=reference, means=True)
-        verify_s += time.perf_counter() - t0
-        design_s += result.seconds
-        rounds.append({"render_to_model": ratio, "found": {"position": result.position.tolist(),
-                                                            "intensity": result.intensity.tolist()},
-                       "model_means": result.means, "verified_means": verified_means,
-                       "bounds_met_verified": all(v["met"] for v in
-                                                  bounds_report(pb.objective, verified_means).values())})
-    if rounds:  # the model's terms on the objective as written, not the corrected one
-        vis = jax.tree_util.tree_map(jnp.asarray, pb.visibility(result.position))
-        frames = pb.frame(jnp.asarray(result.position, jnp.float32), jnp.asarray(result.intensity, jnp.float32), vis)
-        terms = {k: float(v) for k, v in objective_terms(pb.objective, pb.masks, *frames,
-                                                         jnp.asarray(result.intensity), reference).items()}
-        result = result._replace(terms=terms)
     return {"run": os.path.abspath(folder), "method": pb.session.method.name,
             "objective": os.path.abspath(objective_path),
             "frame": list(np.shape(gb.valid)), "light_region": {"lo": lo.tolist(), "hi": hi.tolist()},
             "start": {"position": pos0.tolist(), "intensity": inten0.tolist()},
             "found": {"position": result.position.tolist(), "intensity": result.intensity.tolist()},
             "steps": int(steps), "steps_taken": int(len(result.history)), "search_s": search_s,
-            "design_s": design_s, "step_cost": result.step_cost, "corrections": rounds,
+            "design_s": result.seconds + (search_s or 0.0), "step_cost": result.step_cost,
             "visibility_updates": result.visibility_updates,
             "history": result.history.tolist(), "model_terms": result.terms,
             "model_objective": float(sum(result.terms.values())), "verified_terms": verified,
@@ -1544,26 +1516,6 @@ def rendered_environment_terms(pb: Problem, angle: float, scale, *, spp: int, se
                             EnvMap.create(render_equirect(found.astype(np.float32))),
                             lambda: np.einsum("hwj,jc->hwc", pb.transfer, found.reshape(-1, 3)), scale,
                             spp=int(spp), seed=int(seed), reference_power=3.0, means=means)
-
-
-def corrected_objective(objective: Objective, model_means: dict, verified_means: dict) -> tuple[Objective, dict]:
-    """``objective`` with each object target's bounds divided by its render-to-model ratio
-    (``verified_means`` / ``model_means``, as ``object_means`` keys them) and that ratio
-    {"name.quantity": float}: a model whose mean on an object is ratio x too low then meets the
-    corrected bounds where a render meets the written ones, as long as the ratio holds near the
-    lights. A target whose model mean or render mean is not positive keeps its bounds (ratio 1).
-
-    Numerics: not differentiable (rescales bounds).
-    """
-    ratio, objects = {}, []
-    for target in objective.objects:
-        key = f"{target.name}.{target.quantity}"
-        m, v = float(model_means[key]), float(verified_means[key])
-        r = v / m if m > 0 and v > 0 else 1.0
-        ratio[key] = r
-        objects.append(target._replace(min=None if target.min is None else target.min / r,
-                                       max=None if target.max is None else target.max / r))
-    return objective._replace(objects=tuple(objects)), ratio
 
 
 def _bounds(objective: Objective, model_means: dict, verified_means: dict) -> dict:
