@@ -573,7 +573,7 @@ def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights
                 found[k] = candidate(c, s)
     refine = (8 if k_lights > 1 else 0) if refine is None else int(refine)
     if refine > 0:
-        found = _refine_lights(render, objective, masks, found, lo, hi, reference, refine=int(refine),
+        found = _refine_lights(render, objective, masks, found, lo, hi, reference, refine=refine,
                                radius=0.5 * (hi - lo) * m ** (-1.0 / 3.0), seed=int(seed), solver=solver)
     return (np.stack([f[0] for f in found]),
             np.repeat(np.asarray([f[1] for f in found], np.float64).reshape(-1, 1), 3, axis=1))
@@ -617,7 +617,8 @@ def _refine_lights(render: Callable, objective: Objective, masks, found: list, l
                               axis=1).reshape(-1, 3)  # (K * (local + 1), 3), light-major
         start = np.zeros((k, local + 1))
         start[:, 0] = inten
-        w = _candidate_weights(render(cand), objective, masks, reference, None, init=start.reshape(-1),
+        cand_units = render(cand)
+        w = _candidate_weights(cand_units, objective, masks, reference, None, init=start.reshape(-1),
                                solver=solver)
         w = w.reshape(k, local + 1)
         total = w.sum(axis=1)
@@ -636,15 +637,15 @@ def _refine_lights(render: Callable, objective: Objective, masks, found: list, l
         for j in np.argsort(-inten):  # the weakest light splits a brighter one, the brightest first
             if k < 2 or j == weak:
                 continue
-            cloud = np.concatenate([pos[j:j + 1], np.clip(pos[j] + qmc_points * radius, lo, hi)])
+            block = slice(j * (local + 1), (j + 1) * (local + 1))  # light j and its points, rendered above
+            cloud = cand[block]
             start = np.zeros(local + 1)
             start[0] = inten[j] + inten[weak]
             rest = [i for i in range(k) if i not in (j, weak)]
             fixed = [jnp.tensordot(jnp.asarray(inten[rest], jnp.float32), u[np.asarray(rest, int)], axes=1)
                      for u in units]
-            cu = render(cloud)
-            w = _candidate_weights(cu, objective, masks, reference, None, init=start, fixed=fixed,
-                                   fixed_power=float(np.sum(inten[rest])), solver=solver)
+            w = _candidate_weights([u[block] for u in cand_units], objective, masks, reference, None, init=start,
+                                   fixed=fixed, fixed_power=float(np.sum(inten[rest])), solver=solver)
             groups = _merge_candidates((cloud - lo) / np.where(hi > lo, hi - lo, 1.0), w, 2)
             if len(groups) < 2:
                 continue
