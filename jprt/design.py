@@ -506,23 +506,24 @@ def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights
         raise ValueError(f"search_start's mode is 'joint' or 'greedy', got {mode!r}")
     pos = lo + (hi - lo) * qmc.Sobol(3, scramble=True, seed=int(seed)).random(m)
     reference = float(3 * k_lights * level) if reference_power is None else float(reference_power)
-    unit = jnp.ones((1, 3), jnp.float32)
+    unit = np.ones((1, 3), np.float32)
     frame = jax.jit(frame_fn)
 
     def render(pos):
-        """The unit frames of candidates at ``pos`` (N, 3): three (N, H, W, 3) arrays (full,
-        indirect, irradiance)."""
+        """The unit frames of candidates at ``pos`` (N, 3): three (N, H, W, 3) float32 NumPy
+        arrays (full, indirect, irradiance). The plumbing around the compiled frame is NumPy: an
+        op-by-op JAX slice or stack compiles a program of its own per shape, seconds in all."""
         vis = (None if visibility_fn is None else
-               jax.tree_util.tree_map(jnp.asarray, visibility_fn(pos)))  # last axis: the candidates
+               jax.tree_util.tree_map(lambda a: np.asarray(a, np.float32), visibility_fn(pos)))  # last axis: the candidates
         out = []
         for c in progress_bar(range(len(pos)), progress=progress, desc="candidate lights", unit="light"):
-            v = ({"pixels": jnp.ones((1, 1, 1), jnp.float32)} if vis is None else
-                 jax.tree_util.tree_map(lambda a, c=c: a[..., c:c + 1], vis))
-            out.append(frame(jnp.asarray(pos[c:c + 1], jnp.float32), unit, v))
-        return [jnp.stack([u[i] for u in out]) for i in range(3)]
+            v = ({"pixels": np.ones((1, 1, 1), np.float32)} if vis is None else
+                 jax.tree_util.tree_map(lambda a, c=c: np.ascontiguousarray(a[..., c:c + 1]), vis))
+            out.append(frame(np.asarray(pos[c:c + 1], np.float32), unit, v))
+        return [np.stack([np.asarray(u[i]) for u in out]) for i in range(3)]
 
     units = render(pos)
-    scales = jnp.asarray(float(level) * 2.0 ** np.linspace(-6.0, 6.0, 49), jnp.float32)
+    scales = np.asarray(float(level) * 2.0 ** np.linspace(-6.0, 6.0, 49), np.float32)
 
     @jax.jit
     def best(units, others, other_power):
@@ -535,10 +536,11 @@ def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights
             inten = jnp.concatenate([other_power, jnp.full((1, 3), s)], axis=0)
             return sum(objective_terms(objective, masks, *frames, inten, reference).values())
 
-        values = jax.lax.map(lambda c: jax.vmap(lambda s: at(c, s))(scales),
+        levels = jnp.asarray(scales)
+        values = jax.lax.map(lambda c: jax.vmap(lambda s: at(c, s))(levels),
                              jnp.arange(units[0].shape[0]))  # (M, scales)
         flat = jnp.argmin(values)
-        return values.reshape(-1)[flat], flat // scales.shape[0], scales[flat % scales.shape[0]]
+        return values.reshape(-1)[flat], flat // levels.shape[0], levels[flat % levels.shape[0]]
 
     @jax.jit
     def value(frames, power):
@@ -550,19 +552,19 @@ def search_start(frame_fn: Callable, objective: Objective, masks, lo, hi, lights
         """The frames and summed intensity ((1, 3): the power penalty reads only the sum) of the
         lights found, but light ``skip``."""
         rest = [f for j, f in enumerate(found) if j != skip]
-        frames = [sum((f[2][i] for f in rest), jnp.zeros_like(u[0])) for i, u in enumerate(units)]
-        return frames, jnp.full((1, 3), sum(f[1] for f in rest), jnp.float32)
+        frames = [sum((f[2][i] for f in rest), np.zeros_like(u[0])) for i, u in enumerate(units)]
+        return frames, np.full((1, 3), sum(f[1] for f in rest), np.float32)
 
     def candidate(c, s):
         return pos[int(c)], float(s), [float(s) * u[int(c)] for u in units]
 
     solver = _weights_solver(objective, masks, reference)
     if mode == "joint":
-        weights = _candidate_weights(units, objective, masks, reference, scales / m, solver=solver)
+        weights = _candidate_weights(units, objective, masks, reference, scales / np.float32(m), solver=solver)
         for g in _merge_candidates((pos - lo) / np.where(hi > lo, hi - lo, 1.0), weights, k_lights):
-            w = jnp.asarray(weights[g], jnp.float32)
+            w = np.asarray(weights[g], np.float32)
             found.append((np.sum(weights[g, None] * pos[g], axis=0) / np.sum(weights[g]), float(np.sum(weights[g])),
-                          [jnp.tensordot(w, u[g], axes=1) for u in units]))
+                          [np.tensordot(w, u[g], axes=1) for u in units]))
     while len(found) < k_lights:  # greedy, beside the lights found
         _, c, s = best(units, *placed(None))
         found.append(candidate(c, s))
@@ -604,9 +606,8 @@ def _refine_lights(render: Callable, objective: Objective, masks, found: list, l
     inten = np.asarray([f[1] for f in found], np.float64)
 
     def value_of(units, w):
-        frames = [jnp.tensordot(jnp.asarray(w, jnp.float32), u, axes=1) for u in units]
-        return float(sum(objective_terms(objective, masks, *frames, jnp.full((1, 3), float(np.sum(w))),
-                                         reference).values()))
+        return float(solver[2](np.asarray(w, np.float32), units, [np.zeros(np.shape(u)[1:], np.float32) for u in units],
+                               np.float32(0.0)))
 
     units = render(pos)
     inten = _candidate_weights(units, objective, masks, reference, None, init=inten, solver=solver)
@@ -642,7 +643,7 @@ def _refine_lights(render: Callable, objective: Objective, masks, found: list, l
             start = np.zeros(local + 1)
             start[0] = inten[j] + inten[weak]
             rest = [i for i in range(k) if i not in (j, weak)]
-            fixed = [jnp.tensordot(jnp.asarray(inten[rest], jnp.float32), u[np.asarray(rest, int)], axes=1)
+            fixed = [np.tensordot(np.asarray(inten[rest], np.float32), u[np.asarray(rest, int)], axes=1)
                      for u in units]
             w = _candidate_weights([u[block] for u in cand_units], objective, masks, reference, None, init=start,
                                    fixed=fixed, fixed_power=float(np.sum(inten[rest])), solver=solver)
@@ -687,26 +688,28 @@ def _candidate_weights(units, objective: Objective, masks, reference: float, lev
 
     Numerics: not differentiable (an optimisation).
     """
-    best_common, descend = _weights_solver(objective, masks, reference, steps) if solver is None else solver
+    best_common, descend, _ = _weights_solver(objective, masks, reference, steps) if solver is None else solver
     m = units[0].shape[0]
-    fixed = [jnp.zeros_like(u[0]) for u in units] if fixed is None else list(fixed)
-    power = jnp.float32(fixed_power)
+    fixed = [np.zeros(np.shape(u)[1:], np.float32) for u in units] if fixed is None else list(fixed)
+    power = np.float32(fixed_power)
     if init is None:
-        common = best_common(units, jnp.asarray(levels, jnp.float32), fixed, power)
-        v0 = jnp.ones((m,), jnp.float32)
+        common = best_common(units, np.asarray(levels, np.float32), fixed, power)
+        v0 = np.ones((m,), np.float32)
     else:
-        v0 = jnp.asarray(init, jnp.float32)
-        common = jnp.maximum(jnp.max(v0), 1e-30)
+        v0 = np.asarray(init, np.float32)
+        common = np.float32(max(float(np.max(v0)), 1e-30))
         v0 = v0 / common
     return np.asarray(descend(units, common, v0, fixed, power), np.float64)
 
 
-def _weights_solver(objective: Objective, masks, reference: float, steps: int = 200) -> tuple[Callable, Callable]:
-    """The two compiled programs of ``_candidate_weights`` for one objective: ``best_common(units,
+def _weights_solver(objective: Objective, masks, reference: float,
+                    steps: int = 200) -> tuple[Callable, Callable, Callable]:
+    """The compiled programs of ``_candidate_weights`` for one objective: ``best_common(units,
     levels, fixed, fixed_power)``, the level among ``levels`` best for every candidate at once,
     and ``descend(units, common, v0, fixed, fixed_power)``, ``steps`` projected Adam steps from
-    ``v0`` in units of ``common``. The frames are arguments, not constants of the programs, so
-    each compiles once per candidate count.
+    ``v0`` in units of ``common``; and ``value(w, units, fixed, fixed_power)``, the objective of
+    the candidates at intensities ``w`` beside the held lights. The frames are arguments, not
+    constants of the programs, so each compiles once per candidate count.
 
     Numerics: not differentiable (builds an optimisation).
     """
@@ -735,7 +738,7 @@ def _weights_solver(objective: Objective, masks, reference: float, steps: int = 
         (v, _), _ = jax.lax.scan(body, (v0, opt.init(v0)), None, length=int(steps))
         return common * v
 
-    return best_common, descend
+    return best_common, descend, jax.jit(value)
 
 
 def _merge_candidates(x: np.ndarray, weights: np.ndarray, k: int, iterations: int = 20) -> list[np.ndarray]:
@@ -771,39 +774,114 @@ def _merge_candidates(x: np.ndarray, weights: np.ndarray, k: int, iterations: in
 def _light_map(p0: LightParams, optimise: Sequence[str], lo, hi) -> Callable:
     """``lights(params) -> (position, intensity)`` (K, 3) each, JAX) of design parameters
     starting at ``p0``: what ``optimise`` leaves out ("position", "power": the overall intensity
-    per light, "colour": its RGB ratios) keeps its starting value."""
+    per light, "colour": its RGB ratios) keeps its starting value (``_held``, NumPy constants of
+    a traced program: closed-over device arrays gave the jitted step of an earlier, forward-mode
+    loop garbage values here, run to run)."""
+    lights, held = _light_map_held(optimise, lo, hi), _held(p0)
+    return lambda params: lights(params, held)
+
+
+def _held(p0: LightParams) -> dict:
+    """The starting values of ``p0`` a design keeps where ``optimise`` leaves them out: {"u" (K, 3),
+    "level" (K, 1): the mean log intensity over RGB, "tint" (K, 3): the rest}, float32 NumPy."""
+    s0 = np.asarray(p0.log_intensity, np.float32)
+    level0 = s0.mean(axis=-1, keepdims=True)
+    return {"u": np.asarray(p0.u, np.float32), "level": level0, "tint": s0 - level0}
+
+
+def _light_map_held(optimise: Sequence[str], lo, hi) -> Callable:
+    """``lights(params, held) -> (position, intensity)``: ``_light_map`` with the held starting
+    values (``_held``) an argument, so one compiled program serves every start."""
     bad = sorted(set(optimise) - {"position", "power", "colour"})
     if bad or not optimise:
         raise ValueError(f"optimise names 'position', 'power' and 'colour', got {list(optimise)}")
     free_u = "position" in optimise
     free_power, free_colour = "power" in optimise, "colour" in optimise
-    # the starting values as NumPy constants of the traced step (closed-over device arrays gave the
-    # jitted step of an earlier, forward-mode loop garbage values here, run to run)
-    s0 = np.asarray(p0.log_intensity)
-    level0, tint0 = s0.mean(axis=-1, keepdims=True), s0 - s0.mean(axis=-1, keepdims=True)
-    u0 = np.asarray(p0.u)
 
-    def lights(params):
-        # what does not move keeps its starting value (a constant, not the current parameter under
+    def lights(params, held):
+        # what does not move keeps its starting value (not the current parameter under
         # stop_gradient: Adam's per-element steps would let a held mean drift)
-        u = params.u if free_u else u0
+        u = params.u if free_u else held["u"]
         s = params.log_intensity
         # the mean over RGB as a product with a constant, not a reduction broadcast back: the
         # latter met an XLA:CPU miscompilation for two lights (``point_direct``'s note)
         mean = s @ jnp.full((3, 1), 1.0 / 3.0, s.dtype)
-        level = mean if free_power else level0
-        tint = s - mean if free_colour else tint0
+        level = mean if free_power else held["level"]
+        tint = s - mean if free_colour else held["tint"]
         position, _ = from_params(LightParams(u, s), lo, hi)
         return position, jnp.exp(level) * jnp.exp(tint)
 
     return lights
 
 
+class _DesignProgram(NamedTuple):
+    """``design``'s compiled pieces for one problem, the same for every start: ``step(params,
+    state, aux, scale)`` (``_adam``'s step; ``aux`` the traced visibility and {"held": ``_held``}),
+    ``init(params)`` (Adam's state), ``lights(params, held)`` (jitted ``_light_map_held``), and
+    ``warm``, a thread compiling them (``_warm_design``) or None."""
+
+    step: Callable
+    init: Callable
+    lights: Callable
+    warm: object = None
+
+
+def _design_program(frame_fn: Callable, objective: Objective, masks, lo, hi, *, optimise: Sequence[str],
+                    reference: float, steps: int, learning_rate: float) -> _DesignProgram:
+    """``design``'s programs (``_DesignProgram``) for a problem, before its start is known."""
+    lights = _light_map_held(optimise, lo, hi)
+
+    def model(params, aux):
+        pos, inten = lights(params, aux["held"])
+        return frame_fn(pos, inten, aux), inten
+
+    def loss(frames, inten):
+        terms = objective_terms(objective, masks, *frames, inten, reference)
+        return sum(terms.values()), (terms, object_means(objective, masks, frames[0], frames[2]))
+
+    step, init = _adam_program(model, loss, steps=steps, learning_rate=learning_rate)
+    return _DesignProgram(step, init, jax.jit(lights))
+
+
+def _warm_design(program: _DesignProgram, visibility_fn: Callable | None, lights: int, lo, hi) -> _DesignProgram:
+    """``program`` with a thread that compiles its step and light map (one call each on lights at
+    the region's centre) while the caller goes on, e.g. searching for the start: XLA compiles
+    without Python's lock, so the compilation overlaps the search. The visibility the call needs
+    is traced here, in the caller's thread (Mitsuba is called from one thread only)."""
+    import threading
+
+    k = int(lights)
+    centre = np.repeat((0.5 * (np.asarray(lo, np.float64) + np.asarray(hi, np.float64)))[None], k, axis=0)
+    params = to_params(centre, np.ones((k, 3)), lo, hi)
+    aux = _design_aux(visibility_fn, centre, _held(params), k)
+
+    def run():
+        try:
+            jax.block_until_ready(program.step(params, program.init(params), aux, jnp.float32(1.0)))
+            jax.block_until_ready(program.lights(params, aux["held"]))
+        except Exception:  # noqa: BLE001 -- the design's own call compiles again and reports the error
+            pass
+
+    thread = threading.Thread(target=run, name="jprt-design-compile", daemon=True)
+    thread.start()
+    return program._replace(warm=thread)
+
+
+def _design_aux(visibility_fn: Callable | None, position, held: dict, k: int) -> dict:
+    """``_adam``'s ``aux`` for ``design``: the visibility traced for lights at ``position`` (every
+    light visible everywhere without ``visibility_fn``) and the held starting values."""
+    if visibility_fn is None:
+        vis = {"pixels": jnp.ones((1, 1, int(k)), jnp.float32)}
+    else:
+        vis = jax.tree_util.tree_map(jnp.asarray, visibility_fn(np.asarray(position, np.float64)))
+    return {**vis, "held": held}
+
+
 def design(frame_fn: Callable, objective: Objective, masks, position, intensity, lo, hi, *,
            visibility_fn: Callable | None = None, steps: int = 200, learning_rate: float = 0.05,
            visibility_every: int = 10, optimise: Sequence[str] = ("position", "power"),
            keep_best: bool = True, tol: float = 1e-3, reference_power: float | None = None,
-           progress: bool | None = None) -> DesignResult:
+           program: _DesignProgram | None = None, progress: bool | None = None) -> DesignResult:
     """Optimise K point lights with optax Adam (the rate decaying to 1 % of ``learning_rate`` on a
     cosine) so that ``objective`` is smallest.
 
@@ -822,31 +900,28 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
     chosen on `staircase` and validated on the Cornell box (CHANGELOG.md, 2026-12-07 (from 03:36)).
     ``reference_power``: the power the objective's power penalty is relative to (default the sum of
     the starting intensities; a start from ``search_start`` passes the search's, so both score the
-    same objective).
+    same objective). ``program``: the problem's compiled pieces (``_design_program`` with the same
+    objective, masks, region, ``optimise``, reference, ``steps`` and ``learning_rate``), e.g.
+    compiled while the start was searched (``_warm_design``); default built here.
 
     Numerics: not differentiable (an optimisation loop over ``objective_terms``, ``point_direct`` and the model).
     """
     p0 = to_params(position, intensity, lo, hi)
     reference = float(np.sum(intensity)) if reference_power is None else float(reference_power)
-    lights = _light_map(p0, optimise, lo, hi)
-
-    def model(params, vis):
-        pos, inten = lights(params)
-        return frame_fn(pos, inten, vis), inten
-
-    def loss(frames, inten):
-        terms = objective_terms(objective, masks, *frames, inten, reference)
-        return sum(terms.values()), (terms, object_means(objective, masks, frames[0], frames[2]))
+    if program is None:
+        program = _design_program(frame_fn, objective, masks, lo, hi, optimise=optimise, reference=reference,
+                                  steps=steps, learning_rate=learning_rate)
+    elif program.warm is not None:
+        program.warm.join()  # its compilation done, the step below is a cache hit
+    held, k = _held(p0), int(np.shape(position)[0])
 
     def refresh(params):
-        if visibility_fn is None:
-            return {"pixels": jnp.ones((1, 1, int(np.shape(position)[0])), jnp.float32)}
-        return jax.tree_util.tree_map(jnp.asarray, visibility_fn(np.asarray(lights(params)[0], np.float64)))
+        return _design_aux(visibility_fn, program.lights(params, held)[0], held, k)
 
     params, history, (terms, means), seconds, updates, cost = _adam(
-        model, loss, p0, steps=steps, learning_rate=learning_rate, refresh=refresh, every=visibility_every,
-        progress=progress, keep_best=keep_best, tol=tol)
-    pos, inten = lights(params)
+        None, None, p0, steps=steps, learning_rate=learning_rate, refresh=refresh, every=visibility_every,
+        progress=progress, keep_best=keep_best, tol=tol, program=(program.step, program.init))
+    pos, inten = program.lights(params, held)
     return DesignResult(np.asarray(pos, np.float64), np.asarray(inten, np.float64), history, terms, seconds,
                         updates if visibility_fn is not None else 0, means, cost)
 
@@ -905,7 +980,8 @@ def mitsuba_design(peer, position, intensity, lo, hi, *, steps: int = 200, learn
 
 
 def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_rate: float, refresh: Callable,
-          every: int, progress: bool | None, keep_best: bool = False, tol: float = 0.0, patience: int = 3):
+          every: int, progress: bool | None, keep_best: bool = False, tol: float = 0.0, patience: int = 3,
+          program: tuple[Callable, Callable] | None = None):
     """Adam on ``objective(*model(params, aux)) -> (value, (terms, means))`` for ``steps`` steps, the rate
     decaying on a cosine to 1 %; ``aux = refresh(params)`` first, every ``every`` steps and at the
     end. ``model(params, aux) -> (frames, lighting)`` (arrays) must be reverse-mode differentiable
@@ -922,22 +998,14 @@ def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_
     the steps between refreshes follow a gradient that holds ``aux``; this is a trust region on
     the true objective around that gradient's steps. With ``keep_best`` and ``tol`` > 0 the loop
     also stops early, once ``patience`` refreshes in a row have not lowered the best refreshed
-    objective by more than ``tol`` of it (converged: the returned history is shorter)."""
-    import optax
-
-    # cosine decay to 1 % of the rate: the last steps settle instead of circling the optimum
-    opt = optax.adam(optax.cosine_decay_schedule(float(learning_rate), max(int(steps), 1), alpha=0.01))
-
-    @jax.jit
-    def step(params, state, aux, scale):
-        (value, _), grads = jax.value_and_grad(lambda p: objective(*model(p, aux)), has_aux=True)(params)
-        updates, state = opt.update(grads, state, params)
-        return optax.apply_updates(params, jax.tree_util.tree_map(lambda u: scale * u, updates)), state, value
-
-    evaluate = jax.jit(lambda p, a: objective(*model(p, a)))
-    state = opt.init(params)
+    objective by more than ``tol`` of it (converged: the returned history is shorter).
+    ``program``: (step, init) of ``_adam_program`` built beforehand (``model`` and ``objective``
+    then unused)."""
+    step, init = _adam_program(model, objective, steps=steps, learning_rate=learning_rate) if program is None \
+        else program
+    state = init(params)
     aux, refreshes, history = None, 0, []
-    best, scale, stale = None, 1.0, 0
+    best, scale, stale, end = None, 1.0, 0, None
     every = max(int(every), 1)
     t0 = time.perf_counter()
     bar = progress_bar(range(int(steps)), progress=progress, desc="design", unit="step")
@@ -945,33 +1013,60 @@ def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_
         if i % every == 0:
             aux = refresh(params)
             refreshes += 1
+            # the step's value is the objective with the fresh ``aux`` at ``params``: keep-best
+            # reads it there instead of evaluating the objective in a program of its own
+            nxt = step(params, state, aux, jnp.float32(scale))
+            end = nxt[3]
             if keep_best:
-                now = float(evaluate(params, aux)[0])
+                now = float(nxt[2])
                 stale = 0 if best is None or now < best[0] * (1.0 - tol) else stale + 1
                 if best is None or now <= best[0]:
-                    best = (now, params, state, aux)
+                    best = (now, params, state, aux, end)
                 else:  # the held gradient's steps made the true objective worse: back, shorter steps
-                    _, params, state, aux = best
+                    _, params, state, aux, end = best
                     scale *= 0.5
+                    nxt = None
                 if tol > 0 and stale >= int(patience):
-                    break  # converged; ``aux`` is fresh for ``params``
-        params, state, value = step(params, state, aux, jnp.float32(scale))
+                    break  # converged; ``aux`` is fresh for ``params``, ``end`` their terms
+                if nxt is None:
+                    nxt = step(params, state, aux, jnp.float32(scale))
+        else:
+            nxt = step(params, state, aux, jnp.float32(scale))
+        params, state, value, _ = nxt
         history.append(float(value))
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(objective=f"{history[-1]:.3g}")
     else:
         aux = refresh(params)
         refreshes += 1
-    last, end = evaluate(params, aux)
-    if keep_best and best is not None and float(last) > best[0]:
-        _, params, _, aux = best
-        _, end = evaluate(params, aux)
+        _, _, last, end = step(params, state, aux, jnp.float32(scale))
+        if keep_best and best is not None and float(last) > best[0]:
+            _, params, _, aux, end = best
     terms, means = ({k: float(v) for k, v in d.items()} for d in end)
     seconds = time.perf_counter() - t0
     from jprt.eval import xla_cost
 
     return params, np.asarray(history), (terms, means), seconds, refreshes, xla_cost(step, params, state, aux,
                                                                                       jnp.float32(1.0))
+
+
+def _adam_program(model: Callable, objective: Callable, *, steps: int, learning_rate: float):
+    """``_adam``'s (step, init): the jitted step (the objective's value and gradient, Adam's
+    update scaled by ``scale``; it returns the value and (terms, means) at the parameters before
+    the update) and Adam's ``init``."""
+    import optax
+
+    # cosine decay to 1 % of the rate: the last steps settle instead of circling the optimum
+    opt = optax.adam(optax.cosine_decay_schedule(float(learning_rate), max(int(steps), 1), alpha=0.01))
+
+    @jax.jit
+    def step(params, state, aux, scale):
+        (value, out), grads = jax.value_and_grad(lambda p: objective(*model(p, aux)), has_aux=True)(params)
+        updates, state = opt.update(grads, state, params)
+        params = optax.apply_updates(params, jax.tree_util.tree_map(lambda u: scale * u, updates))
+        return params, state, value, out  # value and out: at the parameters before the update
+
+    return step, opt.init
 
 
 def design_frame(gbuffer, indirect_fn: Callable, *, glossy: bool = True) -> Callable:
@@ -1420,7 +1515,8 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
                                        learning_rate=learning_rate, optimise=optimise, verify_spp=verify_spp,
                                        seed=seed, progress=progress)
     lo, hi, gb, handle = pb.lo, pb.hi, pb.gbuffer, pb.session.handle
-    search_s, reference = None, None
+    search_s, reference, program = None, None, None
+    optimise = ("position", "power") if optimise is None else optimise
     if start is None:
         rng = np.random.default_rng(seed)
         pos0 = lo + (hi - lo) * rng.uniform(0.25, 0.75, (int(lights), 3))
@@ -1428,8 +1524,14 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
     elif isinstance(start, str):
         if start != "search":
             raise ValueError(f"start is a dict of lights, 'search' or None, got {start!r}")
+        from scipy.stats import qmc  # noqa: F401 -- the search's import (0.6 s once a process), before the clock
+
         t0 = time.perf_counter()
         reference = 3.0 * int(lights)  # search_start's reference at its default level 1
+        # the design's programs compile in a thread while the search runs
+        program = _warm_design(_design_program(pb.frame, pb.objective, pb.masks, lo, hi, optimise=optimise,
+                                               reference=reference, steps=steps, learning_rate=learning_rate),
+                               pb.visibility, int(lights), lo, hi)
         pos0, inten0 = search_start(pb.frame, pb.objective, pb.masks, lo, hi, int(lights),
                                     visibility_fn=pb.visibility, seed=seed, reference_power=reference,
                                     progress=progress)
@@ -1439,10 +1541,9 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
         inten0 = np.asarray(start["intensity"], np.float64).reshape(-1, 3)
     # the power penalty's reference, one for the search, the design and the verification
     reference = float(np.sum(inten0)) if reference is None else reference
-    optimise = ("position", "power") if optimise is None else optimise
     result = design(pb.frame, pb.objective, pb.masks, pos0, inten0, lo, hi, visibility_fn=pb.visibility,
                     steps=steps, learning_rate=learning_rate, visibility_every=visibility_every, optimise=optimise,
-                    reference_power=reference, progress=progress)
+                    reference_power=reference, program=program, progress=progress)
     # verification: Mitsuba under the found lights, the objective on its render
     t0 = time.perf_counter()
     verified, verified_means = rendered_terms(handle, pb.camera, gb, pb.objective, pb.masks, result.position,

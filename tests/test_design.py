@@ -492,6 +492,32 @@ def test_what_is_not_optimised_keeps_its_starting_value():
     np.testing.assert_allclose(power.intensity[0] / power.intensity[0, 0], 1.0, rtol=1e-5)
 
 
+def test_a_program_compiled_before_the_start_serves_every_start():
+    """``design_run`` compiles the design's step while the start is searched (``_warm_design``),
+    so the held starting values are arguments of the program, not its constants: one program,
+    compiled at the region's centre, designs from two other starts exactly as a program built
+    for each, and what is not optimised stays at each start's own value."""
+    gb = _floor(n=8)
+    frame = design.design_frame(gb, lambda p, i, v: jnp.zeros((8, 8, 3)), glossy=False)
+    lo, hi = np.array([-0.8, 0.6, -0.8]), np.array([0.8, 1.6, 0.8])
+    target, _, _ = frame(np.array([[0.1, 1.0, 0.0]]), np.array([[2.0, 1.0, 0.5]]), {"pixels": jnp.ones((8, 8, 1))})
+    obj = design.Objective(design.ImageTarget(np.asarray(target), None, "full", 1.0), (), 0.0, "synthetic")
+    masks = np.zeros((0, 8, 8))
+    program = design._warm_design(design._design_program(frame, obj, masks, lo, hi, optimise=["colour"],
+                                                         reference=3.0, steps=40, learning_rate=0.05),
+                                  None, 1, lo, hi)
+    for start_p in (np.array([[-0.2, 1.2, 0.3]]), np.array([[0.5, 0.9, -0.6]])):
+        start_i = np.ones((1, 3))
+        shared = design.design(frame, obj, masks, start_p, start_i, lo, hi, steps=40, optimise=["colour"],
+                               reference_power=3.0, program=program, progress=False)
+        own = design.design(frame, obj, masks, start_p, start_i, lo, hi, steps=40, optimise=["colour"],
+                            reference_power=3.0, progress=False)
+        np.testing.assert_allclose(shared.position, start_p, atol=1e-5)
+        np.testing.assert_allclose(shared.position, own.position, rtol=1e-6)
+        np.testing.assert_allclose(shared.intensity, own.intensity, rtol=1e-5)
+        np.testing.assert_allclose(shared.history, own.history, rtol=1e-5)
+
+
 def test_merge_candidates_makes_one_light_of_neighbours_that_share_its_weight():
     """Weight spread over three neighbouring candidates and over two far from them: K = 2 gives
     one group per cluster; a K beyond the candidates with weight gives one group each; no weight
