@@ -817,12 +817,14 @@ def _light_map_held(optimise: Sequence[str], lo, hi) -> Callable:
 class _DesignProgram(NamedTuple):
     """``design``'s compiled pieces for one problem, the same for every start: ``step(params,
     state, aux, scale)`` (``_adam``'s step; ``aux`` the traced visibility and {"held": ``_held``}),
-    ``init(params)`` (Adam's state), ``lights(params, held)`` (jitted ``_light_map_held``), and
-    ``warm``, a thread compiling them (``_warm_design``) or None."""
+    ``init(params)`` (Adam's state), ``lights(params, held)`` (jitted ``_light_map_held``),
+    ``key`` (what it was built for: ``_design_key``) and ``warm``, a thread compiling them
+    (``_warm_design``) or None."""
 
     step: Callable
     init: Callable
     lights: Callable
+    key: tuple
     warm: object = None
 
 
@@ -840,14 +842,24 @@ def _design_program(frame_fn: Callable, objective: Objective, masks, lo, hi, *, 
         return sum(terms.values()), (terms, object_means(objective, masks, frames[0], frames[2]))
 
     step, init = _adam_program(model, loss, steps=steps, learning_rate=learning_rate)
-    return _DesignProgram(step, init, jax.jit(lights))
+    return _DesignProgram(step, init, jax.jit(lights),
+                          _design_key(frame_fn, objective, masks, lo, hi, optimise, reference, steps, learning_rate))
+
+
+def _design_key(frame_fn, objective, masks, lo, hi, optimise, reference, steps, learning_rate) -> tuple:
+    """What a ``_DesignProgram`` is built for, to compare with a ``design`` call that passes it."""
+    return (id(frame_fn), id(objective), id(masks), tuple(np.asarray(lo, np.float64).tolist()),
+            tuple(np.asarray(hi, np.float64).tolist()), tuple(sorted(optimise)), float(reference), int(steps),
+            float(learning_rate))
 
 
 def _warm_design(program: _DesignProgram, visibility_fn: Callable | None, lights: int, lo, hi) -> _DesignProgram:
     """``program`` with a thread that compiles its step and light map (one call each on lights at
-    the region's centre) while the caller goes on, e.g. searching for the start: XLA compiles
-    without Python's lock, so the compilation overlaps the search. The visibility the call needs
-    is traced here, in the caller's thread (Mitsuba is called from one thread only)."""
+    the region's centre, run once) while the caller goes on, e.g. searching for the start: XLA's
+    backend compilation runs without Python's lock (tracing and lowering hold it), so most of
+    the compilation overlaps the search. The visibility the call needs is traced here, in the
+    caller's thread (Mitsuba is called from one thread only). The caller joins the thread
+    (``design`` does) before it stops its clock."""
     import threading
 
     k = int(lights)
@@ -911,8 +923,13 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
     if program is None:
         program = _design_program(frame_fn, objective, masks, lo, hi, optimise=optimise, reference=reference,
                                   steps=steps, learning_rate=learning_rate)
-    elif program.warm is not None:
-        program.warm.join()  # its compilation done, the step below is a cache hit
+    else:
+        key = _design_key(frame_fn, objective, masks, lo, hi, optimise, reference, steps, learning_rate)
+        if program.key != key:
+            raise ValueError("design's program was built for another problem, objective, region, optimise, "
+                             "reference power, steps or learning rate than this call's")
+        if program.warm is not None:
+            program.warm.join()  # its compilation done, the step below is a cache hit
     held, k = _held(p0), int(np.shape(position)[0])
 
     def refresh(params):
@@ -1532,9 +1549,12 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
         program = _warm_design(_design_program(pb.frame, pb.objective, pb.masks, lo, hi, optimise=optimise,
                                                reference=reference, steps=steps, learning_rate=learning_rate),
                                pb.visibility, int(lights), lo, hi)
-        pos0, inten0 = search_start(pb.frame, pb.objective, pb.masks, lo, hi, int(lights),
-                                    visibility_fn=pb.visibility, seed=seed, reference_power=reference,
-                                    progress=progress)
+        try:
+            pos0, inten0 = search_start(pb.frame, pb.objective, pb.masks, lo, hi, int(lights),
+                                        visibility_fn=pb.visibility, seed=seed, reference_power=reference,
+                                        progress=progress)
+        finally:
+            program.warm.join()  # the compilation that outlasts the search is counted with it
         search_s = time.perf_counter() - t0
     else:
         pos0 = np.asarray(start["position"], np.float64).reshape(-1, 3)

@@ -516,6 +516,9 @@ def test_a_program_compiled_before_the_start_serves_every_start():
         np.testing.assert_allclose(shared.position, own.position, rtol=1e-6)
         np.testing.assert_allclose(shared.intensity, own.intensity, rtol=1e-5)
         np.testing.assert_allclose(shared.history, own.history, rtol=1e-5)
+    with pytest.raises(ValueError, match="built for another"):
+        design.design(frame, obj, masks, start_p, np.ones((1, 3)), lo, hi, steps=40, optimise=["power"],
+                      reference_power=3.0, program=program, progress=False)
 
 
 def test_merge_candidates_makes_one_light_of_neighbours_that_share_its_weight():
