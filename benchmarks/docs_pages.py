@@ -139,6 +139,15 @@ INTROS: dict[str, dict] = {
                  "See [SG light-field textures](../methods/sg_lightfield.md).",
         "make": "make bench-sg",
     },
+    "sg_shading": {
+        "title": "SG light-field textures: shading one lobe",
+        "intro": "The run-time shading of SG light-field textures, one light lobe reflected by the GGX BRDF, "
+                 "against a float64 brute-force integral over a grid of lobe sharpness, roughness and view "
+                 "angle: directions drawn from the lobe alone, the default (broad lobes integrated at "
+                 "directions drawn from the BRDF), other bounds between the two, and Appendix B's product. "
+                 "See [SG light-field textures](../methods/sg_lightfield.md).",
+        "make": "python benchmarks/sg_shading.py",
+    },
     "sphere": {
         "title": "Spherical bases",
         "intro": "Cube-map Haar wavelets against PyWavelets, SH projection against a NumPy reference, and the "

@@ -19,8 +19,9 @@
   image to its N x 7 raw parameters; trained with Adam on all texels (``fit_cnn``). Its input is
   log(1 + T) (the paper does not say how HDR input is scaled; the loss compares logs too).
 * **Run time** (§6): per pixel, the lobes of its texel (bilinear in the atlas), each integrated
-  against the GGX BRDF at ``shading.samples``^2 directions drawn from it (``shade_sampled``, the
-  default: Appendix B's product lost 8 dB to the lobes' own quadrature bound on the benchmark's
+  against the GGX BRDF at ``shading.samples``^2 directions drawn from it, or from the BRDF's
+  visible normals where the lobe is broader than the BRDF (``shade_sampled``, the default:
+  Appendix B's product lost 8 dB to the lobes' own quadrature bound on the benchmark's
   receivers), or, with ``shading.samples`` 0, by Appendix B (Eq. 15-24 with the errata of
   ``jprt.sphere.sg``, ``shade``): the GGX NDF as an SG warped to an ASG about the reflected view
   direction, each lobe convolved with it, times Smith's G (separable GGX, in the V = G / (4 n.l
@@ -633,7 +634,7 @@ def _brdf_sampled(n, v, nv, m2, lobes, s: int):
     nx, ny, nz = n
     vx, vy, vz = v
     ux, uy, uz, lam = lobes
-    # a tangent frame about the normal, continuous but at nz = -1 (Duff et al. 2017)
+    # a tangent frame about the normal (Duff et al. 2017; the result does not depend on its turn)
     sign = jnp.where(nz >= 0.0, 1.0, -1.0)
     a = -1.0 / (sign + nz)
     c = nx * ny * a
@@ -669,8 +670,13 @@ def _brdf_sampled(n, v, nv, m2, lobes, s: int):
             nl = 2.0 * vh * mz - nvc  # n . l for l = 2 (v . h) h - v
             hx, hy, hz = mx * tx + my * bx + mz * nx, mx * ty + my * by + mz * ny, mx * tz + my * bz + mz * nz
             lx, ly, lz = 2.0 * vh * hx - vx, 2.0 * vh * hy - vy, 2.0 * vh * hz - vz
+            # unit again: vh and nl use the clamped n . v, the view itself may face away
+            il = jax.lax.rsqrt(jnp.maximum(lx * lx + ly * ly + lz * lz, 1e-20))
+            lx, ly, lz = lx * il, ly * il, lz * il
             w = 2.0 * _ggx_v1_cos(m2, nl)  # G1(l), 0 below the surface
-            light = jnp.exp(lam * (lx * ux + ly * uy + lz * uz - 1.0)) * w
+            # l . u - 1 as -|l - u|^2 / 2: no cancellation near the lobe's axis (``lobe_radiance``)
+            cos1 = -0.5 * (jnp.square(lx - ux) + jnp.square(ly - uy) + jnp.square(lz - uz))
+            light = jnp.exp(lam * cos1) * w
             fw = 1.0 - jnp.clip(vh, 0.0, 1.0)
             fw2 = fw * fw
             plain = plain + light
@@ -679,7 +685,7 @@ def _brdf_sampled(n, v, nv, m2, lobes, s: int):
 
 
 def _shade_planes_sampled(at, normal, view, roughness, specular, diffuse_albedo, samples: int,
-                          brdf_sampled: bool = True):
+                          brdf_sampled: bool = True, broad_bound: float = 1.0):
     """``shade_sampled`` for fetched texels as planes (``lobe_planes``), the layout of
     ``_shade_planes``."""
     ux, uy, uz, lam = at[:4]
@@ -687,12 +693,13 @@ def _shade_planes_sampled(at, normal, view, roughness, specular, diffuse_albedo,
     ux, uy, uz = ux * inv, uy * inv, uz * inv
     (tx, ty, tz), (bx, by, bz) = _lobe_tangents(ux, uy, uz)
     s = int(samples)
+    lam_drawn = jnp.maximum(lam, 1e-6)  # the lobe-drawn directions' sharpness, finite at lambda 0
     nx, ny, nz = (normal[..., k:k + 1] for k in range(3))
     vx, vy, vz = (view[..., k:k + 1] for k in range(3))
     nv = nx * vx + ny * vy + nz * vz
     ndotv = jnp.maximum(nv, 1e-4)
-    a2 = jnp.square(jnp.maximum(roughness, 1e-3))[..., None] + 1.0 / (lam * (s * s))  # widened per lobe
-    tail = 1.0 - jnp.exp(-2.0 * lam)  # the SG's mass in the cosine's range
+    a2 = jnp.square(jnp.maximum(roughness, 1e-3))[..., None] + 1.0 / (lam_drawn * (s * s))  # widened per lobe
+    tail = 1.0 - jnp.exp(-2.0 * lam_drawn)  # the SG's mass in the cosine's range
     gv = _ggx_v1(a2, ndotv)
     # a direction d = cx t + cy b + cos u enters only through n . d and v . d (both linear in its
     # frame coordinates), and h = (d + v) / |d + v| with |d + v|^2 = 2 + 2 v . d
@@ -701,7 +708,7 @@ def _shade_planes_sampled(at, normal, view, roughness, specular, diffuse_albedo,
     plain, grazing = 0.0, 0.0
     for i in range(s):
         # 1 - cos of the stratum's direction, from the SG's inverse CDF (no 1 - cos cancellation)
-        t = -jnp.log1p(-((i + 0.5) / s) * tail) / lam
+        t = -jnp.log1p(-((i + 0.5) / s) * tail) / lam_drawn
         cos = 1.0 - t
         sin = jnp.sqrt(jnp.maximum(t * (2.0 - t), 0.0))
         for j in range(s):
@@ -721,15 +728,16 @@ def _shade_planes_sampled(at, normal, view, roughness, specular, diffuse_albedo,
             w2 = w * w
             plain = plain + value
             grazing = grazing + value * (w2 * w2 * w)
-    energy = (2.0 * math.pi / (s * s)) * tail / lam  # each direction's share of the SG's integral
+    energy = (2.0 * math.pi / (s * s)) * tail / lam_drawn  # each direction's share of the SG's integral
     plain, grazing = plain * energy, grazing * energy
     if brdf_sampled:
         # a lobe broader than the BRDF: its light is smooth over the BRDF's directions, so those
-        # are drawn instead (``_brdf_sampled``); broader: its variance 1 / lambda exceeds the
-        # half vector's under GGX, alpha^2 / 2 (``shade_sampled`` says how that was chosen)
+        # are drawn instead (``_brdf_sampled``); broader: sharpness lambda below 2 / alpha^2, the
+        # sharpness of the SG that stands for the GGX NDF (Appendix B, Eq. 17; ``shade_sampled``
+        # says how that bound was chosen)
         m2 = jnp.square(jnp.maximum(roughness, 1e-3))[..., None]
         by_brdf = _brdf_sampled((nx, ny, nz), (vx, vy, vz), nv, m2, (ux, uy, uz, lam), s)
-        broad = lam * (0.5 * m2) < 1.0
+        broad = lam * (0.5 * m2) < broad_bound
         plain, grazing = jnp.where(broad, by_brdf[0], plain), jnp.where(broad, by_brdf[1], grazing)
     base, schlick = _amplitude_sum(plain, at), _amplitude_sum(grazing, at)
     f0 = jnp.asarray(specular)
@@ -737,7 +745,7 @@ def _shade_planes_sampled(at, normal, view, roughness, specular, diffuse_albedo,
 
 
 def shade_sampled(lobes: Lobes, normal, view, roughness, specular, diffuse_albedo, irradiance, samples: int = 3,
-                  brdf_sampled: bool = True):
+                  brdf_sampled: bool = True, broad_bound: float = 1.0):
     """Outgoing radiance (..., 3) like ``shade``, with each lobe integrated against the GGX BRDF
     by ``samples`` x ``samples`` stratified directions drawn from the lobe itself instead of
     Appendix B's SG x ASG product.
@@ -757,27 +765,29 @@ def shade_sampled(lobes: Lobes, normal, view, roughness, specular, diffuse_albed
     centres miss a glossy BRDF's peak: against a brute-force integral (400k directions) of one
     lobe (lambda 0.5-300, on and off the mirror direction) through GGX (alpha 0.05-0.6, Schlick
     f0 0.04, views 0-84 degrees from the normal), the lobe-drawn directions alone give 9-60 % of
-    a broad lobe's reflection at grazing views. With ``brdf_sampled`` (default) a lobe whose
-    variance 1 / lambda exceeds the GGX half vector's, alpha^2 / 2, is integrated instead at
-    ``samples`` x ``samples`` directions drawn from the BRDF (``_brdf_sampled``, its visible
-    normals): on that grid the median relative error 0.18 -> 0.035, the 90th percentile 0.71 ->
-    0.14, the summed absolute error over the summed integral 0.59 -> 0.044 (f0 0.9: 0.32 ->
-    0.035). The bound between the two was chosen on that grid, no scene (factors 1, 4, 8, 16 of
-    it tried: 0.089, 0.044, 0.043, 0.042 summed, 90th percentiles 0.16, 0.14, 0.17, 0.23); 2 x 2
-    BRDF directions instead of 3 x 3 doubled the error (0.098). The cost: both integrals for
-    every lobe, about twice the shading's time.
+    a broad lobe's reflection at grazing views (``python benchmarks/sg_shading_grid.py``). With
+    ``brdf_sampled`` (default) a lobe of sharpness lambda < 2 / alpha^2 (that of the SG standing
+    for the GGX NDF, Appendix B's Eq. 17) is integrated instead at ``samples`` x ``samples``
+    directions drawn from the BRDF (``_brdf_sampled``, its visible normals): on that grid the
+    median relative error 0.18 -> 0.035, the 90th percentile 0.71 -> 0.14, the summed absolute
+    error over the summed integral 0.59 -> 0.044 (f0 0.9: 0.32 -> 0.035). The bound was chosen on
+    that grid, no scene: lambda alpha^2 / 2 below ``broad_bound`` = 1/4, 1, 2 or 4 gave 0.089, 0.044, 0.043, 0.042
+    summed and 0.16, 0.14, 0.17, 0.23 at the 90th percentile; 2 x 2 BRDF directions instead of
+    3 x 3 doubled the error (0.098). The cost: both integrals for every lobe, about twice the
+    shading's time.
 
     Numerics:
         case: shade_sampled (4 lobes as in ``lobe_radiance``; unit normals, views to 89.9 degrees
           from them, roughness in [1e-3, 1], specular and albedo in [0, 1], irradiance in [0, 1e5])
-        fd: off (clamps at n . v = 1e-4, n . l = 0 and n . h = 0)
+        fd: off (clamps at n . v = 1e-4, n . l = 0 and n . h = 0; the switch to BRDF-drawn directions at
+          lambda alpha^2 / 2 = 1 and their frame's turn with the view's azimuth at normal incidence)
         float32: value rtol 1e-3 atol 1e-2; grad rtol 1e-3 atol 1e-2
         (sums of samples^2 x 4 terms with amplitudes to 1e5: absolute rounding near zero)
     """
     planes = (lobes.axes[..., 0], lobes.axes[..., 1], lobes.axes[..., 2], lobes.sharpness,
               lobes.amplitude[..., 0], lobes.amplitude[..., 1], lobes.amplitude[..., 2], jnp.asarray(irradiance))
     return _shade_planes_sampled(planes, jnp.asarray(normal), jnp.asarray(view), jnp.asarray(roughness),
-                                 specular, jnp.asarray(diffuse_albedo), samples, brdf_sampled)
+                                 specular, jnp.asarray(diffuse_albedo), samples, brdf_sampled, broad_bound)
 
 
 #: Pixels per tile of the evaluator's loop (see ``evaluator``).
