@@ -118,22 +118,31 @@ def test_shading_matches_quadrature_of_the_ggx_brdf():
     call for all). The SG stand-in for the GGX NDF (Eq. 17) overestimates: by at most 8 % for
     sharp lobes (lambda 300, a near-delta light), 25 % for broad ones (lambda 10), and the error
     shrinks as the lobe sharpens."""
-    n = np.array([0.0, 0.0, 1.0])
-    lams = (10.0, 50.0, 300.0)
-    cases = [(alpha, deg, lam) for alpha in (0.2, 0.3, 0.5) for deg in (0.0, 30.0, 60.0) for lam in lams]
-    views = np.array([[np.sin(np.radians(d)), 0.0, np.cos(np.radians(d))] for _, d, _ in cases])
-    refl = 2 * views[:, 2:3] * n - views
-    lobes = M.Lobes(jnp.asarray(refl[:, None], jnp.float32), jnp.asarray([[lam] for *_, lam in cases]),
-                    jnp.ones((len(cases), 1, 3)))
+    n, lams = np.array([0.0, 0.0, 1.0]), (10.0, 50.0, 300.0)
+    cases, views, refl, lobes, args = _mirror_cases((0.2, 0.3, 0.5), (0.0, 30.0, 60.0), lams, 0.9)
     k = len(cases)
-    shaded = np.asarray(jax.jit(M.shade)(lobes, jnp.asarray(np.broadcast_to(n, (k, 3))), jnp.asarray(views),
-                                         jnp.asarray([a for a, *_ in cases]), jnp.full((k, 3), 0.9),
-                                         jnp.zeros((k, 3)), jnp.zeros((k, 3))))
+    shaded = np.asarray(jax.jit(M.shade)(lobes, *args))
     for i in range(0, k, len(lams)):  # one (alpha, view) per group of lambdas
         exact = _quadrature(refl[i], lams, n, views[i], cases[i][0], 0.9)
         ratios = [float(shaded[i + j, 0]) / exact[j] for j in range(len(lams))]
         assert all(1.0 <= q <= 1.25 for q in ratios), (cases[i][:2], ratios)
         assert ratios[-1] <= 1.08 and ratios[0] >= ratios[1] >= ratios[2], (cases[i][:2], ratios)
+
+
+def _mirror_cases(alphas, degrees, lams, f0):
+    """One lobe per (alpha, view angle, lambda) on the view's mirror direction about n = +z, views
+    in the xz-plane: (cases, views, mirror directions, ``Lobes``, ``shade_sampled``'s arguments
+    after the lobes, with specular ``f0``)."""
+    n = np.array([0.0, 0.0, 1.0])
+    cases = [(alpha, deg, lam) for alpha in alphas for deg in degrees for lam in lams]
+    views = np.array([[np.sin(np.radians(d)), 0.0, np.cos(np.radians(d))] for _, d, _ in cases])
+    refl = 2 * views[:, 2:3] * n - views
+    k = len(cases)
+    lobes = M.Lobes(jnp.asarray(refl[:, None], jnp.float32), jnp.asarray([[lam] for *_, lam in cases]),
+                    jnp.ones((k, 1, 3)))
+    args = (jnp.asarray(np.broadcast_to(n, (k, 3))), jnp.asarray(views), jnp.asarray([a for a, *_ in cases]),
+            jnp.full((k, 3), f0), jnp.zeros((k, 3)), jnp.zeros((k, 3)))
+    return cases, views, refl, lobes, args
 
 
 def test_sampled_shading_converges_to_quadrature_of_the_ggx_brdf():
@@ -143,16 +152,9 @@ def test_sampled_shading_converges_to_quadrature_of_the_ggx_brdf():
     over), never above the exact integral by more than 1 %; at 6 x 6 within 4 % everywhere (the
     strata converge to the integral). The default shading, which takes the broad lobes here
     (lambda 10 at alpha 0.2 and 0.3) by directions drawn from the BRDF, is within 6 % on them all."""
-    n = np.array([0.0, 0.0, 1.0])
-    lams = (10.0, 50.0, 300.0)
-    cases = [(alpha, deg, lam) for alpha in (0.2, 0.3, 0.5) for deg in (0.0, 30.0, 60.0) for lam in lams]
-    views = np.array([[np.sin(np.radians(d)), 0.0, np.cos(np.radians(d))] for _, d, _ in cases])
-    refl = 2 * views[:, 2:3] * n - views
+    n, lams = np.array([0.0, 0.0, 1.0]), (10.0, 50.0, 300.0)
+    cases, views, refl, lobes, args = _mirror_cases((0.2, 0.3, 0.5), (0.0, 30.0, 60.0), lams, 0.9)
     k = len(cases)
-    lobes = M.Lobes(jnp.asarray(refl[:, None], jnp.float32), jnp.asarray([[lam] for *_, lam in cases]),
-                    jnp.ones((k, 1, 3)))
-    args = (jnp.asarray(np.broadcast_to(n, (k, 3))), jnp.asarray(views), jnp.asarray([a for a, *_ in cases]),
-            jnp.full((k, 3), 0.9), jnp.zeros((k, 3)), jnp.zeros((k, 3)))
     shaded = {s: np.asarray(M.shade_sampled(lobes, *args, samples=s, brdf_sampled=False))[:, 0] for s in (3, 6)}
     default = np.asarray(M.shade_sampled(lobes, *args))[:, 0]
     for i in range(0, k, len(lams)):
@@ -172,16 +174,9 @@ def test_broad_lobes_keep_their_glossy_reflection_at_grazing_views():
     under half of it in some case; the same cases turned by a rotation (normal, view and lobe
     together) shade the same to rounding (the BRDF's directions do not depend on the tangent
     frame)."""
-    n = np.array([0.0, 0.0, 1.0])
-    lams = (0.5, 2.0, 8.0)
-    cases = [(alpha, deg, lam) for alpha in (0.15, 0.3) for deg in (60.0, 75.0, 84.0) for lam in lams]
-    views = np.array([[np.sin(np.radians(d)), 0.0, np.cos(np.radians(d))] for _, d, _ in cases])
-    refl = 2 * views[:, 2:3] * n - views
+    n, lams = np.array([0.0, 0.0, 1.0]), (0.5, 2.0, 8.0)
+    cases, views, refl, lobes, args = _mirror_cases((0.15, 0.3), (60.0, 75.0, 84.0), lams, 0.04)
     k = len(cases)
-    lobes = M.Lobes(jnp.asarray(refl[:, None], jnp.float32), jnp.asarray([[lam] for *_, lam in cases]),
-                    jnp.ones((k, 1, 3)))
-    args = (jnp.asarray(np.broadcast_to(n, (k, 3))), jnp.asarray(views), jnp.asarray([a for a, *_ in cases]),
-            jnp.full((k, 3), 0.04), jnp.zeros((k, 3)), jnp.zeros((k, 3)))
     default = np.asarray(M.shade_sampled(lobes, *args))[:, 0]
     lobe_only = np.asarray(M.shade_sampled(lobes, *args, brdf_sampled=False))[:, 0]
     q, _ = np.linalg.qr(np.random.default_rng(3).normal(size=(3, 3)))

@@ -109,8 +109,10 @@ DEFAULT_CONFIG: dict[str, Any] = {
     # checked on veach-bidir (benchmarks/results/real_scenes.json: no loss there). brdf_sampling: a
     # lobe broader than the BRDF is integrated at samples^2 directions drawn from the BRDF instead
     # (its visible normals); off, every lobe is sampled itself, which loses up to 90 % of a broad
-    # lobe's reflection at grazing views (``shade_sampled``)
-    "shading": {"samples": 3, "brdf_sampling": True},
+    # lobe's reflection at grazing views (``shade_sampled``). broad_bound: a lobe is broad where
+    # lambda alpha^2 / 2 is below it (1: sharpness under 2 / alpha^2; chosen on
+    # benchmarks/sg_shading.py's grid of single lobes)
+    "shading": {"samples": 3, "brdf_sampling": True, "broad_bound": 1.0},
 }
 
 
@@ -840,6 +842,7 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
 
     samples = int(_cfg(config)["shading"]["samples"])
     brdf_sampling = bool(_cfg(config)["shading"].get("brdf_sampling", True))
+    broad_bound = float(_cfg(config)["shading"].get("broad_bound", 1.0))
     n = params["sharpness"].shape[-1]
     if samples < 0:
         raise ValueError(f"shading.samples must be >= 0 (0: Appendix B's product), got {samples}")
@@ -851,7 +854,8 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
         def shade_tile(uv, normal, view, roughness, specular, diffuse):
             at = lobe_planes(atlas_lookup(table, uv), n)
             if samples:
-                return _shade_planes_sampled(at, normal, view, roughness, specular, diffuse, samples, brdf_sampling)
+                return _shade_planes_sampled(at, normal, view, roughness, specular, diffuse, samples, brdf_sampling,
+                                             broad_bound)
             return _shade_planes(at, normal, view, roughness, specular, diffuse)
 
         out = map_tiles(shade_tile, (inputs.uv, inputs.normal, inputs.view, inputs.roughness, inputs.specular_albedo,
