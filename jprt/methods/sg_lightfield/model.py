@@ -840,9 +840,9 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     """
     from jprt.methods.lightmap_lookup import atlas_lookup
 
-    samples = int(_cfg(config)["shading"]["samples"])
-    brdf_sampling = bool(_cfg(config)["shading"].get("brdf_sampling", True))
-    broad_bound = float(_cfg(config)["shading"].get("broad_bound", 1.0))
+    shading = _cfg(config)["shading"]
+    samples, brdf_sampling, broad_bound = int(shading["samples"]), bool(shading["brdf_sampling"]), \
+        float(shading["broad_bound"])
     n = params["sharpness"].shape[-1]
     if samples < 0:
         raise ValueError(f"shading.samples must be >= 0 (0: Appendix B's product), got {samples}")
