@@ -201,6 +201,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="point lights: start spread over the light region (default), or at the candidates a "
                         "search of traced positions finds best (jprt.design.search_start; for lights to recover "
                         "from an image, whose shadows the gradient alone does not move)")
+    p.add_argument("--correct", type=int, default=1,
+                   help="point lights: passes of the correction (default 1; 0: none): the lights found are "
+                        "rendered by Mitsuba, the model's error there is held and the design runs again "
+                        "(jprt.design.model_offset)")
+    p.add_argument("--correct-spp", type=int, default=256, help="Mitsuba's spp for the correction's render "
+                                                                "(default 256)")
     p.add_argument("--verify-spp", type=int, default=256, help="Mitsuba's spp for the verification render")
     p.add_argument("--out", default=None, help="write the report here (JSON)")
     args = parser.parse_args(argv)
@@ -266,7 +272,8 @@ def _design(args) -> int:
 
     check_run_folder(args.folder)
     report = design_run(args.folder, args.objective, lights=args.lights, size=args.size, steps=args.steps,
-                        learning_rate=args.lr, verify_spp=args.verify_spp, env=args.env, progress=True,
+                        learning_rate=args.lr, verify_spp=args.verify_spp, correct=args.correct,
+                        correct_spp=args.correct_spp, env=args.env, progress=True,
                         start="search" if args.start == "search" else None,
                         optimise=None if args.optimise is None else [s.strip() for s in args.optimise.split(",")
                                                                       if s.strip()])
@@ -279,6 +286,11 @@ def _design(args) -> int:
                   f"{', '.join(f'{v:.4g}' for v in i)}")
     print(f"objective: model {report['model_objective']:.4g}, Mitsuba at {report['verify_spp']} spp "
           f"{report['verified_objective']:.4g} (design {report['design_s']:.1f} s, verification {report['verify_s']:.1f} s)")
+    corr = report.get("correction", {})
+    if corr.get("passes"):
+        print(f"correction: {corr['passes']} Mitsuba render(s) at {corr['spp']} spp held as the model's error "
+              f"({corr['seconds']:.1f} s of the design; model objective before it "
+              f"{report['uncorrected']['model_objective']:.4g})")
     for key, b in report.get("bounds", {}).items():
         within = " and ".join(x for x in (f">= {b['min']:.4g}" if b["min"] is not None else "",
                                           f"<= {b['max']:.4g}" if b["max"] is not None else "") if x)

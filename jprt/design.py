@@ -34,6 +34,11 @@ is above 1e-4 (a diffuse reading; 0 elsewhere).
 Point lights are parameterised so that they stay in the light region [lo, hi] (the box the
 model was trained on): position = lo + (hi - lo) sigmoid(u), intensity = exp(s) per channel
 (power and colour); ``optimise`` names which of ("position", "power", "colour") move.
+
+``design_run`` then **corrects** point lights for the model's own error: one Mitsuba render of
+the lights found, its difference to the model there held as an offset of the model's frames
+(``model_offset``), the design run again from there, and its lights kept where a render with the
+same seed says they are better.
 """
 
 from __future__ import annotations
@@ -53,7 +58,7 @@ from jprt.progress import bar as progress_bar
 
 __all__ = ["ObjectiveError", "ImageTarget", "ObjectTarget", "Objective", "load_objective", "object_masks",
            "objective_terms", "LightParams", "to_params", "from_params", "point_direct", "irradiance_from",
-           "point_visibility", "DesignResult", "design", "search_start", "design_frame", "rendered_terms",
+           "point_visibility", "DesignResult", "design", "search_start", "design_frame", "rendered_terms", "model_offset",
            "gradient_check", "object_means", "bounds_report", "rendered_environment_terms",
            "Problem", "POINT_METHODS", "measurement_points", "load_problem", "design_run", "EnvironmentResult",
            "environment_transfer", "environment_frame", "design_environment", "ENVIRONMENT_METHODS", "OBJECTIVE_KEYS", "QUANTITIES"]
@@ -816,15 +821,17 @@ def _light_map_held(optimise: Sequence[str], lo, hi) -> Callable:
 
 class _DesignProgram(NamedTuple):
     """``design``'s compiled pieces for one problem, the same for every start: ``step(params,
-    state, aux, scale)`` (``_adam``'s step; ``aux`` the traced visibility and {"held": ``_held``}),
-    ``init(params)`` (Adam's state), ``lights(params, held)`` (jitted ``_light_map_held``),
-    ``key`` (what it was built for: ``_design_key``) and ``warm``, a thread compiling them
+    state, aux, scale)`` (``_adam``'s step; ``aux`` the traced visibility, {"held": ``_held``}
+    and {"offset": the frames' held correction, ``_design_aux``}), ``init(params)`` (Adam's
+    state), ``lights(params, held)`` (jitted ``_light_map_held``), ``key`` (what it was built
+    for: ``_design_key``), ``shape`` (the frame's (H, W)) and ``warm``, a thread compiling them
     (``_warm_design``) or None."""
 
     step: Callable
     init: Callable
     lights: Callable
     key: tuple
+    shape: tuple = ()
     warm: object = None
 
 
@@ -835,7 +842,8 @@ def _design_program(frame_fn: Callable, objective: Objective, masks, lo, hi, *, 
 
     def model(params, aux):
         pos, inten = lights(params, aux["held"])
-        return frame_fn(pos, inten, aux), inten
+        # the held correction (``model_offset``; zeros without one) added to the model's frames
+        return tuple(f + o for f, o in zip(frame_fn(pos, inten, aux), aux["offset"])), inten
 
     def loss(frames, inten):
         terms = objective_terms(objective, masks, *frames, inten, reference)
@@ -843,7 +851,8 @@ def _design_program(frame_fn: Callable, objective: Objective, masks, lo, hi, *, 
 
     step, init = _adam_program(model, loss, steps=steps, learning_rate=learning_rate)
     return _DesignProgram(step, init, jax.jit(lights),
-                          _design_key(frame_fn, objective, masks, lo, hi, optimise, reference, steps, learning_rate))
+                          _design_key(frame_fn, objective, masks, lo, hi, optimise, reference, steps, learning_rate),
+                          tuple(int(n) for n in np.shape(masks)[1:]))
 
 
 def _design_key(frame_fn, objective, masks, lo, hi, optimise, reference, steps, learning_rate) -> tuple:
@@ -865,7 +874,7 @@ def _warm_design(program: _DesignProgram, visibility_fn: Callable | None, lights
     k = int(lights)
     centre = np.repeat((0.5 * (np.asarray(lo, np.float64) + np.asarray(hi, np.float64)))[None], k, axis=0)
     params = to_params(centre, np.ones((k, 3)), lo, hi)
-    aux = _design_aux(visibility_fn, centre, _held(params), k)
+    aux = _design_aux(visibility_fn, centre, _held(params), k, _zero_offset(program.shape))
 
     def run():
         try:
@@ -879,21 +888,28 @@ def _warm_design(program: _DesignProgram, visibility_fn: Callable | None, lights
     return program._replace(warm=thread)
 
 
-def _design_aux(visibility_fn: Callable | None, position, held: dict, k: int) -> dict:
+def _design_aux(visibility_fn: Callable | None, position, held: dict, k: int, offset: tuple) -> dict:
     """``_adam``'s ``aux`` for ``design``: the visibility traced for lights at ``position`` (every
-    light visible everywhere without ``visibility_fn``) and the held starting values."""
+    light visible everywhere without ``visibility_fn``), the held starting values and the frames'
+    held correction ``offset`` (three (H, W, 3) arrays)."""
     if visibility_fn is None:
         vis = {"pixels": jnp.ones((1, 1, int(k)), jnp.float32)}
     else:
         vis = jax.tree_util.tree_map(jnp.asarray, visibility_fn(np.asarray(position, np.float64)))
-    return {**vis, "held": held}
+    return {**vis, "held": held, "offset": offset}
+
+
+def _zero_offset(shape: tuple) -> tuple:
+    """No correction: three (H, W, 3) float32 zeros (full, indirect, irradiance)."""
+    return tuple(np.zeros(tuple(shape) + (3,), np.float32) for _ in range(3))
 
 
 def design(frame_fn: Callable, objective: Objective, masks, position, intensity, lo, hi, *,
            visibility_fn: Callable | None = None, steps: int = 200, learning_rate: float = 0.05,
            visibility_every: int = 10, optimise: Sequence[str] = ("position", "power"),
            keep_best: bool = True, tol: float = 1e-3, reference_power: float | None = None,
-           program: _DesignProgram | None = None, progress: bool | None = None) -> DesignResult:
+           offset: tuple | None = None, program: _DesignProgram | None = None,
+           progress: bool | None = None) -> DesignResult:
     """Optimise K point lights with optax Adam (the rate decaying to 1 % of ``learning_rate`` on a
     cosine) so that ``objective`` is smallest.
 
@@ -914,7 +930,10 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
     the starting intensities; a start from ``search_start`` passes the search's, so both score the
     same objective). ``program``: the problem's compiled pieces (``_design_program`` with the same
     objective, masks, region, ``optimise``, reference, ``steps`` and ``learning_rate``), e.g.
-    compiled while the start was searched (``_warm_design``); default built here.
+    compiled while the start was searched (``_warm_design``); default built here. ``offset``:
+    three (H, W, 3) arrays added to ``frame_fn``'s full, indirect and irradiance frames, held
+    constant (``model_offset``: the model's error measured on a render; ``design_run``'s
+    correction); None: none.
 
     Numerics: not differentiable (an optimisation loop over ``objective_terms``, ``point_direct`` and the model).
     """
@@ -931,9 +950,16 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
         if program.warm is not None:
             program.warm.join()  # its compilation done, the step below is a cache hit
     held, k = _held(p0), int(np.shape(position)[0])
+    if offset is None:
+        offset = _zero_offset(program.shape)
+    else:
+        offset = tuple(np.asarray(o, np.float32) for o in offset)
+        if len(offset) != 3 or any(o.shape != tuple(program.shape) + (3,) for o in offset):
+            raise ValueError(f"design's offset is three {tuple(program.shape) + (3,)} arrays (full, indirect, "
+                             f"irradiance), got {[np.shape(o) for o in offset]}")
 
     def refresh(params):
-        return _design_aux(visibility_fn, program.lights(params, held)[0], held, k)
+        return _design_aux(visibility_fn, program.lights(params, held)[0], held, k, offset)
 
     params, history, (terms, means), seconds, updates, cost = _adam(
         None, None, p0, steps=steps, learning_rate=learning_rate, refresh=refresh, every=visibility_every,
@@ -1123,6 +1149,55 @@ def rendered_terms(handle, camera, gbuffer, objective: Objective, masks, positio
                             means=means)
 
 
+def _render_frames(handle, camera, gbuffer, lighting, *, spp: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mitsuba's full and indirect radiance ((H, W, 3) float32 NumPy each) of ``lighting`` at
+    ``camera`` (``spp``, ``seed``), along the pixel-centre rays the G-buffer traces
+    (``jprt.render.images.centre_rays``); invalid G-buffer pixels 0."""
+    from jprt.render import images
+
+    handle.set_lighting(lighting)
+    r = images.centre_rays(handle, camera, spp=int(spp), seed=int(seed))
+    valid = np.asarray(gbuffer.valid, bool)[..., None]
+    full = np.where(valid, np.asarray(r.direct, np.float32) + np.asarray(r.indirect, np.float32), 0.0)
+    return full, np.where(valid, np.asarray(r.indirect, np.float32), 0.0)
+
+
+def model_offset(handle, camera, gbuffer, frame_fn: Callable, position, intensity, *,
+                 visibility_fn: Callable | None = None, spp: int = 256, seed: int = 0) -> tuple:
+    """The model's error at point lights ``position``, ``intensity`` (K, 3), measured on one
+    Mitsuba render: (full, indirect, irradiance) of the render (``spp``, ``seed``; irradiance
+    ``irradiance_from`` its indirect radiance plus the lights' direct irradiance) minus
+    ``frame_fn``'s at the same lights (visibility from ``visibility_fn``), three (H, W, 3)
+    float32 NumPy arrays, 0 at invalid pixels. The direct irradiance is the same analytic term
+    on both sides, so the irradiance's error is that of the indirect light.
+
+    ``design_run`` adds it, held constant, to the model's frames (``design``'s ``offset``) and
+    designs again from the lights it found: the corrected model equals the render at those lights,
+    and its gradient is the model's. Where the model's error changes slowly with the lighting
+    (the second design moves the lights by a small fraction of the scene), the corrected design's
+    optimum is the render's to first order, instead of the model's own, which its bias shifts
+    (a defect correction). The render's noise enters the offset; ``spp`` sets how much.
+
+    Numerics: not differentiable (a Mitsuba render).
+    """
+    from jprt.inputs import PointLights
+
+    position = np.asarray(position, np.float64)
+    full, ind = _render_frames(handle, camera, gbuffer, PointLights.create(np.asarray(position, np.float32),
+                                                                            np.asarray(intensity, np.float32)),
+                               spp=spp, seed=seed)
+    k = position.shape[0]
+    vis = ({"pixels": np.ones((1, 1, k), np.float32)} if visibility_fn is None else visibility_fn(position))
+    m_full, m_ind, _ = (np.asarray(a, np.float32) for a in jax.jit(frame_fn)(
+        jnp.asarray(position, jnp.float32), jnp.asarray(intensity, jnp.float32),
+        jax.tree_util.tree_map(jnp.asarray, vis)))
+    valid = np.asarray(gbuffer.valid, bool)[..., None]
+    d_full = np.where(valid, full - m_full, 0.0).astype(np.float32)
+    d_ind = np.where(valid, ind - m_ind, 0.0).astype(np.float32)
+    d_irr = np.where(valid, np.asarray(irradiance_from(d_ind, gbuffer.diffuse_albedo)), 0.0).astype(np.float32)
+    return d_full, d_ind, d_irr
+
+
 def _terms_on_render(handle, camera, gbuffer, objective: Objective, masks, lighting, e_direct: Callable, power, *,
                      spp: int, seed: int, reference_power: float, means: bool = False):
     """``objective_terms`` on Mitsuba's render of ``lighting`` at ``camera`` (``spp``, ``seed``;
@@ -1132,13 +1207,7 @@ def _terms_on_render(handle, camera, gbuffer, objective: Objective, masks, light
     it) plus the render's indirect radiance read as irradiance (``irradiance_from``); ``power``:
     the lighting's intensity (K, 3) or scale (1, 3) for the power penalty. With ``means``:
     (terms, {"name.quantity": the object's mean there} (``object_means``))."""
-    from jprt.render import images
-
-    handle.set_lighting(lighting)
-    r = images.centre_rays(handle, camera, spp=int(spp), seed=int(seed))
-    valid = np.asarray(gbuffer.valid, bool)[..., None]
-    full = np.where(valid, np.asarray(r.direct, np.float32) + np.asarray(r.indirect, np.float32), 0.0)
-    ind = np.where(valid, np.asarray(r.indirect, np.float32), 0.0)
+    full, ind = _render_frames(handle, camera, gbuffer, lighting, spp=spp, seed=seed)
     irr = 0.0 * full
     if objective.objects:
         irr = np.asarray(e_direct()) + np.asarray(irradiance_from(ind, gbuffer.diffuse_albedo))
@@ -1512,7 +1581,8 @@ def load_problem(folder: str, objective_path, *, size: int = 64, env: str | None
 def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int = 64, steps: int = 200,
                learning_rate: float = 0.05, visibility_every: int = 10,
                optimise: Sequence[str] | None = None, start: dict | str | None = None, verify_spp: int = 256,
-               seed: int = 0, env: str | None = None, progress: bool | None = None) -> dict:
+               correct: int = 1, correct_spp: int = 256, seed: int = 0, env: str | None = None,
+               progress: bool | None = None) -> dict:
     """Design the lighting of the run folder ``folder`` for the objective file ``objective_path``:
     point lights (RRF, data-driven PRT, MRT) or the turn and scale of an environment map (``env``,
     one of the run's maps; default the first: neural-wavelet PRT, SH PRT, ``_design_environment_run``).
@@ -1520,9 +1590,16 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
     (``load_problem``); ``lights`` point lights start at ``start`` ({"position", "intensity"},
     (K, 3) each), at the lights ``search_start`` finds among candidate positions (``start``
     "search": traced candidates, the frame linear in the lights) or spread over the light region
-    (None; seeded). Then the **verification**: the found
-    lighting rendered by Mitsuba at ``verify_spp`` (full and indirect), the objective's terms on
-    that render (``rendered_terms``) beside the model's. Returns the report (a dict, JSON-ready).
+    (None; seeded). Then ``correct`` passes of the **correction**: the lights found are rendered
+    once by Mitsuba at ``correct_spp``, the model's error there (``model_offset``) is held as an
+    offset of its frames, and the design runs again from those lights (same program, no new
+    compilation); its lights are kept only where a render of them with the same seed scores
+    lower than the render the offset came from (the report's ``correction["kept"]``, one flag a
+    pass). Its time counts in ``design_s`` (``correction["seconds"]`` apart). Then the
+    **verification**: the found lighting rendered by Mitsuba at ``verify_spp`` (full and
+    indirect; another seed), the objective's terms on that render (``rendered_terms``) beside the
+    model's (with the correction's offset). ``uncorrected`` in the report holds the lights before
+    the correction. Returns the report (a dict, JSON-ready).
 
     Numerics: not differentiable (loads a run folder, designs, renders with Mitsuba).
     """
@@ -1561,9 +1638,32 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
         inten0 = np.asarray(start["intensity"], np.float64).reshape(-1, 3)
     # the power penalty's reference, one for the search, the design and the verification
     reference = float(np.sum(inten0)) if reference is None else reference
-    result = design(pb.frame, pb.objective, pb.masks, pos0, inten0, lo, hi, visibility_fn=pb.visibility,
-                    steps=steps, learning_rate=learning_rate, visibility_every=visibility_every, optimise=optimise,
-                    reference_power=reference, program=program, progress=progress)
+    if program is None:  # one program for the design and its corrections
+        program = _design_program(pb.frame, pb.objective, pb.masks, lo, hi, optimise=optimise, reference=reference,
+                                  steps=steps, learning_rate=learning_rate)
+
+    def run(pos, inten, offset):
+        return design(pb.frame, pb.objective, pb.masks, pos, inten, lo, hi, visibility_fn=pb.visibility, steps=steps,
+                      learning_rate=learning_rate, visibility_every=visibility_every, optimise=optimise,
+                      reference_power=reference, offset=offset, program=program, progress=progress)
+
+    result = first = run(pos0, inten0, None)
+    t0 = time.perf_counter()
+    kept = []
+    for c in range(int(correct)):  # the model's error at the lights found, measured and held
+        s = int(seed) + 53 + c
+        offset = model_offset(handle, pb.camera, gb, pb.frame, result.position, result.intensity,
+                              visibility_fn=pb.visibility, spp=int(correct_spp), seed=s)
+        trial = run(result.position, result.intensity, offset)
+        # kept only where a render of its lights with the same seed (the same random numbers, so
+        # the two renders' noise mostly cancels in the comparison) scores lower than the render the
+        # offset came from; the corrected model's first value is that render's objective
+        after = sum(rendered_terms(handle, pb.camera, gb, pb.objective, pb.masks, trial.position, trial.intensity,
+                                   spp=int(correct_spp), seed=s, reference_power=reference).values())
+        kept.append(bool(after < float(trial.history[0])) if len(trial.history) else False)
+        if kept[-1]:
+            result = trial
+    correct_s = time.perf_counter() - t0
     # verification: Mitsuba under the found lights, the objective on its render
     t0 = time.perf_counter()
     verified, verified_means = rendered_terms(handle, pb.camera, gb, pb.objective, pb.masks, result.position,
@@ -1575,13 +1675,17 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
             "frame": list(np.shape(gb.valid)), "light_region": {"lo": lo.tolist(), "hi": hi.tolist()},
             "start": {"position": pos0.tolist(), "intensity": inten0.tolist()},
             "found": {"position": result.position.tolist(), "intensity": result.intensity.tolist()},
-            "steps": int(steps), "steps_taken": int(len(result.history)), "search_s": search_s,
-            "design_s": result.seconds + (search_s or 0.0), "step_cost": result.step_cost,
+            "steps": int(steps), "steps_taken": int(len(first.history)), "search_s": search_s,
+            "design_s": first.seconds + correct_s + (search_s or 0.0), "step_cost": result.step_cost,
             "visibility_updates": result.visibility_updates,
-            "history": result.history.tolist(), "model_terms": result.terms,
+            "correction": {"passes": int(correct), "spp": int(correct_spp), "seconds": correct_s, "kept": kept},
+            "uncorrected": {"position": first.position.tolist(), "intensity": first.intensity.tolist(),
+                            "design_s": first.seconds + (search_s or 0.0),
+                            "model_objective": float(sum(first.terms.values()))},
+            "history": first.history.tolist(), "model_terms": result.terms,
             "model_objective": float(sum(result.terms.values())), "verified_terms": verified,
             "verified_objective": float(sum(verified.values())), "verify_spp": int(verify_spp),
-            "verify_s": verify_s, **_bounds(pb.objective, result.means, verified_means),
+            "verify_s": verify_s, "reference_power": reference, **_bounds(pb.objective, result.means, verified_means),
             "direct": "analytic point lights (diffuse + GGX) with Mitsuba shadow rays every "
                       f"{int(visibility_every)} steps, held constant between"}
 

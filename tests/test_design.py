@@ -336,6 +336,9 @@ def test_jprt_design_on_a_test_preset_rrf_writes_a_verified_report(tmp_path, fit
             assert low + high == pytest.approx(report[f"{side}_terms"][key], rel=1e-4, abs=1e-9)
             assert b[f"met_{side}" if side == "verified" else "met_on_model"] == (low + high == 0.0)
     assert report["bounds_met_verified"] == all(b["met_verified"] for b in report["bounds"].values())
+    # the correction (one pass by default) ran from the design's lights and is timed in design_s
+    assert report["correction"]["passes"] == 1 and 0.0 < report["correction"]["seconds"] < report["design_s"]
+    assert np.asarray(report["uncorrected"]["position"]).shape == (1, 3)
     # from the search's lights: two white lights inside the region, the search timed in design_s
     assert main(["design", run, "--objective", objective, "--size", "12", "--steps", "6", "--lights", "2",
                  "--start", "search", "--verify-spp", "4", "--out", out]) == 0
@@ -519,6 +522,87 @@ def test_a_program_compiled_before_the_start_serves_every_start():
     with pytest.raises(ValueError, match="built for another"):
         design.design(frame, obj, masks, start_p, np.ones((1, 3)), lo, hi, steps=40, optimise=["power"],
                       reference_power=3.0, program=program, progress=False)
+
+
+def test_a_design_corrected_by_the_truths_error_recovers_what_a_biased_model_misses():
+    """``design_run``'s correction on a synthetic problem: the truth's indirect light is a bump
+    under the light; the model's bump sits 0.15 beside it, so the model's own optimum lies off the
+    light that made the target. Holding the truth's error at the design's result as ``offset``
+    and designing again from there (three times) moves the light at least halfway back to the truth's,
+    and lowers the objective measured on the truth; a zero offset changes nothing."""
+    gb = _floor(n=16)
+    x = jnp.asarray(np.asarray(gb.position)[..., 0:1])
+
+    def bump(shift):
+        def indirect(position, intensity, visibility):
+            return 0.4 * jnp.exp(-4.0 * (x - position[0, 0] - shift) ** 2) * jnp.mean(intensity) * jnp.ones((1, 1, 3))
+        return indirect
+
+    truth = design.design_frame(gb, bump(0.0), glossy=False)
+    model = design.design_frame(gb, bump(0.15), glossy=False)
+    lo, hi = np.array([-0.8, 0.6, -0.8]), np.array([0.8, 1.6, 0.8])
+    vis = {"pixels": jnp.ones((16, 16, 1))}
+    true_pos, ones = np.array([[0.2, 1.1, -0.1]]), np.ones((1, 3))
+    target, _, _ = truth(true_pos, ones, vis)
+    obj = design.Objective(design.ImageTarget(np.asarray(target), None, "full", 1.0), (), 0.0, "synthetic")
+    masks = np.zeros((0, 16, 16))
+    program = design._design_program(model, obj, masks, lo, hi, optimise=["position", "power"], reference=3.0,
+                                     steps=300, learning_rate=0.05)
+
+    def run(p, i, offset):
+        return design.design(model, obj, masks, p, i, lo, hi, steps=300, reference_power=3.0, offset=offset,
+                             program=program, progress=False)
+
+    def on_truth(r):
+        return float(sum(design.objective_terms(obj, masks, *truth(r.position, r.intensity, vis), r.intensity,
+                                                3.0).values()))
+
+    first = result = run(np.array([[-0.3, 0.9, 0.3]]), ones, None)
+    miss = np.linalg.norm(first.position - true_pos)
+    assert miss > 0.02  # the model's bias moves its optimum
+    unchanged = run(first.position, first.intensity, design._zero_offset((16, 16)))
+    np.testing.assert_allclose(unchanged.position, first.position, atol=2e-3)
+    for _ in range(3):
+        offset = tuple(np.asarray(t) - np.asarray(m) for t, m in zip(truth(result.position, result.intensity, vis),
+                                                                     model(result.position, result.intensity, vis)))
+        result = run(result.position, result.intensity, offset)
+    assert np.linalg.norm(result.position - true_pos) < 0.5 * miss
+    assert on_truth(result) < on_truth(first)
+    with pytest.raises(ValueError, match="offset is three"):
+        run(first.position, first.intensity, (np.zeros((8, 8, 3)),) * 3)
+
+
+def test_model_offset_is_the_render_minus_the_model_at_the_same_lights(mi):
+    """``model_offset`` of a model that predicts the analytic direct light and no indirect light,
+    in the Cornell box: the full error is the render minus that direct light, the indirect error
+    the render's indirect light (the same seed renders the same image), the irradiance's error
+    that indirect light read as irradiance (the direct irradiance is the same term on both
+    sides), and invalid pixels carry none."""
+    from jprt.inputs import PointLights
+    from jprt.render.gbuffer import gbuffer
+    from jprt.render.scenes import SceneHandle
+
+    handle = SceneHandle("cornell_box")
+    camera = handle.default_camera(8, 8)
+    gb = gbuffer(handle, camera)
+    frame = design.design_frame(gb, lambda p, i, v: jnp.zeros((8, 8, 3)), glossy=False)
+    pos, inten = np.array([[0.1, 0.8, -0.1]]), np.array([[2.0, 1.5, 1.0]])
+
+    def visibility(p):
+        return {"pixels": design.point_visibility(handle, gb, p)}
+
+    full, ind, irr = design.model_offset(handle, camera, gb, frame, pos, inten, visibility_fn=visibility, spp=16,
+                                         seed=3)
+    r_full, r_ind = design._render_frames(handle, camera, gb, PointLights.create(pos.astype(np.float32),
+                                                                                 inten.astype(np.float32)),
+                                          spp=16, seed=3)
+    valid = np.asarray(gb.valid, bool)[..., None]
+    assert np.max(r_ind) > 0  # the Cornell box has indirect light
+    np.testing.assert_array_equal(ind, r_ind)
+    direct = np.asarray(frame(pos, inten, visibility(pos))[0])
+    np.testing.assert_allclose(full, np.where(valid, r_full - direct, 0.0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(irr, np.asarray(design.irradiance_from(r_ind, gb.diffuse_albedo)), rtol=1e-6)
+    assert np.all(np.asarray([full, ind, irr])[:, ~valid[..., 0]] == 0)
 
 
 def test_merge_candidates_makes_one_light_of_neighbours_that_share_its_weight():
