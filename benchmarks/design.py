@@ -105,12 +105,14 @@ def _step_speed(rep: dict) -> dict:
     steps, visibility refreshes included) and its roofline (``jprt.eval.roofline_of``: XLA's
     FLOPs and bytes of one compiled step; the f32 matmul rate and the triad bandwidth measured
     once in this process). The steps are those the design took (``steps_taken``: it stops early once
-    its traces stop improving), not its budget."""
+    its traces stop improving), not its budget; the design before its correction
+    (``rep["uncorrected"]``), whose steps they are."""
     from jprt import eval as jeval
 
     if not _MACHINE:
         _MACHINE.update(matmul_gflops=jeval.matmul_peak_gflops(), bandwidth_gbs=jeval.stream_bandwidth_gbs())
-    ms = 1e3 * (rep["design_s"] - (rep.get("search_s") or 0.0)) / max(int(rep.get("steps_taken", rep["steps"])), 1)
+    seconds = rep["uncorrected"]["design_s"] if "uncorrected" in rep else rep["design_s"]
+    ms = 1e3 * (seconds - (rep.get("search_s") or 0.0)) / max(int(rep.get("steps_taken", rep["steps"])), 1)
     cost = rep.get("step_cost") or {}
     roof = jeval.roofline_of(cost.get("flops"), cost.get("bytes"), frame_ms=ms,
                              peak_gflops=_MACHINE["matmul_gflops"], bandwidth_gbs=_MACHINE["bandwidth_gbs"])
@@ -146,7 +148,7 @@ def _peer(args, pk, true_p, start: dict, diagonal: float, rep: dict, lo, hi) -> 
                                 learning_rate=args.learning_rate, every=args.peer_every, seed=args.seed,
                                 progress=False)
     for c in res.checkpoints:
-        c["verified_objective"] = _verify(args, pk, c["position"], c["intensity"], float(np.sum(start["intensity"])))
+        c["verified_objective"] = _verify(args, pk, c["position"], c["intensity"], rep["reference_power"])
     ours = rep["verified_objective"]
     reached = [c for c in res.checkpoints if c["verified_objective"] <= ours]
     seconds_to = reached[0]["seconds"] if reached else res.seconds

@@ -288,9 +288,9 @@ def _design(args) -> int:
           f"{report['verified_objective']:.4g} (design {report['design_s']:.1f} s, verification {report['verify_s']:.1f} s)")
     corr = report.get("correction", {})
     if corr.get("passes"):
-        print(f"correction: {corr['passes']} Mitsuba render(s) at {corr['spp']} spp held as the model's error "
-              f"({corr['seconds']:.1f} s of the design; model objective before it "
-              f"{report['uncorrected']['model_objective']:.4g})")
+        print(f"correction: {corr['passes']} pass(es), the model's error held from a Mitsuba render at {corr['spp']} "
+              f"spp, lights kept: {', '.join('yes' if k else 'no' for k in corr['kept'])} ({corr['seconds']:.1f} s "
+              f"of the design; model objective before it {report['uncorrected']['model_objective']:.4g})")
     for key, b in report.get("bounds", {}).items():
         within = " and ".join(x for x in (f">= {b['min']:.4g}" if b["min"] is not None else "",
                                           f"<= {b['max']:.4g}" if b["max"] is not None else "") if x)

@@ -957,6 +957,7 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
         if len(offset) != 3 or any(o.shape != tuple(program.shape) + (3,) for o in offset):
             raise ValueError(f"design's offset is three {tuple(program.shape) + (3,)} arrays (full, indirect, "
                              f"irradiance), got {[np.shape(o) for o in offset]}")
+    offset = tuple(jnp.asarray(o) for o in offset)  # on the device once, not copied every step
 
     def refresh(params):
         return _design_aux(visibility_fn, program.lights(params, held)[0], held, k, offset)
@@ -1165,11 +1166,11 @@ def _render_frames(handle, camera, gbuffer, lighting, *, spp: int, seed: int) ->
 def model_offset(handle, camera, gbuffer, frame_fn: Callable, position, intensity, *,
                  visibility_fn: Callable | None = None, spp: int = 256, seed: int = 0) -> tuple:
     """The model's error at point lights ``position``, ``intensity`` (K, 3), measured on one
-    Mitsuba render: (full, indirect, irradiance) of the render (``spp``, ``seed``; irradiance
-    ``irradiance_from`` its indirect radiance plus the lights' direct irradiance) minus
-    ``frame_fn``'s at the same lights (visibility from ``visibility_fn``), three (H, W, 3)
-    float32 NumPy arrays, 0 at invalid pixels. The direct irradiance is the same analytic term
-    on both sides, so the irradiance's error is that of the indirect light.
+    Mitsuba render: (full, indirect, irradiance) of the render (``spp``, ``seed``; irradiance the
+    lights' direct irradiance, ``point_direct`` with traced visibility, plus ``irradiance_from``
+    its indirect radiance, as ``rendered_terms`` reads it) minus ``frame_fn``'s at the same lights
+    (visibility from ``visibility_fn``; the frame evaluated one light at a time and summed, as a
+    point-light frame is), three (H, W, 3) float32 NumPy arrays, 0 at invalid pixels.
 
     ``design_run`` adds it, held constant, to the model's frames (``design``'s ``offset``) and
     designs again from the lights it found: the corrected model equals the render at those lights,
@@ -1183,19 +1184,25 @@ def model_offset(handle, camera, gbuffer, frame_fn: Callable, position, intensit
     from jprt.inputs import PointLights
 
     position = np.asarray(position, np.float64)
+    intensity = np.asarray(intensity, np.float32)
     full, ind = _render_frames(handle, camera, gbuffer, PointLights.create(np.asarray(position, np.float32),
-                                                                            np.asarray(intensity, np.float32)),
-                               spp=spp, seed=seed)
+                                                                            intensity), spp=spp, seed=seed)
     k = position.shape[0]
-    vis = ({"pixels": np.ones((1, 1, k), np.float32)} if visibility_fn is None else visibility_fn(position))
-    m_full, m_ind, _ = (np.asarray(a, np.float32) for a in jax.jit(frame_fn)(
-        jnp.asarray(position, jnp.float32), jnp.asarray(intensity, jnp.float32),
-        jax.tree_util.tree_map(jnp.asarray, vis)))
+    vis = jax.tree_util.tree_map(lambda a: np.asarray(a, np.float32),
+                                 {"pixels": np.ones((1, 1, k), np.float32)} if visibility_fn is None
+                                 else visibility_fn(position))  # last axis: the lights
+    # the model's frames one light at a time, summed (the frame is a sum over point lights, as
+    # ``search_start`` takes it): the one-light program the search compiled serves any K
+    frame = jax.jit(frame_fn)
+    model = [np.zeros(full.shape, np.float32) for _ in range(3)]
+    for j in range(k):
+        one = frame(np.asarray(position[j:j + 1], np.float32), intensity[j:j + 1],
+                    jax.tree_util.tree_map(lambda a, j=j: np.ascontiguousarray(a[..., j:j + 1]), vis))
+        model = [m + np.asarray(a, np.float32) for m, a in zip(model, one)]
+    e_direct = point_direct(gbuffer, position, intensity, vis["pixels"], glossy=False)[1]
+    irr = np.asarray(e_direct) + np.asarray(irradiance_from(ind, gbuffer.diffuse_albedo))
     valid = np.asarray(gbuffer.valid, bool)[..., None]
-    d_full = np.where(valid, full - m_full, 0.0).astype(np.float32)
-    d_ind = np.where(valid, ind - m_ind, 0.0).astype(np.float32)
-    d_irr = np.where(valid, np.asarray(irradiance_from(d_ind, gbuffer.diffuse_albedo)), 0.0).astype(np.float32)
-    return d_full, d_ind, d_irr
+    return tuple(np.where(valid, r - m, 0.0).astype(np.float32) for r, m in zip((full, ind, irr), model))
 
 
 def _terms_on_render(handle, camera, gbuffer, objective: Objective, masks, lighting, e_direct: Callable, power, *,
@@ -1591,11 +1598,12 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
     (K, 3) each), at the lights ``search_start`` finds among candidate positions (``start``
     "search": traced candidates, the frame linear in the lights) or spread over the light region
     (None; seeded). Then ``correct`` passes of the **correction**: the lights found are rendered
-    once by Mitsuba at ``correct_spp``, the model's error there (``model_offset``) is held as an
+    by Mitsuba at ``correct_spp``, the model's error there (``model_offset``) is held as an
     offset of its frames, and the design runs again from those lights (same program, no new
-    compilation); its lights are kept only where a render of them with the same seed scores
-    lower than the render the offset came from (the report's ``correction["kept"]``, one flag a
-    pass). Its time counts in ``design_s`` (``correction["seconds"]`` apart). Then the
+    compilation; the same step budget, stopping once its traces stop improving); its lights are
+    kept only where a second render, of them, with the same seed scores lower than the first
+    (the report's ``correction["kept"]``, one flag a pass). Two renders a pass; their time and
+    the design loop's count in ``design_s`` (``correction["seconds"]`` apart). Then the
     **verification**: the found lighting rendered by Mitsuba at ``verify_spp`` (full and
     indirect; another seed), the objective's terms on that render (``rendered_terms``) beside the
     model's (with the correction's offset). ``uncorrected`` in the report holds the lights before
@@ -1603,6 +1611,8 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
 
     Numerics: not differentiable (loads a run folder, designs, renders with Mitsuba).
     """
+    if int(correct) < 0 or int(correct_spp) < 1:
+        raise ValueError(f"design_run's correct is >= 0 passes and correct_spp >= 1, got {correct} and {correct_spp}")
     pb = load_problem(folder, objective_path, size=size, env=env, progress=progress)
     if pb.kind == "environment":
         return _design_environment_run(pb, folder, objective_path, steps=steps,
@@ -1648,22 +1658,25 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
                       reference_power=reference, offset=offset, program=program, progress=progress)
 
     result = first = run(pos0, inten0, None)
-    t0 = time.perf_counter()
-    kept = []
+    correct_s, kept = 0.0, []
     for c in range(int(correct)):  # the model's error at the lights found, measured and held
-        s = int(seed) + 53 + c
+        s = int(seed) + 1009 + c  # apart from the verification's seed + 101
+        t0 = time.perf_counter()
         offset = model_offset(handle, pb.camera, gb, pb.frame, result.position, result.intensity,
                               visibility_fn=pb.visibility, spp=int(correct_spp), seed=s)
+        correct_s += time.perf_counter() - t0
         trial = run(result.position, result.intensity, offset)
+        correct_s += trial.seconds  # its loop; XLA's cost analysis after it is the report's, not the design's
         # kept only where a render of its lights with the same seed (the same random numbers, so
         # the two renders' noise mostly cancels in the comparison) scores lower than the render the
         # offset came from; the corrected model's first value is that render's objective
+        t0 = time.perf_counter()
         after = sum(rendered_terms(handle, pb.camera, gb, pb.objective, pb.masks, trial.position, trial.intensity,
                                    spp=int(correct_spp), seed=s, reference_power=reference).values())
-        kept.append(bool(after < float(trial.history[0])) if len(trial.history) else False)
+        correct_s += time.perf_counter() - t0
+        kept.append(bool(len(trial.history) and after < float(trial.history[0])))
         if kept[-1]:
             result = trial
-    correct_s = time.perf_counter() - t0
     # verification: Mitsuba under the found lights, the objective on its render
     t0 = time.perf_counter()
     verified, verified_means = rendered_terms(handle, pb.camera, gb, pb.objective, pb.masks, result.position,

@@ -336,9 +336,12 @@ def test_jprt_design_on_a_test_preset_rrf_writes_a_verified_report(tmp_path, fit
             assert low + high == pytest.approx(report[f"{side}_terms"][key], rel=1e-4, abs=1e-9)
             assert b[f"met_{side}" if side == "verified" else "met_on_model"] == (low + high == 0.0)
     assert report["bounds_met_verified"] == all(b["met_verified"] for b in report["bounds"].values())
-    # the correction (one pass by default) ran from the design's lights and is timed in design_s
-    assert report["correction"]["passes"] == 1 and 0.0 < report["correction"]["seconds"] < report["design_s"]
-    assert np.asarray(report["uncorrected"]["position"]).shape == (1, 3)
+    # the correction (one pass by default) ran from the design's lights, said whether it kept its
+    # lights, and the report's lights are either its own or those before it
+    assert report["correction"]["passes"] == 1 and len(report["correction"]["kept"]) == 1
+    assert report["correction"]["seconds"] > 0 and report["reference_power"] == pytest.approx(3.0)
+    if not report["correction"]["kept"][0]:
+        assert report["found"]["position"] == report["uncorrected"]["position"]
     # from the search's lights: two white lights inside the region, the search timed in design_s
     assert main(["design", run, "--objective", objective, "--size", "12", "--steps", "6", "--lights", "2",
                  "--start", "search", "--verify-spp", "4", "--out", out]) == 0
@@ -525,7 +528,8 @@ def test_a_program_compiled_before_the_start_serves_every_start():
 
 
 def test_a_design_corrected_by_the_truths_error_recovers_what_a_biased_model_misses():
-    """``design_run``'s correction on a synthetic problem: the truth's indirect light is a bump
+    """The correction's principle (``design``'s ``offset``; ``design_run`` measures it on a render,
+    ``model_offset``), here with the truth's exact error: the truth's indirect light is a bump
     under the light; the model's bump sits 0.15 beside it, so the model's own optimum lies off the
     light that made the target. Holding the truth's error at the design's result as ``offset``
     and designing again from there (three times) moves the light at least halfway back to the truth's,
@@ -573,11 +577,11 @@ def test_a_design_corrected_by_the_truths_error_recovers_what_a_biased_model_mis
 
 
 def test_model_offset_is_the_render_minus_the_model_at_the_same_lights(mi):
-    """``model_offset`` of a model that predicts the analytic direct light and no indirect light,
-    in the Cornell box: the full error is the render minus that direct light, the indirect error
-    the render's indirect light (the same seed renders the same image), the irradiance's error
-    that indirect light read as irradiance (the direct irradiance is the same term on both
-    sides), and invalid pixels carry none."""
+    """``model_offset`` in the Cornell box, of a model with the analytic direct light and a wrong
+    indirect light (a constant): the full and indirect errors are the render's minus the model's
+    (the same seed renders the same image), invalid pixels carry none, and the model plus the
+    offset scores what the render scores (``rendered_terms``, the same seed) on an image term and
+    an irradiance bound alike: ``design_run`` reads the render's objective there."""
     from jprt.inputs import PointLights
     from jprt.render.gbuffer import gbuffer
     from jprt.render.scenes import SceneHandle
@@ -585,8 +589,8 @@ def test_model_offset_is_the_render_minus_the_model_at_the_same_lights(mi):
     handle = SceneHandle("cornell_box")
     camera = handle.default_camera(8, 8)
     gb = gbuffer(handle, camera)
-    frame = design.design_frame(gb, lambda p, i, v: jnp.zeros((8, 8, 3)), glossy=False)
-    pos, inten = np.array([[0.1, 0.8, -0.1]]), np.array([[2.0, 1.5, 1.0]])
+    frame = design.design_frame(gb, lambda p, i, v: jnp.full((8, 8, 3), 0.05) * jnp.sum(i), glossy=False)
+    pos, inten = np.array([[0.1, 0.8, -0.1], [-0.3, 0.7, 0.2]]), np.array([[2.0, 1.5, 1.0], [1.0, 1.0, 1.0]])
 
     def visibility(p):
         return {"pixels": design.point_visibility(handle, gb, p)}
@@ -597,12 +601,23 @@ def test_model_offset_is_the_render_minus_the_model_at_the_same_lights(mi):
                                                                                  inten.astype(np.float32)),
                                           spp=16, seed=3)
     valid = np.asarray(gb.valid, bool)[..., None]
-    assert np.max(r_ind) > 0  # the Cornell box has indirect light
-    np.testing.assert_array_equal(ind, r_ind)
-    direct = np.asarray(frame(pos, inten, visibility(pos))[0])
-    np.testing.assert_allclose(full, np.where(valid, r_full - direct, 0.0), rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(irr, np.asarray(design.irradiance_from(r_ind, gb.diffuse_albedo)), rtol=1e-6)
+    m_full, m_ind, m_irr = (np.asarray(a) for a in frame(pos, inten, visibility(pos)))
+    assert np.max(r_ind) > 0 and np.max(m_ind) > 0
+    np.testing.assert_allclose(ind, np.where(valid, r_ind - m_ind, 0.0), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(full, np.where(valid, r_full - m_full, 0.0), rtol=1e-5, atol=1e-6)
     assert np.all(np.asarray([full, ind, irr])[:, ~valid[..., 0]] == 0)
+    names = list(handle.object_names())
+    target = np.where(valid, 1.3 * r_full, 0.0).astype(np.float32)
+    obj = design._on_valid(design.Objective(design.ImageTarget(target, None, "full", 1.0),
+                                            (design.ObjectTarget("floor", "irradiance", 1e3, None, 1.0),), 0.0,
+                                            "synthetic"), gb.valid)  # as load_problem gives it
+    masks = design.object_masks(obj, gb.object_id, names, gb.valid)
+    corrected = design.objective_terms(obj, masks, *(m + o for m, o in zip((m_full, m_ind, m_irr), (full, ind, irr))),
+                                       inten, 3.0)
+    rendered = design.rendered_terms(handle, camera, gb, obj, masks, pos, inten, spp=16, seed=3, reference_power=3.0)
+    assert set(corrected) == set(rendered) and all(float(v) > 0 for v in rendered.values())
+    for key in rendered:
+        assert float(corrected[key]) == pytest.approx(rendered[key], rel=1e-4)
 
 
 def test_merge_candidates_makes_one_light_of_neighbours_that_share_its_weight():
