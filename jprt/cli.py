@@ -184,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("design", help="the lighting that meets an objective file, found through a run's model and "
                                       "rendered by Mitsuba to check it")
     p.add_argument("folder", help="a run folder: point lights for RRF, data-driven PRT and MRT; an environment's "
-                                  "turn and scale for neural-wavelet PRT and SH PRT")
+                                  "turn and scale for neural-wavelet PRT, SH PRT and SG environment visibility")
     p.add_argument("--objective", required=True, help="the objective file (JSON; jprt.design says what it holds)")
     p.add_argument("--lights", type=int, default=1, help="point lights to place (default 1; point-light models)")
     p.add_argument("--size", type=int, default=64, help="the square frame at the run's camera (default 64; a "
@@ -267,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
 def _design(args) -> int:
     import json
 
-    from jprt.design import design_run
+    from jprt.design import design_run, report_lines
     from jprt.view import check_run_folder
 
     check_run_folder(args.folder)
@@ -277,25 +277,7 @@ def _design(args) -> int:
                         start="search" if args.start == "search" else None,
                         optimise=None if args.optimise is None else [s.strip() for s in args.optimise.split(",")
                                                                       if s.strip()])
-    if "rotation_deg" in report["found"]:
-        print(f"environment {report['environment']}: turned {report['found']['rotation_deg']:.2f} degrees about +Y, "
-              f"scale {', '.join(f'{v:.4g}' for v in report['found']['scale'])}")
-    else:
-        for k, (p, i) in enumerate(zip(report["found"]["position"], report["found"]["intensity"])):
-            print(f"light {k}: position {', '.join(f'{v:.4g}' for v in p)}; intensity "
-                  f"{', '.join(f'{v:.4g}' for v in i)}")
-    print(f"objective: model {report['model_objective']:.4g}, Mitsuba at {report['verify_spp']} spp "
-          f"{report['verified_objective']:.4g} (design {report['design_s']:.1f} s, verification {report['verify_s']:.1f} s)")
-    corr = report.get("correction", {})
-    if corr.get("passes"):
-        print(f"correction: {corr['passes']} pass(es), the model's error held from a Mitsuba render at {corr['spp']} "
-              f"spp, lights kept: {', '.join('yes' if k else 'no' for k in corr['kept'])} ({corr['seconds']:.1f} s "
-              f"of the design; model objective before it {report['uncorrected']['model_objective']:.4g})")
-    for key, b in report.get("bounds", {}).items():
-        within = " and ".join(x for x in (f">= {b['min']:.4g}" if b["min"] is not None else "",
-                                          f"<= {b['max']:.4g}" if b["max"] is not None else "") if x)
-        print(f"{key} {within}: model {b['model_mean']:.4g}, Mitsuba {b['verified_mean']:.4g} "
-              f"({'met' if b['met_verified'] else 'MISSED'} on the render)")
+    print("\n".join(report_lines(report)))
     if args.out:
         with open(args.out, "w") as f:
             json.dump(report, f, indent=1)

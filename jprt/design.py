@@ -61,7 +61,8 @@ __all__ = ["ObjectiveError", "ImageTarget", "ObjectTarget", "Objective", "load_o
            "point_visibility", "DesignResult", "design", "search_start", "design_frame", "rendered_terms", "model_offset",
            "gradient_check", "object_means", "bounds_report", "rendered_environment_terms",
            "Problem", "POINT_METHODS", "measurement_points", "load_problem", "design_run", "EnvironmentResult",
-           "environment_transfer", "environment_frame", "design_environment", "ENVIRONMENT_METHODS", "OBJECTIVE_KEYS", "QUANTITIES"]
+           "environment_transfer", "environment_frame", "design_environment", "ENVIRONMENT_METHODS", "OBJECTIVE_KEYS", "QUANTITIES",
+           "report_lines", "plot_report", "run_design"]
 
 #: Keys of an objective file, of its ``image`` entry and of each ``objects`` entry.
 OBJECTIVE_KEYS = ("image", "objects", "power_penalty")
@@ -1334,23 +1335,31 @@ def environment_transfer(handle, gbuffer, face: int, *, chunk: int = 64) -> np.n
     return out.reshape(shape + (dirs.shape[0],))
 
 
-def environment_frame(gbuffer, indirect_fn: Callable, transfer) -> Callable:
-    """``frame(cube) -> (full, indirect, irradiance)`` for an environment cube map (6, n, n, 3):
-    direct = albedo / pi x T L (``environment_transfer``: diffuse only, the glossy lobe of the
-    direct light is not modelled), indirect = ``indirect_fn(cube)`` (the model's), irradiance =
-    T L + pi L_indirect / albedo.
+def environment_frame(gbuffer, indirect_fn: Callable, transfer, *, predicts: str = "indirect") -> Callable:
+    """``frame(cube, angle=0, scale=(1, 1, 1)) -> (full, indirect, irradiance)`` for an
+    environment cube map (6, n, n, 3), the map turned by ``angle`` about +Y and scaled by
+    ``scale`` (3,) already (``design_environment`` passes both beside it, for a model whose
+    lighting turns without the cube): direct = albedo / pi x T L (``environment_transfer``:
+    diffuse only), the model's ``indirect_fn(cube, angle, scale)``, irradiance = T L + pi
+    L_indirect / albedo. ``predicts`` "indirect" (neural-wavelet PRT, SH PRT): the model's is
+    the indirect light; "direct" (SG environment visibility): the model's is the environment's
+    glossy direct light, added to the diffuse direct light, and the frame has no indirect light.
 
     Numerics: not differentiable (builds the frame function: a linear map plus ``irradiance_from``).
     """
+    if predicts not in ("indirect", "direct"):
+        raise ValueError(f"environment_frame's predicts is 'indirect' or 'direct', got {predicts!r}")
     t = jnp.asarray(transfer)
     albedo = jnp.asarray(gbuffer.diffuse_albedo)
     valid = jnp.asarray(gbuffer.valid, bool)[..., None]
 
-    def frame(cube):
+    def frame(cube, angle=0.0, scale=(1.0, 1.0, 1.0)):
         e_direct = jnp.einsum("hwj,jc->hwc", t, jnp.reshape(cube, (-1, 3)))
-        ind = indirect_fn(cube)
+        out = indirect_fn(cube, angle, jnp.asarray(scale, jnp.float32).reshape(3))
         direct = jnp.where(valid, albedo / jnp.pi * e_direct, 0.0)
-        return direct + ind, ind, e_direct + irradiance_from(ind, albedo)
+        if predicts == "direct":
+            return direct + out, jnp.zeros_like(out), e_direct
+        return direct + out, out, e_direct + irradiance_from(out, albedo)
 
     return frame
 
@@ -1362,7 +1371,8 @@ def design_environment(frame_fn: Callable, objective: Objective, masks, cube, *,
     """Turn the environment ``cube`` (6, n, n, 3) about +Y and scale it (per channel, > 0) so that
     ``objective`` is smallest: Adam (``_adam``) on (angle, log scale), the lighting
     exp(log scale) x ``jprt.sphere.cubemap.rotate_cubemap_y(cube, angle)`` handed to
-    ``frame_fn(cube) -> (full, indirect, irradiance)`` (``environment_frame``). ``optimise``
+    ``frame_fn(cube, angle, scale) -> (full, indirect, irradiance)`` (``environment_frame``), the
+    angle and scale beside it. ``optimise``
     names which of "rotation", "scale" (the overall level) and "colour" (the RGB ratios) move.
 
     Numerics: not differentiable (an optimisation loop over ``objective_terms``, ``rotate_cubemap_y`` and the model).
@@ -1391,7 +1401,8 @@ def design_environment(frame_fn: Callable, objective: Objective, masks, cube, *,
 
     def model(params, aux):
         turned, scale_rgb = lighting(params)
-        return frame_fn(turned), scale_rgb.reshape(1, 3)
+        a = params[0] if "rotation" in optimise else a0
+        return frame_fn(turned, a, scale_rgb), scale_rgb.reshape(1, 3)
 
     def loss(frames, scale_rgb):
         terms = objective_terms(objective, masks, *frames, scale_rgb, reference)
@@ -1438,8 +1449,10 @@ class Problem(NamedTuple):
 
 
 #: Environment-lit methods ``jprt design`` turns and scales the map of: neural-wavelet PRT takes the
-#: cube map itself, SH PRT its SH projection (``jprt.sphere.sh.project_cubemap``, differentiable).
-ENVIRONMENT_METHODS = ("wavelet_prt", "sh_prt")
+#: cube map itself, SH PRT its SH projection (``jprt.sphere.sh.project_cubemap``, differentiable),
+#: SG environment visibility its pre-convolved map U (Eq. 6), made once and turned
+#: (``rotate_preconvolved_y``); it predicts the map's glossy direct light, not indirect light.
+ENVIRONMENT_METHODS = ("wavelet_prt", "sh_prt", "sg_environment")
 
 #: Methods ``jprt design`` optimises point lights for: RRF takes the lights themselves (Eq. 9);
 #: data-driven PRT and MRT take the direct radiance at their measurement points or texels, which
@@ -1556,13 +1569,25 @@ def load_problem(folder: str, objective_path, *, size: int = 64, env: str | None
         name, cube = _environment_cube(session, env)
         transfer = environment_transfer(session.handle, gb, int(cube.shape[1]))
         degree = int(session.dataset.meta["degree"]) if m.name == "sh_prt" else 0
+        if m.name == "sg_environment":  # its lighting, U (Eq. 6), pre-convolved once and turned
+            from jprt.inputs import PreconvolvedEnvironment
+            from jprt.methods.sg_lightfield.environment import rotate_preconvolved_y
 
-        def indirect_env(cube):
-            lighting = SHLighting(sh.project_cubemap(cube, degree)) if m.name == "sh_prt" else CubeMap(cube)
-            return evaluate(model_inputs, lighting)
+            base = m.task_lighting(session.handle, session.dataset, session.params, session.method_config,
+                                   CubeMap(cube))
+            u0, alphas = jnp.asarray(base.u), jnp.asarray(base.alphas)
 
-        return Problem(session, camera, gb, objective, masks, None, None,
-                       environment_frame(gb, indirect_env, transfer), None, "environment", {name: cube}, transfer)
+            def indirect_env(cube, angle, scale):
+                u = rotate_preconvolved_y(u0, angle) * jnp.reshape(scale, (1, 1, 1, 3))
+                return evaluate(model_inputs, PreconvolvedEnvironment(u, alphas))
+        else:
+            def indirect_env(cube, angle, scale):
+                lighting = SHLighting(sh.project_cubemap(cube, degree)) if m.name == "sh_prt" else CubeMap(cube)
+                return evaluate(model_inputs, lighting)
+
+        frame = environment_frame(gb, indirect_env, transfer, predicts=m.predicts)
+        return Problem(session, camera, gb, objective, masks, None, None, frame, None, "environment", {name: cube},
+                       transfer)
     lo, hi = _region(session)
     points = measurement_points(session)
     handle = session.handle
@@ -1592,7 +1617,8 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
                progress: bool | None = None) -> dict:
     """Design the lighting of the run folder ``folder`` for the objective file ``objective_path``:
     point lights (RRF, data-driven PRT, MRT) or the turn and scale of an environment map (``env``,
-    one of the run's maps; default the first: neural-wavelet PRT, SH PRT, ``_design_environment_run``).
+    one of the run's maps; default the first: neural-wavelet PRT, SH PRT, SG environment visibility,
+    ``_design_environment_run``).
     ``optimise``: what moves (default position and power, or rotation and scale). Point lights:
     (``load_problem``); ``lights`` point lights start at ``start`` ({"position", "intensity"},
     (K, 3) each), at the lights ``search_start`` finds among candidate positions (``start``
@@ -1600,10 +1626,11 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
     (None; seeded). Then ``correct`` passes of the **correction**: the lights found are rendered
     by Mitsuba at ``correct_spp``, the model's error there (``model_offset``) is held as an
     offset of its frames, and the design runs again from those lights (same program, no new
-    compilation; the same step budget, stopping once its traces stop improving); its lights are
-    kept only where a second render, of them, with the same seed scores lower than the first
-    (the report's ``correction["kept"]``, one flag a pass). Two renders a pass; their time and
-    the design loop's count in ``design_s`` (``correction["seconds"]`` apart). Then the
+    compilation; the same step budget, stopping once its traces stop improving); where its
+    lights moved (``correction["moved"]``) they are kept only where a second render, of them,
+    with the same seed scores lower than the first (``correction["kept"]``, one flag a pass).
+    One or two renders a pass; their time and the design loop's count in ``design_s``
+    (``correction["seconds"]`` apart). Then the
     **verification**: the found lighting rendered by Mitsuba at ``verify_spp`` (full and
     indirect; another seed), the objective's terms on that render (``rendered_terms``) beside the
     model's (with the correction's offset). ``uncorrected`` in the report holds the lights before
@@ -1658,7 +1685,7 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
                       reference_power=reference, offset=offset, program=program, progress=progress)
 
     result = first = run(pos0, inten0, None)
-    correct_s, kept = 0.0, []
+    correct_s, kept, moved = 0.0, [], []
     for c in range(int(correct)):  # the model's error at the lights found, measured and held
         s = int(seed) + 1009 + c  # apart from the verification's seed + 101
         t0 = time.perf_counter()
@@ -1667,6 +1694,12 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
         correct_s += time.perf_counter() - t0
         trial = run(result.position, result.intensity, offset)
         correct_s += trial.seconds  # its loop; XLA's cost analysis after it is the report's, not the design's
+        scale = max(float(np.max(np.abs(np.asarray(hi) - np.asarray(lo)))), 1e-30)
+        moved.append(bool(np.max(np.abs(trial.position - result.position)) > 1e-6 * scale
+                          or np.max(np.abs(trial.intensity / result.intensity - 1.0)) > 1e-6))
+        if not moved[-1]:  # the second design kept its start: nothing to check
+            kept.append(False)
+            continue
         # kept only where a render of its lights with the same seed (the same random numbers, so
         # the two renders' noise mostly cancels in the comparison) scores lower than the render the
         # offset came from; the corrected model's first value is that render's objective
@@ -1691,7 +1724,8 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
             "steps": int(steps), "steps_taken": int(len(first.history)), "search_s": search_s,
             "design_s": first.seconds + correct_s + (search_s or 0.0), "step_cost": result.step_cost,
             "visibility_updates": result.visibility_updates,
-            "correction": {"passes": int(correct), "spp": int(correct_spp), "seconds": correct_s, "kept": kept},
+            "correction": {"passes": int(correct), "spp": int(correct_spp), "seconds": correct_s, "moved": moved,
+                           "kept": kept},
             "uncorrected": {"position": first.position.tolist(), "intensity": first.intensity.tolist(),
                             "design_s": first.seconds + (search_s or 0.0),
                             "model_objective": float(sum(first.terms.values()))},
@@ -1768,3 +1802,113 @@ def _bounds(objective: Objective, model_means: dict, verified_means: dict) -> di
                            "verified_mean": v["mean"], "met_on_model": on_model[k]["met"], "met_verified": v["met"]}
                        for k, v in on_render.items()},
             "bounds_met_verified": all(v["met"] for v in on_render.values())}
+
+
+def report_lines(report: dict) -> list[str]:
+    """``design_run``'s report in words, one line each: the lighting found, the objective on the
+    model beside Mitsuba's verification and the times, the correction (point lights), and every
+    bound met or missed on the render. What ``jprt design`` and ``experiments/design.py`` print.
+
+    Numerics: not differentiable (formats a report).
+    """
+    lines = []
+    if "rotation_deg" in report["found"]:
+        lines.append(f"environment {report['environment']}: turned {report['found']['rotation_deg']:.2f} degrees "
+                     f"about +Y, scale {', '.join(f'{v:.4g}' for v in report['found']['scale'])}")
+    else:
+        for k, (p, i) in enumerate(zip(report["found"]["position"], report["found"]["intensity"])):
+            lines.append(f"light {k}: position {', '.join(f'{v:.4g}' for v in p)}; intensity "
+                         f"{', '.join(f'{v:.4g}' for v in i)}")
+    lines.append(f"objective: model {report['model_objective']:.4g}, Mitsuba at {report['verify_spp']} spp "
+                 f"{report['verified_objective']:.4g} (design {report['design_s']:.1f} s, verification "
+                 f"{report['verify_s']:.1f} s)")
+    corr = report.get("correction", {})
+    if corr.get("passes"):
+        lines.append(f"correction: {corr['passes']} pass(es), the model's error held from a Mitsuba render at "
+                     f"{corr['spp']} spp, lights kept: {', '.join('yes' if k else 'no' for k in corr['kept'])} "
+                     f"({corr['seconds']:.1f} s of the design; model objective before it "
+                     f"{report['uncorrected']['model_objective']:.4g})")
+    for key, b in report.get("bounds", {}).items():
+        within = " and ".join(x for x in (f">= {b['min']:.4g}" if b["min"] is not None else "",
+                                          f"<= {b['max']:.4g}" if b["max"] is not None else "") if x)
+        lines.append(f"{key} {within}: model {b['model_mean']:.4g}, Mitsuba {b['verified_mean']:.4g} "
+                     f"({'met' if b['met_verified'] else 'MISSED'} on the render)")
+    return lines
+
+
+def plot_report(report: dict, path: str) -> None:
+    """``design_run``'s report as a figure (PNG at ``path``): left, the objective on the model at
+    every design step (log scale; the design before its correction); right, each objective term
+    on the model beside the same term on Mitsuba's verification render, and each object bound's
+    mean on both against the bound.
+
+    Numerics: not differentiable (draws a report).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jprt import io
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
+    history = np.asarray(report["history"], np.float64)
+    a.plot(np.arange(len(history)), np.maximum(history, 1e-30), lw=1.2)
+    a.set_yscale("log")
+    a.set_xlabel("design step")
+    a.set_ylabel("objective on the model")
+    a.set_title(f"design: {report['design_s']:.1f} s", fontsize=9)
+    a.grid(True, which="both", alpha=0.2)
+    keys = sorted(report["model_terms"])
+    x = np.arange(len(keys))
+    b.bar(x - 0.2, [report["model_terms"][k] for k in keys], 0.4, label="model")
+    b.bar(x + 0.2, [report["verified_terms"][k] for k in keys], 0.4,
+          label=f"Mitsuba, {report['verify_spp']} spp")
+    b.set_xticks(x, keys, rotation=20, fontsize=7)
+    b.set_ylabel("objective term")
+    b.set_title(f"objective: model {report['model_objective']:.3g}, Mitsuba {report['verified_objective']:.3g}",
+                fontsize=9)
+    b.legend(fontsize=7)
+    b.grid(True, axis="y", alpha=0.2)
+    fig.tight_layout()
+    with io.atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def run_design(config: dict) -> dict:
+    """``experiments/design.py``'s run of ``config``: the run folder ``config["run"]`` (or, when
+    it is None, a fit of ``config["fit"]["experiment"]`` at ``config["fit"]["preset"]`` through
+    ``jprt.runner.run``, its own output folder), the objective ``config["objective"]`` (a path, or
+    an objective file's content, written as ``objective.json``), ``design_run`` with
+    ``config["design"]``'s keywords; writes ``<output.dir>/<config hash>/`` (config.json,
+    objective.json, design.json: the report, design.png: ``plot_report``), prints
+    ``report_lines`` and where the report is, and returns the report.
+
+    Numerics: not differentiable (fits, designs, renders with Mitsuba).
+    """
+    from jprt.config import config_hash, save_resolved
+    from jprt.io import write_json
+
+    out = os.path.abspath(os.path.join(config["output"]["dir"], config_hash(config)))
+    os.makedirs(out, exist_ok=True)
+    save_resolved(config, out)
+    folder = config.get("run")
+    if folder is None:
+        from jprt.experiment import load_experiment, resolve_config
+        from jprt.runner import run
+
+        fit = config["fit"]
+        module = load_experiment(fit["experiment"])
+        folder = run(module, resolve_config(module, [], fit.get("preset")))["output"]
+    objective = config["objective"]
+    if isinstance(objective, dict):
+        path = os.path.join(out, "objective.json")
+        write_json(path, objective)
+        objective = path
+    report = design_run(folder, objective, **config.get("design", {}))
+    write_json(os.path.join(out, "design.json"), report)
+    plot_report(report, os.path.join(out, "design.png"))
+    print("\n".join(report_lines(report)))
+    print(f"design report (design.json, design.png) written to {out}")
+    return report

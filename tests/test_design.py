@@ -339,6 +339,7 @@ def test_jprt_design_on_a_test_preset_rrf_writes_a_verified_report(tmp_path, fit
     # the correction (one pass by default) ran from the design's lights, said whether it kept its
     # lights, and the report's lights are either its own or those before it
     assert report["correction"]["passes"] == 1 and len(report["correction"]["kept"]) == 1
+    assert report["correction"]["moved"][0] or not report["correction"]["kept"][0]
     assert report["correction"]["seconds"] > 0 and report["reference_power"] == pytest.approx(3.0)
     if not report["correction"]["kept"][0]:
         assert report["found"]["position"] == report["uncorrected"]["position"]
@@ -351,6 +352,25 @@ def test_jprt_design_on_a_test_preset_rrf_writes_a_verified_report(tmp_path, fit
     assert start.shape == (2, 3) and np.all(start >= lo) and np.all(start <= hi)
     assert np.all(np.asarray(report["start"]["intensity"]) > 0)
     assert 0.0 < report["search_s"] < report["design_s"]
+
+
+@pytest.mark.slow
+def test_the_design_experiment_writes_its_report_and_figure(tmp_path, fitted_preset):
+    """``experiments/design.py`` at its test preset through a given run folder: the report, the
+    figure and the objective it ran are written, and the report is the one it returns."""
+    from jprt.cli import main
+
+    run = _rrf_run(tmp_path, fitted_preset)
+    out = tmp_path / "out"
+    assert main(["run", "experiments/design.py", "--preset", "test", "--set", f"run={run}",
+                 "--set", f"output.dir={out}"]) == 0
+    (folder,) = os.listdir(out)
+    for name in ("config.json", "objective.json", "design.json", "design.png"):
+        assert (out / folder / name).is_file(), name
+    with open(out / folder / "design.json") as f:
+        report = json.load(f)
+    assert set(report["bounds"]) == {"back.irradiance", "green-wall.irradiance"}
+    assert len(report["history"]) == 6 and np.isfinite(report["verified_objective"])
 
 
 @pytest.mark.parametrize("name", ["datadriven", "mrt"])
@@ -422,7 +442,8 @@ def test_environment_design_finds_the_known_turn_and_scale_of_a_synthetic_model(
     azimuth, elevation = np.linspace(0, 2 * np.pi, n * n, endpoint=False), np.tile(np.linspace(-0.3, 0.8, n), n)
     axes = np.stack([np.cos(azimuth) * np.cos(elevation), np.sin(elevation), np.sin(azimuth) * np.cos(elevation)], -1)
     transfer = (np.maximum(axes @ d.T, 0) ** 4 * omega).reshape(n, n, -1).astype(np.float32)
-    frame = design.environment_frame(_floor(n=n), lambda cube: 0.05 * jnp.mean(cube) * jnp.ones((n, n, 3)), transfer)
+    frame = design.environment_frame(_floor(n=n), lambda cube, angle, scale: 0.05 * jnp.mean(cube) * jnp.ones((n, n, 3)),
+                                     transfer)
     sky = _sky(face)
     target, _, _ = frame(2.0 * cubemap.rotate_cubemap_y(sky, 0.5))
     obj = design.Objective(design.ImageTarget(np.asarray(target), None, "full", 1.0), (), 0.0, "synthetic")
@@ -459,16 +480,21 @@ def test_the_environment_transfer_gives_mitsubas_direct_light(mi):
 
 
 @pytest.mark.slow
-def test_jprt_design_turns_and_scales_an_environment_for_sh_prt(tmp_path, fitted_preset, assets):
+@pytest.mark.parametrize("name", ["sh_prt", "sg_environment"])
+def test_jprt_design_turns_and_scales_an_environment(name, tmp_path, fitted_preset, assets):
+    """SH PRT (its SH projection of the turned map) and SG environment visibility (its U, turned)
+    through ``jprt design`` with an environment-map file: a finite turn, a positive scale, every
+    step, and the objective verified on Mitsuba's render."""
     import glob
 
     from jprt.cli import main
     from jprt.runner import save_fit
 
-    m, config, dataset, result = fitted_preset("sh_prt")
-    run = save_fit(str(tmp_path / "run"), "sh_prt", config, result.params)
+    m, config, dataset, result = fitted_preset(name)
+    run = save_fit(str(tmp_path / "run"), name, config, result.params)
     hdr = sorted(glob.glob(os.path.join(assets, "envmaps", "*.hdr")))[0]
-    objective = _write(tmp_path, {"objects": [{"name": "back", "min": 5.0}]})
+    seen = {"sh_prt": "back", "sg_environment": "floor"}[name]  # an object the run's frame shows
+    objective = _write(tmp_path, {"objects": [{"name": seen, "min": 5.0}]})
     out = str(tmp_path / "design.json")
     assert main(["design", run, "--objective", objective, "--env", hdr, "--size", "12", "--steps", "8",
                  "--verify-spp", "4", "--out", out]) == 0
@@ -476,7 +502,7 @@ def test_jprt_design_turns_and_scales_an_environment_for_sh_prt(tmp_path, fitted
         report = json.load(f)
     assert report["environment"] == os.path.basename(hdr) and np.isfinite(report["found"]["rotation_deg"])
     assert np.all(np.asarray(report["found"]["scale"]) > 0) and len(report["history"]) == 8
-    assert set(report["verified_terms"]) == {"back.irradiance"} and np.isfinite(report["verified_objective"])
+    assert set(report["verified_terms"]) == {f"{seen}.irradiance"} and np.isfinite(report["verified_objective"])
 
 
 def test_what_is_not_optimised_keeps_its_starting_value():

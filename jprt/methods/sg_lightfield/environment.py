@@ -36,7 +36,7 @@ from jprt.methods.sg_lightfield.model import GLOSSY_RECEIVERS, ggx_ndf, glossy_f
 from jprt.sphere import octahedral
 
 __all__ = ["ENV_RECEIVERS", "ENV_DEFAULTS", "ggx_ndf", "octahedral_environment", "preconvolve", "weighted_visibility",
-           "lookup_preconvolved", "octahedral_lookup", "evaluate_lobes", "shade_environment"]
+           "lookup_preconvolved", "octahedral_lookup", "rotate_preconvolved_y", "evaluate_lobes", "shade_environment"]
 
 #: The Table 3 setting: the receivers of ``model.GLOSSY_RECEIVERS`` in the Cornell box without its
 #: ceiling and light, lit by a distant environment through the open top and front.
@@ -155,6 +155,24 @@ def octahedral_lookup(image, d):
     from jprt.methods.lightmap_lookup import atlas_lookup
 
     return atlas_lookup(image, (octahedral.encode(d) + 1.0) * 0.5)
+
+
+def rotate_preconvolved_y(u, angle):
+    """The pre-convolved maps ``u`` (A, n, n, 3) (``preconvolve``) of the environment turned by
+    ``angle`` radians about +Y: a direction d of the result sees what R(-angle) d saw (the
+    convention of ``jprt.sphere.cubemap.rotate_cubemap_y``), every octahedral texel centre
+    bilinear in the original (``octahedral_lookup``). Eq. 6 turns with the map (the GGX NDF about
+    r turns with r), so this is the pre-convolution of the turned map, up to the resampling:
+    a lighting design turns U instead of pre-convolving again. Differentiable in ``angle`` and
+    ``u`` (the bilinear weights have kinks where a turned centre crosses a texel centre)."""
+    u = jnp.asarray(u, jnp.float32)
+    n_levels, n = u.shape[0], u.shape[1]
+    d = jnp.asarray(octahedral.texel_directions(n), jnp.float32)
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    # R(-angle) about +Y: x' = c x - s z, z' = s x + c z
+    src = jnp.stack([c * d[..., 0] - s * d[..., 2], d[..., 1], s * d[..., 0] + c * d[..., 2]], axis=-1)
+    stacked = jnp.moveaxis(u, 0, 2).reshape(n, n, 3 * n_levels)  # every level in one bilinear fetch
+    return jnp.moveaxis(octahedral_lookup(stacked, src).reshape(n, n, n_levels, 3), 2, 0)
 
 
 def lookup_preconvolved(u, alphas, r, roughness):
