@@ -1,5 +1,6 @@
 """Lighting design through a fitted model (``jprt.design``, docs/design.md): the point lights
-(RRF, data-driven PRT, MRT) or an environment's turn and scale (neural-wavelet PRT, SH PRT) that
+(RRF, data-driven PRT, MRT) or an environment's turn and scale (neural-wavelet PRT, SH PRT, SG
+environment visibility) that
 meet an objective, found by gradient descent through a run folder's model, corrected by one
 Mitsuba render of what it found, and verified on another.
 
@@ -22,17 +23,21 @@ CONFIG = {
     # own output folder)
     "run": None,
     "fit": {"experiment": "experiments/rrf_cornell.py", "preset": "demo"},
-    # an objective file's path, or its content (jprt.design's module docstring): here the
-    # Cornell box's back wall at least 1.9 W m^-2 of irradiance, its green wall at most 2.3
-    "objective": {"objects": [{"name": "back", "quantity": "irradiance", "min": 1.9},
-                              {"name": "green-wall", "quantity": "irradiance", "max": 2.3}]},
+    # an objective file's path, or its content (jprt.design's module docstring); null: DEMO_OBJECTIVE
+    "objective": None,
     # jprt.design.design_run's keywords: point lights to place, the frame's size (pixels), Adam's
     # step budget and rate, the start ("search" or null: spread), correction passes and spp,
-    # the verification's spp, the seed, an environment map's name (environment-lit runs)
+    # the verification's spp, the seed, an environment map's name (environment-lit runs), what
+    # moves (null: position and power, or rotation and scale; a list of names)
     "design": {"lights": 2, "size": 64, "steps": 200, "learning_rate": 0.05, "start": "search",
-               "correct": 1, "correct_spp": 256, "verify_spp": 256, "seed": 0, "env": None},
+               "correct": 1, "correct_spp": 256, "verify_spp": 256, "seed": 0, "env": None, "optimise": None},
     "output": {"dir": "results/design"},
 }
+
+#: The demo's objective, for the Cornell box: its back wall at least 1.9 W m^-2 of mean
+#: irradiance, its green wall at most 2.3.
+DEMO_OBJECTIVE = {"objects": [{"name": "back", "quantity": "irradiance", "min": 1.9},
+                              {"name": "green-wall", "quantity": "irradiance", "max": 2.3}]}
 
 PRESETS = {
     # seconds, through a given run folder (--set run=FOLDER; tests/test_design.py)
@@ -41,5 +46,8 @@ PRESETS = {
 
 
 def main(config: dict) -> dict:
-    """Design the lighting of ``config`` (``jprt.design.run_design``)."""
+    """Design the lighting of ``config`` (``jprt.design.run_design``; the demo's objective where
+    it names none)."""
+    if config.get("objective") is None:
+        config = {**config, "objective": DEMO_OBJECTIVE}
     return design.run_design(config)

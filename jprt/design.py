@@ -1336,10 +1336,10 @@ def environment_transfer(handle, gbuffer, face: int, *, chunk: int = 64) -> np.n
 
 
 def environment_frame(gbuffer, indirect_fn: Callable, transfer, *, predicts: str = "indirect") -> Callable:
-    """``frame(cube, angle=0, scale=(1, 1, 1)) -> (full, indirect, irradiance)`` for an
-    environment cube map (6, n, n, 3), the map turned by ``angle`` about +Y and scaled by
-    ``scale`` (3,) already (``design_environment`` passes both beside it, for a model whose
-    lighting turns without the cube): direct = albedo / pi x T L (``environment_transfer``:
+    """``frame(cube, angle, scale) -> (full, indirect, irradiance)`` for an environment cube map
+    (6, n, n, 3) that is the map turned by ``angle`` (radians) about +Y and scaled by ``scale``
+    (3,) already (``design_environment`` passes both beside it, for a model whose lighting turns
+    without the cube: SG environment visibility's U): direct = albedo / pi x T L (``environment_transfer``:
     diffuse only), the model's ``indirect_fn(cube, angle, scale)``, irradiance = T L + pi
     L_indirect / albedo. ``predicts`` "indirect" (neural-wavelet PRT, SH PRT): the model's is
     the indirect light; "direct" (SG environment visibility): the model's is the environment's
@@ -1353,7 +1353,7 @@ def environment_frame(gbuffer, indirect_fn: Callable, transfer, *, predicts: str
     albedo = jnp.asarray(gbuffer.diffuse_albedo)
     valid = jnp.asarray(gbuffer.valid, bool)[..., None]
 
-    def frame(cube, angle=0.0, scale=(1.0, 1.0, 1.0)):
+    def frame(cube, angle, scale):
         e_direct = jnp.einsum("hwj,jc->hwc", t, jnp.reshape(cube, (-1, 3)))
         out = indirect_fn(cube, angle, jnp.asarray(scale, jnp.float32).reshape(3))
         direct = jnp.where(valid, albedo / jnp.pi * e_direct, 0.0)
@@ -1585,6 +1585,9 @@ def load_problem(folder: str, objective_path, *, size: int = 64, env: str | None
                 lighting = SHLighting(sh.project_cubemap(cube, degree)) if m.name == "sh_prt" else CubeMap(cube)
                 return evaluate(model_inputs, lighting)
 
+        if m.predicts == "direct" and objective.image is not None and objective.image.quantity == "indirect":
+            raise ObjectiveError(f"{objective.source}: {m.name} predicts the environment's direct light, not "
+                                 "indirect light: an image objective on it takes quantity 'full'")
         frame = environment_frame(gb, indirect_env, transfer, predicts=m.predicts)
         return Problem(session, camera, gb, objective, masks, None, None, frame, None, "environment", {name: cube},
                        transfer)
@@ -1694,9 +1697,11 @@ def design_run(folder: str, objective_path: str, *, lights: int = 1, size: int =
         correct_s += time.perf_counter() - t0
         trial = run(result.position, result.intensity, offset)
         correct_s += trial.seconds  # its loop; XLA's cost analysis after it is the report's, not the design's
+        p0 = to_params(result.position, result.intensity, lo, hi)  # its start (clipped off the region's faces)
+        start = [np.asarray(a, np.float64) for a in program.lights(p0, _held(p0))]
         scale = max(float(np.max(np.abs(np.asarray(hi) - np.asarray(lo)))), 1e-30)
-        moved.append(bool(np.max(np.abs(trial.position - result.position)) > 1e-6 * scale
-                          or np.max(np.abs(trial.intensity / result.intensity - 1.0)) > 1e-6))
+        moved.append(bool(np.max(np.abs(trial.position - start[0])) > 1e-6 * scale
+                          or np.max(np.abs(trial.intensity / start[1] - 1.0)) > 1e-6))
         if not moved[-1]:  # the second design kept its start: nothing to check
             kept.append(False)
             continue
@@ -1839,8 +1844,7 @@ def report_lines(report: dict) -> list[str]:
 def plot_report(report: dict, path: str) -> None:
     """``design_run``'s report as a figure (PNG at ``path``): left, the objective on the model at
     every design step (log scale; the design before its correction); right, each objective term
-    on the model beside the same term on Mitsuba's verification render, and each object bound's
-    mean on both against the bound.
+    on the model beside the same term on Mitsuba's verification render.
 
     Numerics: not differentiable (draws a report).
     """
@@ -1879,8 +1883,9 @@ def plot_report(report: dict, path: str) -> None:
 def run_design(config: dict) -> dict:
     """``experiments/design.py``'s run of ``config``: the run folder ``config["run"]`` (or, when
     it is None, a fit of ``config["fit"]["experiment"]`` at ``config["fit"]["preset"]`` through
-    ``jprt.runner.run``, its own output folder), the objective ``config["objective"]`` (a path, or
-    an objective file's content, written as ``objective.json``), ``design_run`` with
+    ``jprt.runner.run``, its own output folder), the objective ``config["objective"]`` (a file's
+    path, or an objective file's content; written as ``objective.json`` with its image paths made
+    absolute: a file's relative to the file, the content's to the working directory), ``design_run`` with
     ``config["design"]``'s keywords; writes ``<output.dir>/<config hash>/`` (config.json,
     objective.json, design.json: the report, design.png: ``plot_report``), prints
     ``report_lines`` and where the report is, and returns the report.
@@ -1894,6 +1899,20 @@ def run_design(config: dict) -> dict:
     os.makedirs(out, exist_ok=True)
     save_resolved(config, out)
     folder = config.get("run")
+    objective = config["objective"]
+    if isinstance(objective, str):  # a file: its image paths are relative to it
+        source = os.path.abspath(objective)
+        with open(source) as f:
+            spec, base = json.load(f), os.path.dirname(source)
+    else:  # the config's content: its image paths are relative to the working directory
+        spec, base = json.loads(json.dumps(objective)), os.getcwd()
+    image = spec.get("image") if isinstance(spec, dict) else None
+    if isinstance(image, dict):
+        for key in ("path", "mask"):
+            if isinstance(image.get(key), str):
+                image[key] = os.path.join(base, image[key])
+    path = os.path.join(out, "objective.json")
+    write_json(path, spec)  # the objective as run, beside the report
     if folder is None:
         from jprt.experiment import load_experiment, resolve_config
         from jprt.runner import run
@@ -1901,12 +1920,7 @@ def run_design(config: dict) -> dict:
         fit = config["fit"]
         module = load_experiment(fit["experiment"])
         folder = run(module, resolve_config(module, [], fit.get("preset")))["output"]
-    objective = config["objective"]
-    if isinstance(objective, dict):
-        path = os.path.join(out, "objective.json")
-        write_json(path, objective)
-        objective = path
-    report = design_run(folder, objective, **config.get("design", {}))
+    report = design_run(folder, path, **config.get("design", {}))
     write_json(os.path.join(out, "design.json"), report)
     plot_report(report, os.path.join(out, "design.png"))
     print("\n".join(report_lines(report)))

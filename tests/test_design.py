@@ -339,7 +339,7 @@ def test_jprt_design_on_a_test_preset_rrf_writes_a_verified_report(tmp_path, fit
     # the correction (one pass by default) ran from the design's lights, said whether it kept its
     # lights, and the report's lights are either its own or those before it
     assert report["correction"]["passes"] == 1 and len(report["correction"]["kept"]) == 1
-    assert report["correction"]["moved"][0] or not report["correction"]["kept"][0]
+    assert len(report["correction"]["moved"]) == 1
     assert report["correction"]["seconds"] > 0 and report["reference_power"] == pytest.approx(3.0)
     if not report["correction"]["kept"][0]:
         assert report["found"]["position"] == report["uncorrected"]["position"]
@@ -369,8 +369,18 @@ def test_the_design_experiment_writes_its_report_and_figure(tmp_path, fitted_pre
         assert (out / folder / name).is_file(), name
     with open(out / folder / "design.json") as f:
         report = json.load(f)
-    assert set(report["bounds"]) == {"back.irradiance", "green-wall.irradiance"}
+    assert set(report["bounds"]) == {"back.irradiance", "green-wall.irradiance"}  # the demo's objective
     assert len(report["history"]) == 6 and np.isfinite(report["verified_objective"])
+    # an objective file of one's own, named by path: run as written, and copied beside the report
+    mine = _write(tmp_path, {"objects": [{"name": "floor", "min": 0.5}]}, "mine.json")
+    out2 = tmp_path / "out2"
+    assert main(["run", "experiments/design.py", "--preset", "test", "--set", f"run={run}",
+                 "--set", f"objective={mine}", "--set", f"output.dir={out2}"]) == 0
+    (folder,) = os.listdir(out2)
+    with open(out2 / folder / "design.json") as f:
+        assert set(json.load(f)["bounds"]) == {"floor.irradiance"}
+    with open(out2 / folder / "objective.json") as f:
+        assert json.load(f) == {"objects": [{"name": "floor", "min": 0.5}]}
 
 
 @pytest.mark.parametrize("name", ["datadriven", "mrt"])
@@ -445,7 +455,7 @@ def test_environment_design_finds_the_known_turn_and_scale_of_a_synthetic_model(
     frame = design.environment_frame(_floor(n=n), lambda cube, angle, scale: 0.05 * jnp.mean(cube) * jnp.ones((n, n, 3)),
                                      transfer)
     sky = _sky(face)
-    target, _, _ = frame(2.0 * cubemap.rotate_cubemap_y(sky, 0.5))
+    target, _, _ = frame(2.0 * cubemap.rotate_cubemap_y(sky, 0.5), 0.5, jnp.full((3,), 2.0))
     obj = design.Objective(design.ImageTarget(np.asarray(target), None, "full", 1.0), (), 0.0, "synthetic")
     result = design.design_environment(frame, obj, np.zeros((0, n, n)), sky, steps=200, learning_rate=0.05,
                                        progress=False)
@@ -481,7 +491,7 @@ def test_the_environment_transfer_gives_mitsubas_direct_light(mi):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["sh_prt", "sg_environment"])
-def test_jprt_design_turns_and_scales_an_environment(name, tmp_path, fitted_preset, assets):
+def test_jprt_design_turns_and_scales_an_environment(name, tmp_path, fitted_preset, assets, capsys):
     """SH PRT (its SH projection of the turned map) and SG environment visibility (its U, turned)
     through ``jprt design`` with an environment-map file: a finite turn, a positive scale, every
     step, and the objective verified on Mitsuba's render."""
@@ -493,8 +503,10 @@ def test_jprt_design_turns_and_scales_an_environment(name, tmp_path, fitted_pres
     m, config, dataset, result = fitted_preset(name)
     run = save_fit(str(tmp_path / "run"), name, config, result.params)
     hdr = sorted(glob.glob(os.path.join(assets, "envmaps", "*.hdr")))[0]
-    seen = {"sh_prt": "back", "sg_environment": "floor"}[name]  # an object the run's frame shows
-    objective = _write(tmp_path, {"objects": [{"name": seen, "min": 5.0}]})
+    # an object the run's frame shows; SG environment's by its radiance, which reads the model's
+    # glossy term (its irradiance is the direct light's alone)
+    seen, quantity = {"sh_prt": ("back", "irradiance"), "sg_environment": ("floor", "radiance")}[name]
+    objective = _write(tmp_path, {"objects": [{"name": seen, "quantity": quantity, "min": 5.0}]})
     out = str(tmp_path / "design.json")
     assert main(["design", run, "--objective", objective, "--env", hdr, "--size", "12", "--steps", "8",
                  "--verify-spp", "4", "--out", out]) == 0
@@ -502,7 +514,13 @@ def test_jprt_design_turns_and_scales_an_environment(name, tmp_path, fitted_pres
         report = json.load(f)
     assert report["environment"] == os.path.basename(hdr) and np.isfinite(report["found"]["rotation_deg"])
     assert np.all(np.asarray(report["found"]["scale"]) > 0) and len(report["history"]) == 8
-    assert set(report["verified_terms"]) == {f"{seen}.irradiance"} and np.isfinite(report["verified_objective"])
+    assert set(report["verified_terms"]) == {f"{seen}.{quantity}"} and np.isfinite(report["verified_objective"])
+    if name == "sg_environment":  # a model of direct light is not designed for an indirect image
+        np.save(tmp_path / "target.npy", np.zeros((12, 12, 3), np.float32))
+        bad = _write(tmp_path, {"image": {"path": "target.npy", "quantity": "indirect"}}, "indirect.json")
+        assert main(["design", run, "--objective", bad, "--env", hdr, "--size", "12", "--steps", "2",
+                     "--verify-spp", "4"]) == 2
+        assert "predicts the environment's direct light" in capsys.readouterr().err
 
 
 def test_what_is_not_optimised_keeps_its_starting_value():
