@@ -77,7 +77,8 @@ CONFIG = {
     # the methods' own sections (their defaults are scene-aware; these are sizes only)
     # RRF: 128 training lights x 4 views x 192 rays per view and light (98k samples), chosen on
     # living-room, validated on cornell_box_picture and veach-bidir (the sizes tried: CHANGELOG.md)
-    "rrf": {"data": {"n_lights": 128, "n_views": 4, "n_rays": 192, "spp": 256, "min_object_rays": 8},
+    "rrf": {"data": {"n_lights": 128, "n_views": 4, "n_rays": 192, "spp": 256, "min_object_rays": 8,
+                     "light_spread": "even"},
             "tree": {"max_leaves": 32, "min_samples": 600}, "train": {"max_iters": 30}},
     "datadriven": {"lightmap": {"resolution": 96}, "points": {"candidates": 8192, "count": 512},
                    "data": {"n_train": 128, "n_test": 4, "spp": 64, "test_spp": 64}},

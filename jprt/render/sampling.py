@@ -9,10 +9,12 @@ dimensions paired by independent random permutations.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
-__all__ = ["latin_hypercube", "check_box", "scene_regions", "view_region_points", "free_lights", "view_points",
-           "lit_fraction", "serves_view", "REGION_KEYS",
+__all__ = ["latin_hypercube", "check_box", "scene_regions", "view_region_points", "free_lights", "even_lights",
+           "centroidal_points", "EVEN_POOL", "EVEN_RULE", "view_points", "lit_fraction", "serves_view", "REGION_KEYS",
            "CORNELL_REGIONS", "MIN_LIT_FRACTION", "LIGHT_RULE"]
 
 
@@ -163,6 +165,92 @@ def serves_view(handle, positions, view) -> np.ndarray:
     if view is None:
         return np.ones(len(positions), bool)
     return lit_fraction(handle, positions, view=view) >= MIN_LIT_FRACTION
+
+
+def centroidal_points(points, n: int, rng: np.random.Generator, *, iters: int = 40) -> np.ndarray:
+    """``n`` of ``points`` (M, D), M >= n, spread evenly over them: Lloyd's k-means (a centroidal
+    Voronoi tessellation of the point set, ``iters`` rounds from ``n`` random points), each
+    centroid then replaced by the nearest point not taken yet, so every pick is one of ``points``.
+
+    From a uniform set (``even_lights``' candidates) the cells come out about equally large, so
+    inside the region the picks are as dense everywhere (asymptotically, from a non-uniform set
+    their density goes as the set's to the power D / (D + 2)); a band about half a spacing wide
+    along the region's boundary holds fewer picks than a uniform draw would put there, where a
+    farthest-point draw crowds it; and they leave fewer and smaller gaps than ``n`` independent
+    draws from the set. In a non-convex set a centroid may fall outside it (behind a pillar):
+    its pick is then the nearest member, which may lie across a thin wall from it."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, np.float64)
+    n = int(n)
+    if n <= 0 or n > len(points):
+        raise ValueError(f"need 1 <= n <= {len(points)} points to choose from, got n={n}")
+    centres = points[rng.choice(len(points), n, replace=False)].copy()
+    for _ in range(int(iters)):
+        label = cKDTree(centres).query(points)[1]
+        counts = np.bincount(label, minlength=n)
+        sums = np.zeros_like(centres)
+        np.add.at(sums, label, points)
+        moved = counts > 0  # an empty cell keeps its centre
+        new = centres.copy()
+        new[moved] = sums[moved] / counts[moved, None]
+        if np.allclose(new, centres):
+            break
+        centres = new
+    taken = np.zeros(len(points), bool)
+    out = np.empty_like(centres)
+    tree = cKDTree(points)
+    for k, c in enumerate(centres):
+        near = tree.query(c, k=min(len(points), 16))[1]
+        free = [i for i in np.atleast_1d(near) if not taken[i]]
+        i = free[0] if free else int(np.flatnonzero(~taken)[np.argmin(
+            np.sum((points[~taken] - c) ** 2, axis=1))])
+        taken[i] = True
+        out[k] = points[i]
+    return out
+
+
+#: Acceptable candidates ``even_lights`` spreads its lights over, per light.
+EVEN_POOL = 16
+#: The version of ``even_lights``' rule (pool size, k-means, picking), part of the cache keys of
+#: datasets whose lights it drew.
+EVEN_RULE = 1
+
+
+def even_lights(scene, n: int, light_lo, light_hi, rng, tries: int = 50) -> np.ndarray:
+    """``n`` training lights spread evenly over the acceptable part of the light box: uniform
+    candidates in the box, kept where ``free_lights`` would keep a light (off geometry, lighting
+    enough of the file's camera's view), ``EVEN_POOL`` per light, then ``centroidal_points`` of
+    them. Held-out lights drawn uniformly from the same space (``free_lights``) then fall nearer a
+    training light than to one of ``n`` lights drawn as ``free_lights`` draws them (CHANGELOG.md,
+    2026-12-07, measured on the four interiors). A ValueError when the box has no such space, a
+    warning when fewer than ``EVEN_POOL`` candidates a light were found in ``tries`` rounds."""
+    from jprt.render.lightmap import free_positions
+    from jprt.render.scenes import SceneHandle
+
+    handle = SceneHandle(scene)
+    box = handle.scene.bbox()
+    clearance = 0.02 * float(np.max(np.asarray(box.max) - np.asarray(box.min)))
+    lo, hi = check_box(light_lo, light_hi, "light box")
+    view = view_points(handle)
+    want, pool, have = EVEN_POOL * int(n), [], 0
+    for _ in range(int(tries)):
+        cand = lo + (hi - lo) * rng.random((want, lo.size))
+        ok = free_positions(handle, cand, clearance=clearance)
+        if ok.any():
+            ok[ok] = serves_view(handle, cand[ok], view)
+        pool.append(cand[ok])
+        have += int(ok.sum())
+        if have >= want:
+            break
+    if have < int(n):
+        raise ValueError(f"no free space for lights in the light box {lo.tolist()} / {hi.tolist()} (outside "
+                         f"geometry, lighting at least {MIN_LIT_FRACTION:.0%} of what the file's camera sees): set "
+                         "the light box")
+    if have < want:
+        warnings.warn(f"even_lights: {have} acceptable candidates for {int(n)} lights (of {tries * want} drawn; "
+                      f"{EVEN_POOL} a light asked for): the lights are spread over fewer", stacklevel=2)
+    return centroidal_points(np.concatenate(pool)[:want], n, rng)
 
 
 def free_lights(scene, lights: np.ndarray, light_lo, light_hi, rng, tries: int = 50) -> np.ndarray:

@@ -625,3 +625,40 @@ def test_regions_come_from_the_scene_file(mi, tmp_path):
                                   np.random.default_rng(0))  # all inside the pillar to start with
     assert free_positions(SceneHandle(desc), lights, clearance=0.1).all()
     assert rrf_data.scene_regions({"name": "cornell_box", "area_light": False})["light_lo"] == [-0.6, 0.3, -0.6]
+
+
+@pytest.mark.mitsuba
+def test_light_spread_is_checked_and_keys_the_scene_files_data(mi, tmp_path, monkeypatch):
+    """``data.light_spread``: a bad value is refused in one line; for a scene file "even" and
+    "latin" are different data (cache keys), "latin" keeping the key from before the option; for
+    the built-in box, whose lights are its tuned hypercube either way, the key does not change."""
+    from jprt.methods.rrf import data as rrf_data
+
+    with pytest.raises(ValueError, match="light_spread must be 'even' or 'latin'"):
+        rrf_data.make_dataset({"name": "cornell_box", "area_light": False}, {"data": {"light_spread": "blue"}},
+                              cache_dir=str(tmp_path), progress=False)
+    specs = []
+
+    class Captured(Exception):
+        pass
+
+    def capture(name, spec, build, **kw):
+        specs.append(spec)
+        raise Captured
+
+    monkeypatch.setattr(rrf_data.cache, "cached", capture)
+    room = tmp_path / "room.xml"
+    room.write_text("""<scene version="3.0.0">
+  <sensor type="perspective"><transform name="to_world"><lookat origin="0, 1, 3.5" target="0, 1, 0" up="0, 1, 0"/>
+    </transform></sensor>
+  <shape type="cube"><transform name="to_world"><scale x="4" y="2" z="4"/><translate y="2"/></transform>
+    <bsdf type="diffuse"/><boolean name="flip_normals" value="true"/></shape>
+</scene>""")
+    for scene in ({"name": "xml", "path": str(room), "keep_emitters": False}, {"name": "cornell_box", "area_light": False}):
+        for spread in ("even", "latin"):
+            with pytest.raises(Captured):
+                rrf_data.make_dataset(scene, {"data": {"light_spread": spread}}, cache_dir=str(tmp_path), progress=False)
+    even, latin, box_even, box_latin = specs
+    assert even != latin and even["data"]["light_spread"] == "even" and "even_rule" in even
+    assert "light_spread" not in latin["data"] and "even_rule" not in latin and "light_rule" in latin
+    assert box_even == box_latin and "light_spread" not in box_even["data"]

@@ -71,3 +71,63 @@ def test_lights_drawn_for_a_file_light_what_its_camera_sees(mi, tmp_path, monkey
     monkeypatch.setattr(sampling, "MIN_LIT_FRACTION", 0.0)
     assert np.any(draw()[:, 0] > 0.1)
     assert sampling.lit_fraction(SceneHandle({"name": "cornell_box", "area_light": False}), [[0, 1, 0]]) is None
+
+
+def test_centroidal_points_cover_a_set_evenly_without_crowding_its_edges():
+    """Picks of a uniform square's points: distinct members of the set; the largest distance from
+    a point of the set to its nearest pick (the gap a held-out draw can fall in) well below that
+    of as many random picks; no more of them near the edges than the edges' share of the area
+    (a farthest-point draw puts most of its first picks there)."""
+    from scipy.spatial import cKDTree
+
+    from jprt.render.sampling import centroidal_points
+
+    rng = np.random.default_rng(3)
+    pool = rng.random((4000, 2))
+    picks = centroidal_points(pool, 64, np.random.default_rng(0))
+    assert picks.shape == (64, 2)
+    members = cKDTree(pool).query(picks)[0]
+    assert np.all(members == 0.0) and len(np.unique(picks, axis=0)) == 64
+    gap = cKDTree(picks).query(pool)[0].max()
+    random_gaps = [cKDTree(pool[np.random.default_rng(s).choice(4000, 64, replace=False)]).query(pool)[0].max()
+                   for s in range(5)]
+    assert gap < 0.75 * min(random_gaps)
+    edge = 0.05
+    near = np.mean(np.any((picks < edge) | (picks > 1 - edge), axis=1))
+    assert near <= 1.0 - (1.0 - 2 * edge) ** 2  # 0.19, the edge band's share of the square
+    with pytest.raises(ValueError, match="n <= 10"):
+        centroidal_points(pool[:10], 11, rng)
+
+
+@pytest.mark.mitsuba
+def test_even_lights_fill_only_the_space_that_lights_the_view(mi, tmp_path):
+    """even_lights in the two-room file: as many distinct lights as asked, every one in the room
+    the camera sees, at free_lights' clearance from geometry, lighting at least MIN_LIT_FRACTION
+    of the view; and 400 lights drawn as free_lights draws them (the held-out lights) are nearer
+    to one of them, at the farthest, than to as many lights drawn that way."""
+    from scipy.spatial import cKDTree
+
+    from jprt.render import sampling
+    from jprt.render.lightmap import free_positions
+    from jprt.render.scenes import SceneHandle
+
+    path = tmp_path / "two_rooms.xml"
+    path.write_text(_TWO_ROOMS)
+    desc = {"name": "xml", "path": str(path), "keep_emitters": False}
+    regions = sampling.scene_regions(desc)
+    lights = sampling.even_lights(desc, 12, regions["light_lo"], regions["light_hi"], np.random.default_rng(0))
+    handle = SceneHandle(desc)
+    assert lights.shape == (12, 3) and len(np.unique(lights, axis=0)) == 12
+    assert np.all(lights[:, 0] < -0.1)
+    assert sampling.lit_fraction(handle, lights).min() >= sampling.MIN_LIT_FRACTION
+    box = handle.scene.bbox()
+    clearance = 0.02 * float(np.max(np.asarray(box.max) - np.asarray(box.min)))
+    assert free_positions(handle, lights, clearance=clearance).all()
+    lo, hi = regions["light_lo"], regions["light_hi"]
+
+    def drawn(n, seed):
+        rng = np.random.default_rng(seed)
+        return sampling.free_lights(desc, sampling.latin_hypercube(rng, n, lo, hi), lo, hi, rng)
+
+    held_out = drawn(400, 5)
+    assert cKDTree(lights).query(held_out)[0].max() < 0.85 * cKDTree(drawn(12, 0)).query(held_out)[0].max()

@@ -1,7 +1,9 @@
 """Training data of Radiance Regression Functions (Ren et al. 2013, Appendix A), rendered with
 Mitsuba through ``jprt.render`` and cached by ``jprt.cache``.
 
-N_l light positions and N_v viewpoints by Latin hypercube sampling in user boxes; N_r random
+N_l light positions and N_v viewpoints by Latin hypercube sampling in user boxes (in a scene
+file's own light box, by default, lights spread evenly over its free space instead:
+``data.light_spread``); N_r random
 primary rays per (light, view) pair; attributes at the first hit and the path-traced indirect
 radiance (full minus direct, same seed). Option, not in the paper: with ``data.oversample`` > 1
 the N_r rays are drawn from oversample x N_r uniform screen rays, balanced over the surfaces they
@@ -68,6 +70,8 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
     for key in ("n_lights", "n_views", "n_rays", "spp"):
         if int(data_cfg[key]) <= 0:
             raise ValueError(f"data.{key} must be positive, got {data_cfg[key]}")
+    if data_cfg["light_spread"] not in ("even", "latin"):
+        raise ValueError(f"data.light_spread must be 'even' or 'latin', got {data_cfg['light_spread']!r}")
     if int(data_cfg["check_lights"]) < 0:
         raise ValueError(f"data.check_lights must be >= 0, got {data_cfg['check_lights']}")
     if int(data_cfg["min_face_rays"]) > 0 and (int(data_cfg["oversample"]) > 1 or int(data_cfg["min_object_rays"]) > 0):
@@ -82,12 +86,16 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
     for key in ("min_object_rays", "min_face_rays"):  # newer keys: unset, the cache key is the old one
         if not int(data_cfg[key]):
             spec["data"].pop(key)
+    if regions_from != "scene bounds" or data_cfg["light_spread"] == "latin":  # the draw before the key
+        spec["data"].pop("light_spread")
     if mode == "view":
         spec["data"].pop("material")
-    if regions_from == "scene bounds":  # lights drawn by free_lights: its rule is part of the data
-        from jprt.render.sampling import LIGHT_RULE
+    if regions_from == "scene bounds":  # lights drawn by free_lights or even_lights: their rules are the data's
+        from jprt.render.sampling import EVEN_RULE, LIGHT_RULE
 
         spec["light_rule"] = LIGHT_RULE
+        if data_cfg["light_spread"] == "even":
+            spec["even_rule"] = EVEN_RULE
 
     def build() -> dict:
         t0 = time.perf_counter()
@@ -104,16 +112,21 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
 
 
 def _draw(desc: dict, data_cfg: dict, regions_from: str):
-    """The training lights (Latin hypercube in the light box; moved off geometry for scene
-    bounds), the (scene, camera, edit) setups (views, or materials in material mode) and the
-    generator the rays are drawn from next, in the order the training data draws them."""
+    """The training lights (Latin hypercube in the light box; for scene bounds the hypercube's
+    lights moved off geometry, ``free_lights``, and with ``data.light_spread`` "even" (the
+    default) replaced by lights spread evenly over that free space, ``even_lights``, drawn from a
+    stream of their own so the views and rays are those of "latin"), the (scene, camera, edit) setups (views, or materials in material mode)
+    and the generator the rays are drawn from next, in the order the training data draws them."""
     from jprt.render import cameras as cams
-    from jprt.render.sampling import check_box, latin_hypercube
+    from jprt.render.sampling import check_box, even_lights, latin_hypercube
 
     rng = np.random.default_rng(int(data_cfg["seed"]))
     lights = latin_hypercube(rng, data_cfg["n_lights"], data_cfg["light_lo"], data_cfg["light_hi"])
     if regions_from == "scene bounds":  # no light inside geometry or touching it
         lights = free_lights(desc, lights, data_cfg["light_lo"], data_cfg["light_hi"], rng)
+        if data_cfg["light_spread"] == "even":  # a stream of their own: the views and rays stay the draw's
+            lights = even_lights(desc, data_cfg["n_lights"], data_cfg["light_lo"], data_cfg["light_hi"],
+                                 np.random.default_rng([int(data_cfg["seed"]), 46]))
     if data_cfg["mode"] == "view":
         check_box(data_cfg["view_lo"], data_cfg["view_hi"], "data.view_lo/view_hi")
         origins = latin_hypercube(rng, data_cfg["n_views"], data_cfg["view_lo"], data_cfg["view_hi"])

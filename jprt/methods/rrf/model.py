@@ -73,7 +73,13 @@ DEFAULT_CONFIG: dict = {
         "view_target": None,  # the point every training camera looks at (world units; None: from the scene)
         "target_jitter": 0.15,  # each camera's target moved by up to this much per axis (world units, uniform)
         "fov": None,  # camera field of view in degrees; None: from the scene, as the regions above
-        "n_lights": 20,  # N_l training light positions (Latin hypercube in the light box)
+        "n_lights": 20,  # N_l training light positions (Latin hypercube in the light box; see light_spread)
+        # how training lights fill a light box that comes from a scene file's bounds: "even"
+        # (``sampling.even_lights``: spread evenly over the free space that lights the file's view,
+        # fewer gaps than random draws) or "latin" (the Latin hypercube, each light off geometry
+        # drawn again at random); where the config sets every region key (and for the built-in
+        # scenes' tuned boxes) the lights are the Latin hypercube as it is
+        "light_spread": "even",
         "n_views": 20,  # N_v training viewpoints (Latin hypercube in the view box)
         "n_rays": 100,  # N_r primary rays (samples) per (light, view) pair
         # > 1: n_rays drawn from oversample x n_rays screen rays, balanced over the surfaces they hit
