@@ -2,8 +2,8 @@
 Mitsuba through ``jprt.render`` and cached by ``jprt.cache``.
 
 N_l light positions and N_v viewpoints by Latin hypercube sampling in user boxes (in a scene
-file's own light box, by default, lights spread evenly over its free space instead:
-``data.light_spread``); N_r random
+file's own light box, with ``data.light_spread`` "even", lights spread evenly over its free space
+instead); N_r random
 primary rays per (light, view) pair; attributes at the first hit and the path-traced indirect
 radiance (full minus direct, same seed). Option, not in the paper: with ``data.oversample`` > 1
 the N_r rays are drawn from oversample x N_r uniform screen rays, balanced over the surfaces they
@@ -113,8 +113,7 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
 
 def _draw(desc: dict, data_cfg: dict, regions_from: str):
     """The training lights (Latin hypercube in the light box; for scene bounds the hypercube's
-    lights moved off geometry, ``free_lights``, and with ``data.light_spread`` "even" (the
-    default) replaced by lights spread evenly over that free space, ``even_lights``, drawn from a
+    lights moved off geometry, ``free_lights``, and with ``data.light_spread`` "even" replaced by lights spread evenly over that free space, ``even_lights``, drawn from a
     stream of their own so the views and rays are those of "latin"), the (scene, camera, edit) setups (views, or materials in material mode)
     and the generator the rays are drawn from next, in the order the training data draws them."""
     from jprt.render import cameras as cams

@@ -74,12 +74,13 @@ DEFAULT_CONFIG: dict = {
         "target_jitter": 0.15,  # each camera's target moved by up to this much per axis (world units, uniform)
         "fov": None,  # camera field of view in degrees; None: from the scene, as the regions above
         "n_lights": 20,  # N_l training light positions (Latin hypercube in the light box; see light_spread)
-        # how training lights fill a light box that comes from a scene file's bounds: "even"
-        # (``sampling.even_lights``: spread evenly over the free space that lights the file's view,
-        # fewer gaps than random draws) or "latin" (the Latin hypercube, each light off geometry
-        # drawn again at random); where the config sets every region key (and for the built-in
-        # scenes' tuned boxes) the lights are the Latin hypercube as it is
-        "light_spread": "even",
+        # how training lights fill a light box that comes from a scene file's bounds: "latin" (the
+        # Latin hypercube, each light off geometry drawn again at random) or "even"
+        # (``sampling.even_lights``: k-means centres over the free space that lights the file's
+        # view, fewer gaps; better on staircase, worse on living-room: docs/own-scene.md); where
+        # the config sets every region key (and for the built-in scenes' tuned boxes) the lights
+        # are the Latin hypercube as it is
+        "light_spread": "latin",
         "n_views": 20,  # N_v training viewpoints (Latin hypercube in the view box)
         "n_rays": 100,  # N_r primary rays (samples) per (light, view) pair
         # > 1: n_rays drawn from oversample x n_rays screen rays, balanced over the surfaces they hit
