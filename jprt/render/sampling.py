@@ -222,9 +222,10 @@ def even_lights(scene, n: int, light_lo, light_hi, rng, tries: int = 50) -> np.n
     candidates in the box, kept where ``free_lights`` would keep a light (off geometry, lighting
     enough of the file's camera's view), ``EVEN_POOL`` per light, then ``centroidal_points`` of
     them. Held-out lights drawn uniformly from the same space (``free_lights``) then fall nearer a
-    training light than to one of ``n`` lights drawn as ``free_lights`` draws them (CHANGELOG.md,
-    2026-12-07, measured on the four interiors). A ValueError when the box has no such space, a
-    warning when fewer than ``EVEN_POOL`` candidates a light were found in ``tries`` rounds."""
+    training light, in distribution, than to ``n`` lights drawn as ``free_lights`` draws them
+    (CHANGELOG.md, 2026-12-07 (afternoon), measured on the four interiors). A ValueError when
+    fewer than ``n`` acceptable candidates are found in ``tries`` rounds, a warning when fewer
+    than ``EVEN_POOL`` a light are."""
     from jprt.render.lightmap import free_positions
     from jprt.render.scenes import SceneHandle
 

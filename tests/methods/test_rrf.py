@@ -662,3 +662,33 @@ def test_light_spread_is_checked_and_keys_the_scene_files_data(mi, tmp_path, mon
     assert even != latin and even["data"]["light_spread"] == "even" and "even_rule" in even
     assert "light_spread" not in latin["data"] and "even_rule" not in latin and "light_rule" in latin
     assert box_even == box_latin and "light_spread" not in box_even["data"]
+
+
+@pytest.mark.mitsuba
+def test_even_lights_keep_the_views_and_latin_keeps_the_old_draw(mi, tmp_path):
+    """``_draw`` for a scene file: "latin" is the hypercube moved off geometry by ``free_lights``
+    (the draw before ``data.light_spread``); "even" changes the lights only, the views (and the
+    generator the rays come from next) are "latin"'s."""
+    from jprt.render.sampling import free_lights, latin_hypercube
+
+    room = tmp_path / "room.xml"
+    room.write_text("""<scene version="3.0.0">
+  <sensor type="perspective"><transform name="to_world"><lookat origin="0, 1, 3.5" target="0, 1, 0" up="0, 1, 0"/>
+    </transform></sensor>
+  <shape type="cube"><transform name="to_world"><scale x="4" y="2" z="4"/><translate y="2"/></transform>
+    <bsdf type="diffuse"/><boolean name="flip_normals" value="true"/></shape>
+</scene>""")
+    desc = {"name": "xml", "path": str(room), "keep_emitters": False}
+    draws = {}
+    for spread in ("latin", "even"):
+        cfg = rrf_data.resolve_regions({**rrf.DEFAULT_CONFIG["data"], "n_lights": 6, "n_views": 3,
+                                        "light_spread": spread}, desc)
+        regions_from = cfg.pop("regions_from")
+        assert regions_from == "scene bounds"
+        draws[spread] = rrf_data._draw(desc, cfg, regions_from)
+    rng = np.random.default_rng(int(cfg["seed"]))
+    old = free_lights(desc, latin_hypercube(rng, 6, cfg["light_lo"], cfg["light_hi"]), cfg["light_lo"], cfg["light_hi"], rng)
+    np.testing.assert_array_equal(draws["latin"][0], old)
+    assert not np.array_equal(draws["even"][0], old)
+    assert [s[1] for s in draws["even"][1]] == [s[1] for s in draws["latin"][1]]
+    assert draws["even"][2].random() == draws["latin"][2].random()

@@ -86,7 +86,9 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
     for key in ("min_object_rays", "min_face_rays"):  # newer keys: unset, the cache key is the old one
         if not int(data_cfg[key]):
             spec["data"].pop(key)
-    if regions_from != "scene bounds" or data_cfg["light_spread"] == "latin":  # the draw before the key
+    # light_spread changes the data only for "even" in a box from the scene's bounds: elsewhere it
+    # is left out of the key, which stays what it was before the option
+    if regions_from != "scene bounds" or data_cfg["light_spread"] == "latin":
         spec["data"].pop("light_spread")
     if mode == "view":
         spec["data"].pop("material")
@@ -113,9 +115,11 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
 
 def _draw(desc: dict, data_cfg: dict, regions_from: str):
     """The training lights (Latin hypercube in the light box; for scene bounds the hypercube's
-    lights moved off geometry, ``free_lights``, and with ``data.light_spread`` "even" replaced by lights spread evenly over that free space, ``even_lights``, drawn from a
-    stream of their own so the views and rays are those of "latin"), the (scene, camera, edit) setups (views, or materials in material mode)
-    and the generator the rays are drawn from next, in the order the training data draws them."""
+    lights moved off geometry, ``free_lights``, and with ``data.light_spread`` "even" replaced by
+    lights spread evenly over that free space, ``even_lights``, drawn from a stream of their own
+    so the views and rays are those of "latin"), the (scene, camera, edit) setups (views, or
+    materials in material mode) and the generator the rays are drawn from next, in the order the
+    training data draws them."""
     from jprt.render import cameras as cams
     from jprt.render.sampling import check_box, even_lights, latin_hypercube
 
