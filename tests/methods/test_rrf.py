@@ -627,6 +627,15 @@ def test_regions_come_from_the_scene_file(mi, tmp_path):
     assert rrf_data.scene_regions({"name": "cornell_box", "area_light": False})["light_lo"] == [-0.6, 0.3, -0.6]
 
 
+#: A closed room with a camera of its own, nothing in it: a scene file's regions, cheaply.
+_EMPTY_ROOM = """<scene version="3.0.0">
+  <sensor type="perspective"><transform name="to_world"><lookat origin="0, 1, 3.5" target="0, 1, 0" up="0, 1, 0"/>
+    </transform></sensor>
+  <shape type="cube"><transform name="to_world"><scale x="4" y="2" z="4"/><translate y="2"/></transform>
+    <bsdf type="diffuse"/><boolean name="flip_normals" value="true"/></shape>
+</scene>"""
+
+
 @pytest.mark.mitsuba
 def test_light_spread_is_checked_and_keys_the_scene_files_data(mi, tmp_path, monkeypatch):
     """``data.light_spread``: a bad value is refused in one line; for a scene file "even" and
@@ -648,12 +657,7 @@ def test_light_spread_is_checked_and_keys_the_scene_files_data(mi, tmp_path, mon
 
     monkeypatch.setattr(rrf_data.cache, "cached", capture)
     room = tmp_path / "room.xml"
-    room.write_text("""<scene version="3.0.0">
-  <sensor type="perspective"><transform name="to_world"><lookat origin="0, 1, 3.5" target="0, 1, 0" up="0, 1, 0"/>
-    </transform></sensor>
-  <shape type="cube"><transform name="to_world"><scale x="4" y="2" z="4"/><translate y="2"/></transform>
-    <bsdf type="diffuse"/><boolean name="flip_normals" value="true"/></shape>
-</scene>""")
+    room.write_text(_EMPTY_ROOM)
     for scene in ({"name": "xml", "path": str(room), "keep_emitters": False}, {"name": "cornell_box", "area_light": False}):
         for spread in ("even", "latin"):
             with pytest.raises(Captured):
@@ -672,12 +676,7 @@ def test_even_lights_keep_the_views_and_latin_keeps_the_old_draw(mi, tmp_path):
     from jprt.render.sampling import free_lights, latin_hypercube
 
     room = tmp_path / "room.xml"
-    room.write_text("""<scene version="3.0.0">
-  <sensor type="perspective"><transform name="to_world"><lookat origin="0, 1, 3.5" target="0, 1, 0" up="0, 1, 0"/>
-    </transform></sensor>
-  <shape type="cube"><transform name="to_world"><scale x="4" y="2" z="4"/><translate y="2"/></transform>
-    <bsdf type="diffuse"/><boolean name="flip_normals" value="true"/></shape>
-</scene>""")
+    room.write_text(_EMPTY_ROOM)
     desc = {"name": "xml", "path": str(room), "keep_emitters": False}
     draws = {}
     for spread in ("latin", "even"):
