@@ -77,8 +77,8 @@ CONFIG = {
     # the methods' own sections (their defaults are scene-aware; these are sizes only)
     # RRF: 128 training lights x 4 views x 192 rays per view and light (98k samples), chosen on
     # living-room, validated on cornell_box_picture and veach-bidir (the sizes tried: CHANGELOG.md);
-    # light_spread "latin" ("even" was better on staircase and worse on living-room: CHANGELOG.md,
-    # 2026-12-07 (afternoon))
+    # light_spread "latin" ("even" was better on staircase, on living-room worse in one draw of its
+    # lights and better in another: CHANGELOG.md, 2026-12-07 (afternoon))
     "rrf": {"data": {"n_lights": 128, "n_views": 4, "n_rays": 192, "spp": 256, "min_object_rays": 8,
                      "light_spread": "latin"},
             "tree": {"max_leaves": 32, "min_samples": 600}, "train": {"max_iters": 30}},
