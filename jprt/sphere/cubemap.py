@@ -41,6 +41,7 @@ __all__ = [
     "sample_cubemap_nearest",
     "sample_cubemap_bilinear",
     "rotate_cubemap_y",
+    "turned_back_y",
     "sample_equirect_nearest",
 ]
 
@@ -241,10 +242,23 @@ def rotate_cubemap_y(cubemap, angle):
     """
     cube = jnp.asarray(cubemap)
     d = texel_directions(cube.shape[1]).astype(jnp.result_type(angle, jnp.float32))
+    return sample_cubemap_bilinear(cube, turned_back_y(d, angle))
+
+
+def turned_back_y(d, angle):
+    """R(-angle) d: directions (..., 3) turned by -``angle`` radians about +Y, what a direction d
+    of a map turned by ``angle`` (``rotate_cubemap_y``; SG environment's ``rotate_preconvolved_y``)
+    reads of the map before the turn.
+
+    Numerics:
+        d: (8, 3) unit
+        angle: () in [-7, 7]
+        float32: value rtol 1e-5 atol 1e-6; grad rtol 1e-5 atol 1e-5
+    """
+    d = jnp.asarray(d)
     c, s = jnp.cos(angle), jnp.sin(angle)
-    # R(-angle) about +Y: x' = c x - s z, z' = s x + c z
-    src = jnp.stack([c * d[..., 0] - s * d[..., 2], d[..., 1], s * d[..., 0] + c * d[..., 2]], axis=-1)
-    return sample_cubemap_bilinear(cube, src)
+    # x' = c x - s z, z' = s x + c z
+    return jnp.stack([c * d[..., 0] - s * d[..., 2], d[..., 1], s * d[..., 0] + c * d[..., 2]], axis=-1)
 
 
 def _cube_subsamples(n: int, s: int):

@@ -34,6 +34,7 @@ import numpy as np
 
 from jprt.methods.sg_lightfield.model import GLOSSY_RECEIVERS, ggx_ndf, glossy_factor
 from jprt.sphere import octahedral
+from jprt.sphere.cubemap import turned_back_y
 
 __all__ = ["ENV_RECEIVERS", "ENV_DEFAULTS", "ggx_ndf", "octahedral_environment", "preconvolve", "weighted_visibility",
            "lookup_preconvolved", "octahedral_lookup", "rotate_preconvolved_y", "evaluate_lobes", "shade_environment"]
@@ -167,10 +168,7 @@ def rotate_preconvolved_y(u, angle):
     ``u`` (the bilinear weights have kinks where a turned centre crosses a texel centre)."""
     u = jnp.asarray(u, jnp.float32)
     n_levels, n = u.shape[0], u.shape[1]
-    d = jnp.asarray(octahedral.texel_directions(n), jnp.float32)
-    c, s = jnp.cos(angle), jnp.sin(angle)
-    # R(-angle) about +Y: x' = c x - s z, z' = s x + c z
-    src = jnp.stack([c * d[..., 0] - s * d[..., 2], d[..., 1], s * d[..., 0] + c * d[..., 2]], axis=-1)
+    src = turned_back_y(jnp.asarray(octahedral.texel_directions(n), jnp.float32), angle)
     stacked = jnp.moveaxis(u, 0, 2).reshape(n, n, 3 * n_levels)  # every level in one bilinear fetch
     return jnp.moveaxis(octahedral_lookup(stacked, src).reshape(n, n, n_levels, 3), 2, 0)
 
