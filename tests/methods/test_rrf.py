@@ -691,3 +691,30 @@ def test_even_lights_keep_the_views_and_latin_keeps_the_old_draw(mi, tmp_path):
     assert not np.array_equal(draws["even"][0], old)
     assert [s[1] for s in draws["even"][1]] == [s[1] for s in draws["latin"][1]]
     assert draws["even"][2].random() == draws["latin"][2].random()
+    setups_only = rrf_data._draw(desc, cfg, regions_from, spread=False)
+    np.testing.assert_array_equal(setups_only[0], old)  # even_lights skipped: the hypercube's lights
+    assert [s[1] for s in setups_only[1]] == [s[1] for s in draws["even"][1]]
+
+
+@pytest.mark.mitsuba
+def test_even_lights_go_on_where_the_latin_draw_finds_too_little_space(mi, tmp_path):
+    """A light box fifty times the room's volume: most of it serves no view, so ``free_lights``
+    gives up on some light ("latin" raises), while "even", whose pool is larger, spreads its
+    lights over the room (with a warning that the pool is short)."""
+    room = tmp_path / "room.xml"
+    room.write_text(_EMPTY_ROOM)
+    desc = {"name": "xml", "path": str(room), "keep_emitters": False}
+    box = {"light_lo": [-20.0, -10.0, -20.0], "light_hi": [20.0, 14.0, 20.0]}
+    for spread in ("latin", "even"):
+        cfg = rrf_data.resolve_regions({**rrf.DEFAULT_CONFIG["data"], "n_lights": 6, "n_views": 2,
+                                        "light_spread": spread}, desc)
+        cfg.pop("regions_from")
+        cfg.update(box)
+        if spread == "latin":
+            with pytest.raises(ValueError, match="no free space for lights"):
+                rrf_data._draw(desc, cfg, "scene bounds")
+        else:
+            with pytest.warns(UserWarning, match="acceptable candidates"):
+                lights = rrf_data._draw(desc, cfg, "scene bounds")[0]
+            assert lights.shape == (6, 3)
+            assert (np.abs(lights[:, [0, 2]]) < 4).all() and ((lights[:, 1] > 0) & (lights[:, 1] < 4)).all()

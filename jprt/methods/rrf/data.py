@@ -113,21 +113,29 @@ def make_dataset(scene, config: dict | None = None, *, cache_dir: str | None = N
     return RRFData(**arrays, meta=meta)
 
 
-def _draw(desc: dict, data_cfg: dict, regions_from: str):
+def _draw(desc: dict, data_cfg: dict, regions_from: str, *, spread: bool = True):
     """The training lights (Latin hypercube in the light box; for scene bounds the hypercube's
     lights moved off geometry, ``free_lights``, and with ``data.light_spread`` "even" replaced by
     lights spread evenly over that free space, ``even_lights``, drawn from a stream of their own
     so the views and rays are those of "latin"), the (scene, camera, edit) setups (views, or
     materials in material mode) and the generator the rays are drawn from next, in the order the
-    training data draws them."""
+    training data draws them. For "even" the ``free_lights`` draw only advances the generator, so
+    where it finds too little free space (and raises) "even" goes on with its own larger pool;
+    ``spread=False`` skips ``even_lights`` for a caller that wants only the setups (the lights
+    returned are then the hypercube's)."""
     from jprt.render import cameras as cams
     from jprt.render.sampling import check_box, even_lights, latin_hypercube
 
     rng = np.random.default_rng(int(data_cfg["seed"]))
     lights = latin_hypercube(rng, data_cfg["n_lights"], data_cfg["light_lo"], data_cfg["light_hi"])
     if regions_from == "scene bounds":  # no light inside geometry or touching it
-        lights = free_lights(desc, lights, data_cfg["light_lo"], data_cfg["light_hi"], rng)
-        if data_cfg["light_spread"] == "even":  # a stream of their own: the views and rays stay the draw's
+        even = data_cfg["light_spread"] == "even"
+        try:
+            lights = free_lights(desc, lights, data_cfg["light_lo"], data_cfg["light_hi"], rng)
+        except ValueError:
+            if not even:
+                raise
+        if even and spread:  # a stream of their own: the views and rays stay the draw's
             lights = even_lights(desc, data_cfg["n_lights"], data_cfg["light_lo"], data_cfg["light_hi"],
                                  np.random.default_rng([int(data_cfg["seed"]), 46]))
     if data_cfg["mode"] == "view":
@@ -164,7 +172,7 @@ def _check(desc: dict, spec: dict, data_cfg: dict, regions_from: str, *, cache_d
 
     def build() -> dict:
         t0 = time.perf_counter()
-        _, setups, _ = _draw(desc, data_cfg, regions_from)
+        _, setups, _ = _draw(desc, data_cfg, regions_from, spread=False)
         rng = np.random.default_rng([seed, 45])
         lights = latin_hypercube(rng, n, data_cfg["light_lo"], data_cfg["light_hi"])
         if regions_from == "scene bounds":
