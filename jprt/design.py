@@ -964,8 +964,8 @@ def design(frame_fn: Callable, objective: Objective, masks, position, intensity,
         return _design_aux(visibility_fn, program.lights(params, held)[0], held, k, offset)
 
     params, history, (terms, means), seconds, updates, cost = _adam(
-        None, None, p0, steps=steps, learning_rate=learning_rate, refresh=refresh, every=visibility_every,
-        progress=progress, keep_best=keep_best, tol=tol, program=(program.step, program.init))
+        (program.step, program.init), p0, steps=steps, refresh=refresh, every=visibility_every,
+        progress=progress, keep_best=keep_best, tol=tol)
     pos, inten = program.lights(params, held)
     return DesignResult(np.asarray(pos, np.float64), np.asarray(inten, np.float64), history, terms, seconds,
                         updates if visibility_fn is not None else 0, means, cost)
@@ -1024,14 +1024,12 @@ def mitsuba_design(peer, position, intensity, lo, hi, *, steps: int = 200, learn
                       time.perf_counter() - t0, checkpoints)
 
 
-def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_rate: float, refresh: Callable,
-          every: int, progress: bool | None, keep_best: bool = False, tol: float = 0.0, patience: int = 3,
-          program: tuple[Callable, Callable] | None = None):
-    """Adam on ``objective(*model(params, aux)) -> (value, (terms, means))`` for ``steps`` steps, the rate
-    decaying on a cosine to 1 %; ``aux = refresh(params)`` first, every ``every`` steps and at the
-    end. ``model(params, aux) -> (frames, lighting)`` (arrays) must be reverse-mode differentiable
-    (the problem's evaluator is the method's ``gradient_evaluator`` where it has one): each step
-    is one compiled program, the objective's value and its gradient in the parameters
+def _adam(program: tuple[Callable, Callable], params, *, steps: int, refresh: Callable, every: int,
+          progress: bool | None, keep_best: bool = False, tol: float = 0.0, patience: int = 3):
+    """Adam for ``steps`` steps through ``program``, the (step, init) pair of ``_adam_program``
+    (the objective ``objective(*model(params, aux)) -> (value, (terms, means))``, the rate decaying
+    on a cosine to 1 %); ``aux = refresh(params)`` first, every ``every`` steps and at the end.
+    Each step is one compiled program, the objective's value and its gradient in the parameters
     (``jax.value_and_grad``) and the update. Returns (params, history, (terms, means) at the end
     as floats, seconds, refreshes, XLA's count of one step: ``jprt.eval.xla_cost``, compiled
     again after the loop, outside ``seconds``).
@@ -1043,11 +1041,8 @@ def _adam(model: Callable, objective: Callable, params, *, steps: int, learning_
     the steps between refreshes follow a gradient that holds ``aux``; this is a trust region on
     the true objective around that gradient's steps. With ``keep_best`` and ``tol`` > 0 the loop
     also stops early, once ``patience`` refreshes in a row have not lowered the best refreshed
-    objective by more than ``tol`` of it (converged: the returned history is shorter).
-    ``program``: (step, init) of ``_adam_program`` built beforehand (``model`` and ``objective``
-    then unused)."""
-    step, init = _adam_program(model, objective, steps=steps, learning_rate=learning_rate) if program is None \
-        else program
+    objective by more than ``tol`` of it (converged: the returned history is shorter)."""
+    step, init = program
     state = init(params)
     aux, refreshes, history = None, 0, []
     best, scale, stale, end = None, 1.0, 0, None
@@ -1408,8 +1403,8 @@ def design_environment(frame_fn: Callable, objective: Objective, masks, cube, *,
         terms = objective_terms(objective, masks, *frames, scale_rgb, reference)
         return sum(terms.values()), (terms, object_means(objective, masks, frames[0], frames[2]))
 
-    params, history, (terms, means), seconds, _, cost = _adam(model, loss, p0, steps=steps,
-                                                              learning_rate=learning_rate, refresh=lambda p: None,
+    program = _adam_program(model, loss, steps=steps, learning_rate=learning_rate)
+    params, history, (terms, means), seconds, _, cost = _adam(program, p0, steps=steps, refresh=lambda p: None,
                                                               every=max(int(steps), 1), progress=progress)
     return EnvironmentResult(float(params[0]), np.asarray(lighting(params)[1], np.float64), history, terms, seconds,
                              means, cost)
