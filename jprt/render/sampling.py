@@ -14,7 +14,7 @@ import warnings
 import numpy as np
 
 __all__ = ["latin_hypercube", "check_box", "scene_regions", "view_region_points", "free_lights", "even_lights",
-           "centroidal_points", "EVEN_POOL", "EVEN_RULE", "view_points", "lit_fraction", "serves_view", "REGION_KEYS",
+           "uniform_free_lights", "NoFreeSpace", "centroidal_points", "EVEN_POOL", "EVEN_RULE", "view_points", "lit_fraction", "serves_view", "REGION_KEYS",
            "CORNELL_REGIONS", "MIN_LIT_FRACTION", "LIGHT_RULE"]
 
 
@@ -217,15 +217,21 @@ EVEN_POOL = 16
 EVEN_RULE = 1
 
 
-def even_lights(scene, n: int, light_lo, light_hi, rng, tries: int = 50) -> np.ndarray:
-    """``n`` training lights spread evenly over the acceptable part of the light box: uniform
-    candidates in the box, kept where ``free_lights`` would keep a light (off geometry, lighting
-    enough of the file's camera's view), ``EVEN_POOL`` per light, then ``centroidal_points`` of
-    them. Held-out lights drawn uniformly from the same space (``free_lights``) then fall nearer a
-    training light, in distribution, than to ``n`` lights drawn as ``free_lights`` draws them
-    (CHANGELOG.md, 2026-12-07 (afternoon), measured on the four interiors). A ValueError when
-    fewer than ``n`` acceptable candidates are found in ``tries`` rounds, a warning when fewer
-    than ``EVEN_POOL`` a light are."""
+class NoFreeSpace(ValueError):
+    """A light box with too little space where a light may go (off geometry, lighting enough of
+    the file's camera's view): ``free_lights``, ``even_lights``, ``uniform_free_lights``."""
+
+
+def _no_free_space(lo, hi) -> NoFreeSpace:
+    return NoFreeSpace(f"no free space for lights in the light box {np.asarray(lo).tolist()} / "
+                       f"{np.asarray(hi).tolist()} (outside geometry, lighting at least {MIN_LIT_FRACTION:.0%} of "
+                       "what the file's camera sees): set the light box")
+
+
+def _acceptable_pool(scene, want: int, light_lo, light_hi, rng, tries: int) -> np.ndarray:
+    """Up to ``want`` uniform points of the light box where ``free_lights`` would keep a light,
+    drawn ``want`` at a time for at most ``tries`` rounds (fewer where the box has little such
+    space), in the order drawn."""
     from jprt.render.lightmap import free_positions
     from jprt.render.scenes import SceneHandle
 
@@ -234,7 +240,7 @@ def even_lights(scene, n: int, light_lo, light_hi, rng, tries: int = 50) -> np.n
     clearance = 0.02 * float(np.max(np.asarray(box.max) - np.asarray(box.min)))
     lo, hi = check_box(light_lo, light_hi, "light box")
     view = view_points(handle)
-    want, pool, have = EVEN_POOL * int(n), [], 0
+    pool, have = [], 0
     for _ in range(int(tries)):
         cand = lo + (hi - lo) * rng.random((want, lo.size))
         ok = free_positions(handle, cand, clearance=clearance)
@@ -244,22 +250,45 @@ def even_lights(scene, n: int, light_lo, light_hi, rng, tries: int = 50) -> np.n
         have += int(ok.sum())
         if have >= want:
             break
-    if have < int(n):
-        raise ValueError(f"no free space for lights in the light box {lo.tolist()} / {hi.tolist()} (outside "
-                         f"geometry, lighting at least {MIN_LIT_FRACTION:.0%} of what the file's camera sees): set "
-                         "the light box")
-    if have < want:
-        warnings.warn(f"even_lights: {have} acceptable candidates for {int(n)} lights (of {tries * want} drawn; "
+    return np.concatenate(pool)[:want]
+
+
+def even_lights(scene, n: int, light_lo, light_hi, rng, tries: int = 50) -> np.ndarray:
+    """``n`` training lights spread evenly over the acceptable part of the light box: uniform
+    candidates in the box, kept where ``free_lights`` would keep a light (off geometry, lighting
+    enough of the file's camera's view), ``EVEN_POOL`` per light, then ``centroidal_points`` of
+    them. Held-out lights drawn uniformly from the same space (``free_lights``) then fall nearer a
+    training light, in distribution, than to ``n`` lights drawn as ``free_lights`` draws them
+    (CHANGELOG.md, 2026-12-07 (afternoon), measured on the four interiors). ``NoFreeSpace`` when
+    fewer than ``n`` acceptable candidates are found in ``tries`` rounds, a warning when fewer
+    than ``EVEN_POOL`` a light are."""
+    want = EVEN_POOL * int(n)
+    pool = _acceptable_pool(scene, want, light_lo, light_hi, rng, tries)
+    if len(pool) < int(n):
+        raise _no_free_space(light_lo, light_hi)
+    if len(pool) < want:
+        warnings.warn(f"even_lights: {len(pool)} acceptable candidates for {int(n)} lights (of {tries * want} drawn; "
                       f"{EVEN_POOL} a light asked for): the lights are spread over fewer", stacklevel=2)
-    return centroidal_points(np.concatenate(pool)[:want], n, rng)
+    return centroidal_points(pool, n, rng)
+
+
+def uniform_free_lights(scene, n: int, light_lo, light_hi, rng, tries: int = 50) -> np.ndarray:
+    """``n`` lights drawn independently and uniformly over the part of the light box where
+    ``free_lights`` would keep a light, as ``even_lights`` draws its candidates (``EVEN_POOL`` x
+    ``n`` a round, up to ``tries`` rounds): for a box where ``free_lights``, which redraws each
+    refused light on its own, gives up first. ``NoFreeSpace`` when fewer than ``n`` are found."""
+    pool = _acceptable_pool(scene, EVEN_POOL * int(n), light_lo, light_hi, rng, tries)
+    if len(pool) < int(n):
+        raise _no_free_space(light_lo, light_hi)
+    return pool[:int(n)]
 
 
 def free_lights(scene, lights: np.ndarray, light_lo, light_hi, rng, tries: int = 50) -> np.ndarray:
     """Light positions outside geometry, at least 2 % of the light box's scene extent from any
     surface (``lightmap.free_positions``) and, in a scene file with a camera, lighting at least
     ``MIN_LIT_FRACTION`` of what that camera sees (``lit_fraction``: a light in another room
-    serves no view): each one that is not is drawn again, uniformly in the light box; a
-    ValueError when the box has no such space."""
+    serves no view): each one that is not is drawn again, uniformly in the light box;
+    ``NoFreeSpace`` (a ValueError) when one is still refused after ``tries`` rounds."""
     from jprt.render.lightmap import free_positions
     from jprt.render.scenes import SceneHandle
 
@@ -276,5 +305,4 @@ def free_lights(scene, lights: np.ndarray, light_lo, light_hi, rng, tries: int =
         if not bad.any():
             return lights
         lights[bad] = lo + (hi - lo) * rng.random((int(bad.sum()), 3))
-    raise ValueError(f"no free space for lights in the light box {lo.tolist()} / {hi.tolist()} (outside geometry, "
-                     f"lighting at least {MIN_LIT_FRACTION:.0%} of what the file's camera sees): set the light box")
+    raise _no_free_space(lo, hi)

@@ -698,23 +698,32 @@ def test_even_lights_keep_the_views_and_latin_keeps_the_old_draw(mi, tmp_path):
 
 @pytest.mark.mitsuba
 def test_even_lights_go_on_where_the_latin_draw_finds_too_little_space(mi, tmp_path):
-    """A light box fifty times the room's volume: most of it serves no view, so ``free_lights``
-    gives up on some light ("latin" raises), while "even", whose pool is larger, spreads its
-    lights over the room (with a warning that the pool is short)."""
+    """A light box about 150 times the room's volume: most of it serves no view, so ``free_lights``
+    gives up on some light ("latin" raises ``NoFreeSpace``), while "even", whose pool is larger,
+    spreads its lights over the room (with a warning that the pool is short), and its self-check
+    set draws its held-out lights in the room too (``uniform_free_lights``)."""
+    from jprt.render.sampling import NoFreeSpace
+
     room = tmp_path / "room.xml"
     room.write_text(_EMPTY_ROOM)
     desc = {"name": "xml", "path": str(room), "keep_emitters": False}
     box = {"light_lo": [-20.0, -10.0, -20.0], "light_hi": [20.0, 14.0, 20.0]}
+
+    def in_room(lights):
+        return (np.abs(lights[:, [0, 2]]) < 4).all() and ((lights[:, 1] > 0) & (lights[:, 1] < 4)).all()
+
     for spread in ("latin", "even"):
-        cfg = rrf_data.resolve_regions({**rrf.DEFAULT_CONFIG["data"], "n_lights": 6, "n_views": 2,
-                                        "light_spread": spread}, desc)
+        cfg = rrf_data.resolve_regions({**rrf.DEFAULT_CONFIG["data"], "n_lights": 6, "n_views": 2, "n_rays": 8,
+                                        "spp": 4, "check_lights": 2, "light_spread": spread}, desc)
         cfg.pop("regions_from")
         cfg.update(box)
         if spread == "latin":
-            with pytest.raises(ValueError, match="no free space for lights"):
+            with pytest.raises(NoFreeSpace, match="no free space for lights"):
                 rrf_data._draw(desc, cfg, "scene bounds")
-        else:
-            with pytest.warns(UserWarning, match="acceptable candidates"):
-                lights = rrf_data._draw(desc, cfg, "scene bounds")[0]
-            assert lights.shape == (6, 3)
-            assert (np.abs(lights[:, [0, 2]]) < 4).all() and ((lights[:, 1] > 0) & (lights[:, 1] < 4)).all()
+            continue
+        with pytest.warns(UserWarning, match="acceptable candidates"):
+            lights = rrf_data._draw(desc, cfg, "scene bounds")[0]
+        assert lights.shape == (6, 3) and in_room(lights)
+        check = rrf_data._check(desc, {"test": spread}, cfg, "scene bounds", cache_dir=str(tmp_path), progress=False)
+        assert check["lights"].shape == (2, 3) and in_room(check["lights"])
+        assert len(check["position"]) > 0

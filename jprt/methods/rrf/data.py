@@ -120,11 +120,12 @@ def _draw(desc: dict, data_cfg: dict, regions_from: str, *, spread: bool = True)
     so the views and rays are those of "latin"), the (scene, camera, edit) setups (views, or
     materials in material mode) and the generator the rays are drawn from next, in the order the
     training data draws them. For "even" the ``free_lights`` draw only advances the generator, so
-    where it finds too little free space (and raises) "even" goes on with its own larger pool;
-    ``spread=False`` skips ``even_lights`` for a caller that wants only the setups (the lights
-    returned are then the hypercube's)."""
+    where it finds too little free space (``NoFreeSpace``) "even" goes on with its own larger
+    pool; ``spread=False`` skips ``even_lights`` for a caller that wants only the setups (the
+    lights returned are then "latin"'s, or the raw hypercube where ``free_lights`` gave up: not
+    for use)."""
     from jprt.render import cameras as cams
-    from jprt.render.sampling import check_box, even_lights, latin_hypercube
+    from jprt.render.sampling import NoFreeSpace, check_box, even_lights, latin_hypercube
 
     rng = np.random.default_rng(int(data_cfg["seed"]))
     lights = latin_hypercube(rng, data_cfg["n_lights"], data_cfg["light_lo"], data_cfg["light_hi"])
@@ -132,7 +133,7 @@ def _draw(desc: dict, data_cfg: dict, regions_from: str, *, spread: bool = True)
         even = data_cfg["light_spread"] == "even"
         try:
             lights = free_lights(desc, lights, data_cfg["light_lo"], data_cfg["light_hi"], rng)
-        except ValueError:
+        except NoFreeSpace:
             if not even:
                 raise
         if even and spread:  # a stream of their own: the views and rays stay the draw's
@@ -163,8 +164,10 @@ def _check(desc: dict, spec: dict, data_cfg: dict, regions_from: str, *, cache_d
     seed stream of their own (never fitted), each rendered from every training view (or material)
     as the training pairs are (``_render_samples``: fresh random rays, ``n_rays / 2`` per pair,
     ``data.spp``, other path seeds); the sample arrays, ``lights`` (L, 3) and the scene's object
-    names."""
-    from jprt.render.sampling import latin_hypercube
+    names. For a box from a scene's bounds the lights are moved off geometry as the training
+    draw's are (``free_lights``); with "even", where that gives up, they are drawn uniformly over
+    the same space from a larger pool (``uniform_free_lights``), as the training lights go on."""
+    from jprt.render.sampling import NoFreeSpace, latin_hypercube, uniform_free_lights
     from jprt.render.scenes import SceneHandle
 
     n = int(data_cfg["check_lights"])
@@ -176,7 +179,12 @@ def _check(desc: dict, spec: dict, data_cfg: dict, regions_from: str, *, cache_d
         rng = np.random.default_rng([seed, 45])
         lights = latin_hypercube(rng, n, data_cfg["light_lo"], data_cfg["light_hi"])
         if regions_from == "scene bounds":
-            lights = free_lights(desc, lights, data_cfg["light_lo"], data_cfg["light_hi"], rng)
+            try:
+                lights = free_lights(desc, lights, data_cfg["light_lo"], data_cfg["light_hi"], rng)
+            except NoFreeSpace:
+                if data_cfg["light_spread"] != "even":
+                    raise
+                lights = uniform_free_lights(desc, n, data_cfg["light_lo"], data_cfg["light_hi"], rng)
         cfg = {**data_cfg, "n_rays": max(1, int(data_cfg["n_rays"]) // 2), "seed": seed + 104_729}
         arrays = _render_samples(desc, setups, lights, cfg, rng, False)
         say("rrf", progress)(f"self-check set ({n} held-out lights, {len(arrays['position'])} samples) rendered in "
