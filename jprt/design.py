@@ -997,10 +997,17 @@ def mitsuba_design(peer, position, intensity, lo, hi, *, steps: int = 200, learn
     import optax
 
     p0 = to_params(position, intensity, lo, hi)
-    lights = _light_map(p0, optimise, lo, hi)
+    light_map = _light_map(p0, optimise, lo, hi)
+    lights = jax.jit(light_map)  # compiled, as jprt's own loop is: the peer's clock is Mitsuba's
     opt = optax.adam(optax.cosine_decay_schedule(float(learning_rate), max(int(steps), 1), alpha=0.01))
     state, params = opt.init(p0), p0
-    lights_vjp = jax.jit(lambda p, g: jax.vjp(lights, p)[1](g)[0])
+    lights_vjp = jax.jit(lambda p, g: jax.vjp(light_map, p)[1](g)[0])
+
+    @jax.jit
+    def update(grads, state, params):
+        updates, state = opt.update(grads, state, params)
+        return optax.apply_updates(params, updates), state
+
     history, checkpoints = [], []
     every = max(int(every), 1)
     t0 = time.perf_counter()
@@ -1009,8 +1016,7 @@ def mitsuba_design(peer, position, intensity, lo, hi, *, steps: int = 200, learn
         pos, inten = (np.asarray(a, np.float64) for a in lights(params))
         value, d_pos, d_inten = peer.loss_and_grad(pos, inten, seed=int(seed) * 100003 + i)
         grads = lights_vjp(params, (jnp.asarray(d_pos, jnp.float32), jnp.asarray(d_inten, jnp.float32)))
-        updates, state = opt.update(grads, state, params)
-        params = optax.apply_updates(params, updates)
+        params, state = update(grads, state, params)
         history.append(value)
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(objective=f"{value:.3g}")

@@ -542,6 +542,32 @@ def test_what_is_not_optimised_keeps_its_starting_value():
     np.testing.assert_allclose(power.intensity[0] / power.intensity[0, 0], 1.0, rtol=1e-5)
 
 
+def test_the_peers_adam_loop_walks_its_gradients_to_their_optimum():
+    """``mitsuba_design``'s loop (Adam on the same parameters, the renderer's gradients in
+    position and intensity pulled back through the light map), with a peer whose objective is a
+    known quadratic in the light's position and log power: it ends at that optimum, keeps what is
+    not optimised (the colour), and checkpoints every ``every`` steps."""
+    target_pos, target_level = np.array([0.3, 1.1, -0.2]), np.log(2.0)
+
+    class Quadratic:
+        def loss_and_grad(self, pos, inten, seed):
+            level = np.log(inten).mean(axis=-1)
+            value = float(np.sum((pos - target_pos) ** 2) + np.sum((level - target_level) ** 2))
+            d_pos = 2.0 * (pos - target_pos)
+            d_inten = (2.0 * (level - target_level))[:, None] / (3.0 * inten)  # d value / d intensity
+            return value, d_pos, d_inten
+
+    lo, hi = np.array([-0.8, 0.6, -0.8]), np.array([0.8, 1.6, 0.8])
+    start_i = np.array([[1.0, 0.5, 0.25]])
+    out = design.mitsuba_design(Quadratic(), np.array([[-0.4, 0.9, 0.5]]), start_i, lo, hi, steps=300,
+                                learning_rate=0.05, every=100, progress=False)
+    np.testing.assert_allclose(out.position[0], target_pos, atol=2e-2)
+    np.testing.assert_allclose(np.log(out.intensity[0]).mean(), target_level, atol=2e-2)
+    np.testing.assert_allclose(out.intensity[0] / out.intensity[0, 0], start_i[0] / start_i[0, 0], rtol=1e-4)
+    assert out.history[-1] < 1e-2 * out.history[0]
+    assert [c["step"] for c in out.checkpoints] == [100, 200, 300]
+
+
 def test_a_program_compiled_before_the_start_serves_every_start():
     """``design_run`` compiles the design's step while the start is searched (``_warm_design``),
     so the held starting values are arguments of the program, not its constants: one program,
