@@ -77,11 +77,13 @@ CONFIG = {
     # the methods' own sections (their defaults are scene-aware; these are sizes only)
     # RRF: 128 training lights x 4 views x 192 rays per view and light (98k samples), chosen on
     # living-room, validated on cornell_box_picture and veach-bidir (the sizes tried: CHANGELOG.md);
-    # light_spread "latin" ("even" was better on staircase, on living-room worse in one draw of its
-    # lights and better in another: CHANGELOG.md, 2026-12-07 (afternoon))
+    # light_spread "latin" ("even" was no better over three draws on staircase and living-room:
+    # CHANGELOG.md, 2026-12-07 (evening)); data.seed the draw of the training lights,
+    # views and rays, check_lights the self-check's held-out lights, train.seed the fit's (named so
+    # a run can vary them)
     "rrf": {"data": {"n_lights": 128, "n_views": 4, "n_rays": 192, "spp": 256, "min_object_rays": 8,
-                     "light_spread": "latin"},
-            "tree": {"max_leaves": 32, "min_samples": 600}, "train": {"max_iters": 30}},
+                     "light_spread": "latin", "seed": 0, "check_lights": 2},
+            "tree": {"max_leaves": 32, "min_samples": 600}, "train": {"max_iters": 30, "seed": 0}},
     "datadriven": {"lightmap": {"resolution": 96}, "points": {"candidates": 8192, "count": 512},
                    "data": {"n_train": 128, "n_test": 4, "spp": 64, "test_spp": 64}},
     "sg_lightfield": {"objects": [], "lightmap": {"resolution": 128}, "capture": {"size": 16, "spp": 64, "jitter": True},
