@@ -14,8 +14,8 @@ import warnings
 import numpy as np
 
 __all__ = ["latin_hypercube", "check_box", "scene_regions", "view_region_points", "free_lights", "even_lights",
-           "uniform_free_lights", "NoFreeSpace", "centroidal_points", "EVEN_POOL", "EVEN_RULE", "view_points", "lit_fraction", "serves_view", "REGION_KEYS",
-           "CORNELL_REGIONS", "MIN_LIT_FRACTION", "LIGHT_RULE"]
+           "uniform_free_lights", "NoFreeSpace", "centroidal_points", "EVEN_POOL", "EVEN_RULE", "view_points",
+           "lit_fraction", "serves_view", "REGION_KEYS", "CORNELL_REGIONS", "MIN_LIT_FRACTION", "LIGHT_RULE"]
 
 
 def check_box(lo, hi, name: str = "box") -> tuple[np.ndarray, np.ndarray]:
