@@ -228,24 +228,39 @@ def _no_free_space(lo, hi) -> NoFreeSpace:
                        "what the file's camera sees): set the light box")
 
 
-def _acceptable_pool(scene, want: int, light_lo, light_hi, rng, tries: int) -> np.ndarray:
-    """Up to ``want`` uniform points of the light box where ``free_lights`` would keep a light,
-    drawn ``want`` at a time for at most ``tries`` rounds (fewer where the box has little such
-    space), in the order drawn."""
+def _light_rule(scene):
+    """``acceptable(points) -> (K,) bool``: where a light may go in ``scene`` (``free_lights``'
+    rule): outside geometry, at least 2 % of the scene's extent from any surface
+    (``lightmap.free_positions``), and lighting at least ``MIN_LIT_FRACTION`` of what the file's
+    camera sees (``serves_view``, asked only of the free points). The camera's view is traced
+    once, here."""
     from jprt.render.lightmap import free_positions
     from jprt.render.scenes import SceneHandle
 
     handle = SceneHandle(scene)
     box = handle.scene.bbox()
     clearance = 0.02 * float(np.max(np.asarray(box.max) - np.asarray(box.min)))
-    lo, hi = check_box(light_lo, light_hi, "light box")
     view = view_points(handle)
+
+    def acceptable(points):
+        ok = free_positions(handle, points, clearance=clearance)
+        if ok.any():
+            ok[ok] = serves_view(handle, points[ok], view)
+        return ok
+
+    return acceptable
+
+
+def _acceptable_pool(scene, want: int, light_lo, light_hi, rng, tries: int) -> np.ndarray:
+    """Up to ``want`` uniform points of the light box where ``free_lights`` would keep a light,
+    drawn ``want`` at a time for at most ``tries`` rounds (fewer where the box has little such
+    space), in the order drawn."""
+    acceptable = _light_rule(scene)
+    lo, hi = check_box(light_lo, light_hi, "light box")
     pool, have = [], 0
     for _ in range(int(tries)):
         cand = lo + (hi - lo) * rng.random((want, lo.size))
-        ok = free_positions(handle, cand, clearance=clearance)
-        if ok.any():
-            ok[ok] = serves_view(handle, cand[ok], view)
+        ok = acceptable(cand)
         pool.append(cand[ok])
         have += int(ok.sum())
         if have >= want:
@@ -289,19 +304,11 @@ def free_lights(scene, lights: np.ndarray, light_lo, light_hi, rng, tries: int =
     ``MIN_LIT_FRACTION`` of what that camera sees (``lit_fraction``: a light in another room
     serves no view): each one that is not is drawn again, uniformly in the light box;
     ``NoFreeSpace`` (a ValueError) when one is still refused after ``tries`` rounds."""
-    from jprt.render.lightmap import free_positions
-    from jprt.render.scenes import SceneHandle
-
-    handle = SceneHandle(scene)
-    box = handle.scene.bbox()
-    clearance = 0.02 * float(np.max(np.asarray(box.max) - np.asarray(box.min)))
+    acceptable = _light_rule(scene)
     lo, hi = np.asarray(light_lo, np.float64), np.asarray(light_hi, np.float64)
     lights = np.array(lights, np.float64)
-    view = view_points(handle)
     for _ in range(tries):
-        bad = ~free_positions(handle, lights, clearance=clearance)
-        if not bad.all():
-            bad[~bad] = ~serves_view(handle, lights[~bad], view)
+        bad = ~acceptable(lights)
         if not bad.any():
             return lights
         lights[bad] = lo + (hi - lo) * rng.random((int(bad.sum()), 3))

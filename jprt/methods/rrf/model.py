@@ -77,7 +77,7 @@ DEFAULT_CONFIG: dict = {
         # how training lights fill a light box that comes from a scene file's bounds: "latin" (the
         # Latin hypercube, each light off geometry drawn again at random) or "even"
         # (``sampling.even_lights``: k-means centres over the free space that lights the file's
-        # view, fewer gaps; no more accurate over three draws on two interiors: docs/own-scene.md); where
+        # view, fewer gaps; what it was measured to do: docs/own-scene.md); where
         # the config sets every region key (and for the built-in scenes' tuned boxes) the lights
         # are the Latin hypercube as it is
         "light_spread": "latin",
