@@ -20,7 +20,7 @@ ROOT = os.path.dirname(HERE)
 KEYS = ("fit_log_l2", "fit_s", "midpoint_log_l2", "midpoints", "log_l2_by_lobes", "psnr_indirect_by_lobes",
         "frame_ms_by_lobes", "psnr_indirect", "ssim_indirect", "psnr_full", "lpips_indirect", "indirect_rel_rmse",
         "psnr_indirect_by_roughness", "psnr_indirect_baselines", "psnr_oct_quadrature", "psnr_lobes_quadrature",
-        "psnr_indirect_appendix_b",
+        "psnr_indirect_appendix_b", "psnr_indirect_by_space", "frame_ms_by_space",
         "reference_noise_psnr",
         "psnr_env_we", "psnr_env_reflected_visibility", "psnr_env_no_visibility", "psnr_env_we_raw",
         "psnr_env_quadrature",
@@ -75,7 +75,9 @@ def main() -> int:
                           "under env_map; fit_log_l2: Eq. 9 at the pixel centres (solid-angle weighted, below-surface "
                           "masked); midpoint_log_l2: the same loss of lobes interpolated halfway between two baked "
                           "texels against the light field captured there; frame_ms: the jitted JAX evaluator on this "
-                          "CPU (lobe fetch + Eq. 15-24 shading), G-buffer given; speedup against Mitsuba's indirect "
+                          "CPU at its default shading.space (auto: texture space where the atlas has no more texels "
+                          "than the frame has pixels), G-buffer given; psnr_indirect_by_space / frame_ms_by_space: "
+                          "the same lobes shaded per pixel (§6) and per texel in the same run; speedup against Mitsuba's indirect "
                           "(full + direct renders) at equal RMSE; evaluator_cost: the same evaluator re-timed after "
                           "the run at 128^2 to 1920x1080 (larger frames nearest-resampled from the 512^2 held-out "
                           "G-buffer), XLA's FLOP count of each program, the f32 matmul rate measured in the same "

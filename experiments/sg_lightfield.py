@@ -8,8 +8,8 @@ seen from held-out views.
 Capture the receivers' light field (cached), train the CNN encoder on every texel; held-out views:
 the evaluator on each view's atlas G-buffer against Mitsuba's indirect render (pixels on the
 receivers). Stages: per-texel baselines, float16 storage, PSNR by roughness, the references' noise,
-quadrature shading, interpolation at captured midpoints, lobe counts, frame times, §5's environment
-visibility (Table 3 setting); helpers in ``jprt.methods.sg_lightfield.evaluation``. Report:
+quadrature shading, interpolation at captured midpoints, lobe counts, pixel- against texture-space
+shading, frame times, §5's environment visibility (Table 3 setting); helpers in ``jprt.methods.sg_lightfield.evaluation``. Report:
 results/sg_lightfield/<config hash>/ (``benchmarks/sg_lightfield.py`` -> its benchmark JSON).
 """
 
@@ -254,6 +254,23 @@ def by_lobes(run) -> dict:
     return {"log_l2_by_lobes": log_l2, "psnr_indirect_by_lobes": psnr, "frame_ms_by_lobes": ms}
 
 
+def shading_space(run) -> dict:
+    """Where the lobes are shaded (``shading.space``, ``model.evaluator``): §6's pixel space (each
+    pixel's filtered lobes) against texture space (each texel once, read bilinearly), the same
+    lobes: held-out PSNR and the frame time at ``eval.timing_resolution``, timed as the runner
+    times frame_ms."""
+    e = run.config["eval"]
+    gb, one = jax.device_put(frame(run))
+    psnr, ms = {}, {}
+    for space in ("pixel", "texel"):
+        config = {**run.method_config, "shading": {**run.method_config["shading"], "space": space}}
+        psnr[space] = _psnr(run, _images(run, run.result.params, config))
+        evaluate = jax.jit(sgm.evaluator(run.result.params, config))
+        ms[space] = jeval.time_call(evaluate, gb, one, repeats=int(e["timing_repeats"]))["median_ms"]
+        run.say(f"shading in {space} space: PSNR {psnr[space]:.2f} dB, {ms[space]:.1f} ms")
+    return {"psnr_indirect_by_space": psnr, "frame_ms_by_space": ms}
+
+
 def frame_times(run) -> dict:
     """The evaluator's frame time at each of ``eval.frame_resolutions`` (the first held-out view)."""
     e = run.config["eval"]
@@ -295,4 +312,4 @@ def environment_visibility(run) -> dict:
 
 #: The stages of the SG light-field report, in order.
 STAGES = [fit_report, baseline_comparison, storage_precision, by_roughness, reference_noise, oct_quadrature,
-          midpoint_interpolation, by_lobes, frame_times, environment_visibility]
+          midpoint_interpolation, by_lobes, shading_space, frame_times, environment_visibility]

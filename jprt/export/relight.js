@@ -22,7 +22,9 @@
 //     0 or in exports without the key, by Appendix B (Eq. 15-24: the GGX NDF warped to an ASG about
 //     the reflected view direction, convolved with each lobe by Xu et al. 2013 Eq. 12, Smith G,
 //     Schlick's Fresnel and n.l at that direction); adds albedo / pi x irradiance and scales by the
-//     LightScale; view = the camera's direction.
+//     LightScale; view = the camera's direction. Every fragment shades its own filtered lobes:
+//     jprt's shading.space "pixel" (§6), not the texture-space shading its evaluator uses where
+//     the atlas has fewer texels than the frame has pixels.
 //   * MRT (Loos et al. 2011 §7.3): b = T_d->b x per block, the interface records r = T_b->r b, the
 //     feedback bounces in the reduced spaces (W, V), then the incident light U_b b + U_r r at every
 //     texel: on the CPU (operators of a few hundred numbers per block); the shader multiplies the

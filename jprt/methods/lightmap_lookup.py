@@ -16,7 +16,7 @@ import numpy as np
 
 from jprt.inputs import GBuffer
 
-__all__ = ["atlas_lookup", "texel_lookup", "atlas_image", "atlas_inputs", "modulation", "lambertian",
+__all__ = ["atlas_lookup", "texel_lookup", "texel_taps", "atlas_image", "atlas_inputs", "modulation", "lambertian",
            "texel_modulation", "remodulated_lookup", "modulation_params", "lightmap_shader", "ALBEDO_FLOOR"]
 
 
@@ -35,13 +35,33 @@ def texel_lookup(texels, fill_index, uv):
     return _bilinear(lambda i, j: texels[fill_index[i * r + j]], r, uv)
 
 
-def _bilinear(at, r: int, uv):
-    """The bilinear lookup of an R x R atlas whose texel at (row i, column j) ``at(i, j)`` reads."""
+def _corners(r: int, uv):
+    """The bilinear corners of (..., 2) UVs in an R x R atlas: rows r0, r1, columns c0, c1 (int32)
+    and the fractions fc, fr towards c1 and r1, clamped to the atlas."""
     col = jnp.clip(uv[..., 0] * r - 0.5, 0.0, r - 1.0)
     row = jnp.clip(uv[..., 1] * r - 0.5, 0.0, r - 1.0)
     c0, r0 = jnp.floor(col).astype(jnp.int32), jnp.floor(row).astype(jnp.int32)
     c1, r1 = jnp.minimum(c0 + 1, r - 1), jnp.minimum(r0 + 1, r - 1)
-    fc, fr = (col - c0)[..., None], (row - r0)[..., None]
+    return r0, r1, c0, c1, col - c0, row - r0
+
+
+def texel_taps(fill_index, uv):
+    """(index, weight), each (..., 4): the texels (through ``fill_index``) and bilinear weights of
+    ``texel_lookup``'s four corners at (..., 2) UVs, so that the lookup of texel values x is
+    sum_k weight_k x[index_k]. A texel-space shader (``jprt.methods.sg_lightfield.model.evaluator``)
+    uses them twice: to gather the G-buffer's pixels onto the texels they read, and to read back."""
+    r = int(round(math.sqrt(fill_index.shape[0])))
+    r0, r1, c0, c1, fc, fr = _corners(r, jnp.asarray(uv, jnp.float32))
+    index = jnp.stack([fill_index[r0 * r + c0], fill_index[r0 * r + c1], fill_index[r1 * r + c0],
+                       fill_index[r1 * r + c1]], axis=-1)
+    weight = jnp.stack([(1 - fc) * (1 - fr), fc * (1 - fr), (1 - fc) * fr, fc * fr], axis=-1)
+    return index, weight
+
+
+def _bilinear(at, r: int, uv):
+    """The bilinear lookup of an R x R atlas whose texel at (row i, column j) ``at(i, j)`` reads."""
+    r0, r1, c0, c1, fc, fr = _corners(r, uv)
+    fc, fr = fc[..., None], fr[..., None]
     top = at(r0, c0) * (1 - fc) + at(r0, c1) * fc
     bottom = at(r1, c0) * (1 - fc) + at(r1, c1) * fc
     return top * (1 - fr) + bottom * fr

@@ -97,8 +97,8 @@ def test_octahedral_environment_keeps_constant_maps_and_a_suns_energy():
 
 
 def test_fast_evaluator_equals_the_reference_shading_of_its_fetched_lobes():
-    """The evaluator's planar path (one packed fetch, (..., N) planes) with Appendix B's shading
-    (``shading.samples`` 0) against ``shade`` of ``lookup_lobes``: the same numbers to float
+    """The evaluator's planar pixel-space path (one packed fetch, (..., N) planes) with Appendix
+    B's shading (``shading.samples`` 0) against ``shade`` of ``lookup_lobes``: the same numbers to float
     rounding (the sampled shading's planar path: test_sg_lightfield)."""
     from jprt.inputs import GBuffer, LightScale
     from jprt.methods.lightmap_lookup import atlas_image, atlas_lookup
@@ -122,7 +122,8 @@ def test_fast_evaluator_equals_the_reference_shading_of_its_fetched_lobes():
                 uv=f32(rng.uniform(0, 1, (h, h, 2))), diffuse_albedo=f32(rng.uniform(0, 1, (h, h, 3))),
                 specular_albedo=f32(rng.uniform(0, 1, (h, h, 3))), roughness=f32(rng.uniform(0.01, 1, (h, h))),
                 object_id=np.zeros((h, h), np.int32), valid=rng.uniform(size=(h, h)) > 0.2)
-    got = np.asarray(M.evaluator(params, {"shading": {"samples": 0}})(g, LightScale(np.ones(3, np.float32))))
+    got = np.asarray(M.evaluator(params, {"shading": {"samples": 0, "space": "pixel"}})(
+        g, LightScale(np.ones(3, np.float32))))
 
     @jax.jit  # one program for the reference (eagerly, each operation compiles on its own)
     def reference(p, g):

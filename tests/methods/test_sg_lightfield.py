@@ -223,6 +223,98 @@ def test_evaluator_shades_by_samples_or_by_appendix_b():
         M.evaluator(params, {"shading": {"samples": -1}})
 
 
+def _random_texture(rng, res: int, n_lobes: int) -> dict:
+    """Random stored lobes and irradiance for every texel of a res x res atlas (no gutters)."""
+    t_count = res * res
+    axes = rng.normal(size=(t_count, n_lobes, 3))
+    axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
+    return {"axes": jnp.asarray(axes, jnp.float16),
+            "sharpness": jnp.asarray(rng.uniform(1, 50, (t_count, n_lobes)), jnp.float16),
+            "amplitude": jnp.asarray(rng.uniform(0, 2, (t_count, n_lobes, 3)), jnp.float16),
+            "irradiance": jnp.asarray(rng.uniform(0, 1, (t_count, 3)), jnp.float32),
+            "fill_index": jnp.arange(t_count, dtype=jnp.int32)}
+
+
+def _random_gbuffer(rng, shape, uv):
+    """A G-buffer at atlas ``uv`` with per-pixel normals and views of the upper hemisphere,
+    roughness, specular and diffuse albedo drawn per pixel."""
+    from jprt.inputs import GBuffer
+
+    def hemisphere(tilt):
+        d = rng.normal(size=shape + (3,)) * tilt + [0.0, 0.0, 1.0]
+        return (d / np.linalg.norm(d, axis=-1, keepdims=True)).astype(np.float32)
+
+    f3 = lambda lo, hi: rng.uniform(lo, hi, shape + (3,)).astype(np.float32)  # noqa: E731
+    normal, view = hemisphere(0.2), hemisphere(0.6)
+    return GBuffer(position=f3(0, 1), normal=normal, view=view, reflected=view, uv=np.asarray(uv, np.float32),
+                   diffuse_albedo=f3(0, 1), specular_albedo=f3(0, 1),
+                   roughness=rng.uniform(0.1, 0.6, shape).astype(np.float32),
+                   object_id=np.zeros(shape, np.int32), valid=np.ones(shape, bool))
+
+
+def test_texel_space_equals_pixel_space_at_texel_centres():
+    """Where every pixel reads one texel at its centre, shading each texel once ("texel") gives
+    the pixel-space frame ("pixel", §6) exactly, whatever the pixels' normals, views and
+    materials, for both shadings; a space not known is refused."""
+    from jprt.methods.lightmap_lookup import atlas_inputs
+
+    rng = np.random.default_rng(5)
+    res = 4
+    params = _random_texture(rng, res, 2)
+    g = _random_gbuffer(rng, (res, res), atlas_inputs(res, np.arange(res * res)).uv)
+    for samples in (2, 0):
+        frames = [np.asarray(M.evaluator(params, {"shading": {"samples": samples, "space": space}})(g, np.ones(3)))
+                  for space in ("pixel", "texel")]
+        assert np.abs(frames[0]).max() > 0
+        np.testing.assert_allclose(frames[1], frames[0], rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="shading.space"):
+        M.evaluator(params, {"shading": {"space": "vertex"}})
+
+
+def test_texel_space_shades_each_texel_at_its_pixels_mean_view():
+    """Pixels between texels: each texel is shaded (``shade``, Fresnel's two parts at f0 1 and 0;
+    the sampled shading is the same function of the same view) at the bilinear-weight mean of the normals, views and roughness of the pixels that
+    read it, and each pixel mixes its four texels' shading with its bilinear weights and its own
+    f0 and diffuse albedo; "auto" shades in texel space when the atlas has no more texels than
+    the frame has pixels, in pixel space otherwise."""
+    from jprt.methods.lightmap_lookup import texel_taps
+
+    rng = np.random.default_rng(6)
+    res, shape = 3, (5, 4)
+    params = _random_texture(rng, res, 2)
+    g = _random_gbuffer(rng, shape, rng.uniform(0, 1, shape + (2,)))
+    index, weight = (np.asarray(a, np.float64) for a in texel_taps(params["fill_index"], g.uv))
+    index = index.astype(int)
+    t_count = res * res
+    w = np.zeros((t_count,) + shape)
+    for k in range(4):
+        for t in range(t_count):
+            w[t] += np.where(index[..., k] == t, weight[..., k], 0.0)
+    sums = w.reshape(t_count, -1)
+    unit = lambda v: v / np.linalg.norm(v, axis=-1, keepdims=True)  # noqa: E731
+    normal = unit(sums @ np.asarray(g.normal, np.float64).reshape(-1, 3))
+    view = unit(sums @ np.asarray(g.view, np.float64).reshape(-1, 3))
+    rough = sums @ np.asarray(g.roughness, np.float64).reshape(-1) / sums.sum(-1)
+    assert (sums.sum(-1) > 0).all()  # every texel is read by some pixel here
+    lobes = M.Lobes(*(jnp.asarray(params[k], jnp.float32) for k in ("axes", "sharpness", "amplitude")))
+    zero = np.zeros((t_count, 3), np.float32)
+    shade = jax.jit(M.shade)
+    parts = [np.asarray(shade(lobes, normal.astype(np.float32), view.astype(np.float32), rough.astype(np.float32),
+                              np.full((t_count, 3), f0, np.float32), zero, zero)) for f0 in (1.0, 0.0)]
+    texel = np.concatenate(parts + [np.asarray(params["irradiance"])], axis=-1)  # (T, 9)
+    read = sum(weight[..., k:k + 1] * texel[index[..., k]] for k in range(4))
+    want = g.specular_albedo * read[..., 0:3] + (1 - g.specular_albedo) * read[..., 3:6] + \
+        g.diffuse_albedo / np.pi * read[..., 6:9]
+    evaluate = {space: M.evaluator(params, {"shading": {"samples": 0, "space": space}})
+                for space in ("texel", "auto", "pixel")}
+    got = {space: np.asarray(f(g, np.ones(3))) for space, f in evaluate.items()}
+    np.testing.assert_allclose(got["texel"], want, rtol=1e-4, atol=1e-5)
+    np.testing.assert_array_equal(got["auto"], got["texel"])  # 9 texels, 20 pixels
+    assert np.abs(got["pixel"] - got["texel"]).max() > 1e-3  # between texels the spaces differ
+    small = g._replace(**{f: getattr(g, f)[:2, :2] for f in g._fields})  # 4 pixels: fewer than the texels
+    np.testing.assert_allclose(np.asarray(evaluate["auto"](small, np.ones(3))), got["pixel"][:2, :2], rtol=1e-6)
+
+
 def test_float32_at_the_extremes_matches_float64():
     """Roughness 0.01, views to 89.9 degrees, sharpness up to 1e4 stored in float16: float32
     shading equals float64 shading of the same stored lobes (finite is not enough)."""

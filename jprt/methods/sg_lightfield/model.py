@@ -34,8 +34,11 @@
   from it only towards grazing angles.
 * **Run-time layout**: ``evaluator`` packs the texture plane by plane (axis x, y, z, sharpness,
   amplitude r, g, b), fetches it with one bilinear lookup per pixel and shades on (..., N) planes
-  (``_shade_planes``, equal to ``shade`` to rounding, tested), tile by tile: the same arithmetic,
-  laid out for XLA on CPU (``evaluator``'s docstring says why).
+  (``_glossy_planes_product``, equal to ``shade`` to rounding, tested), tile by tile: the same
+  arithmetic, laid out for XLA on CPU (``evaluator``'s docstring says why). Where the atlas has no
+  more texels than the frame has pixels, each texel is shaded once (``shading.space``, texture-space
+  shading) and the pixels read the shaded texels bilinearly: a departure from §6, measured in
+  docs/methods/sg_lightfield.md.
 * **Environment visibility** (§5, Eq. 3-8): ``jprt.methods.sg_lightfield.environment``.
 """
 
@@ -112,7 +115,10 @@ DEFAULT_CONFIG: dict[str, Any] = {
     # lobe's reflection at grazing views (``shade_sampled``). broad_bound: a lobe is broad where
     # lambda alpha^2 / 2 is below it (1: sharpness under 2 / alpha^2; chosen on
     # benchmarks/sg_shading.py's grid of single lobes)
-    "shading": {"samples": 3, "brdf_sampling": True, "broad_bound": 1.0},
+    # space: where the lobes are shaded, "pixel" (§6: every pixel's bilinearly filtered lobes),
+    # "texel" (each texel once, at its pixels' mean view, then read bilinearly) or "auto" ("texel"
+    # where the atlas has no more texels than the frame has pixels; ``evaluator``)
+    "shading": {"samples": 3, "brdf_sampling": True, "broad_bound": 1.0, "space": "auto"},
 }
 
 
@@ -345,9 +351,8 @@ def _ggx_v1_cos(m2, ndotx):
     return jnp.where(ndotx > 0.0, 1.0 / (1.0 + jnp.sqrt(1.0 - m2 + m2 / (safe * safe))), 0.0)
 
 
-def glossy_factor(conv, wi, normal, view, roughness, specular):
-    """The convolved lobes (..., 3) times Smith's G (the V = G / (4 n.l n.v) form), Schlick's
-    Fresnel and n.l, all at the reflected view direction ``wi`` (Pettineo 2016)."""
+def _glossy_parts(conv, wi, normal, view, roughness):
+    """``glossy_factor`` without Fresnel's f0, as (base, grazing) (``_fresnel_mix``)."""
     # clamped below only (a clip at 1 zeroes the derivative at normal incidence)
     ndotv = jnp.maximum(jnp.sum(normal * view, axis=-1), 1e-4)
     ndotl = jnp.sum(normal * wi, axis=-1)
@@ -355,9 +360,23 @@ def glossy_factor(conv, wi, normal, view, roughness, specular):
     h = h / jnp.sqrt(jnp.maximum(jnp.sum(h * h, axis=-1, keepdims=True), 1e-20))
     m2 = jnp.square(roughness)
     vis_cos = _ggx_v1_cos(m2, ndotl) * _ggx_v1(m2, ndotv)  # V n.l
+    base = conv * vis_cos[..., None]
+    return base, base * jnp.power(1.0 - jnp.clip(jnp.sum(wi * h, axis=-1), 0.0, 1.0), 5.0)[..., None]
+
+
+def glossy_factor(conv, wi, normal, view, roughness, specular):
+    """The convolved lobes (..., 3) times Smith's G (the V = G / (4 n.l n.v) form), Schlick's
+    Fresnel and n.l, all at the reflected view direction ``wi`` (Pettineo 2016)."""
+    return _fresnel_mix(specular, *_glossy_parts(conv, wi, normal, view, roughness))
+
+
+def _fresnel_mix(specular, base, grazing):
+    """Schlick's Fresnel f0 + (1 - f0) (1 - d . h)^5 applied to shading split in its two parts:
+    ``base`` (the shading without Fresnel) and ``grazing`` (with the factor (1 - d . h)^5): f0 base
+    + (1 - f0) grazing. The parts do not depend on f0 (``specular``), so a texel's can be shaded
+    once for every pixel that reads it (``evaluator``)."""
     f0 = jnp.asarray(specular)
-    fresnel = f0 + (1.0 - f0) * jnp.power(1.0 - jnp.clip(jnp.sum(wi * h, axis=-1), 0.0, 1.0), 5.0)[..., None]
-    return conv * vis_cos[..., None] * fresnel
+    return f0 * base + (1.0 - f0) * grazing
 
 
 def shade(lobes: Lobes, normal, view, roughness, specular, diffuse_albedo, irradiance):
@@ -586,11 +605,11 @@ def _warped_convolution(cos_v, r2, nu):
     return 4.0 * cos_v * jax.lax.rsqrt((1.0 + qx) * (1.0 + qy)), nu / (1.0 + qx), nu / (1.0 + qy)
 
 
-def _shade_planes(at, normal, view, roughness, specular, diffuse_albedo):
-    """``shade`` for fetched texels as planes (``lobe_planes``: seven (..., N), the irradiance
-    (..., 3)): the same Eq. 15-24 arithmetic (``sg.convolve_sg_asg`` of each lobe with the warped
-    NDF, axes renormalised after filtering), written on (..., N) planes; equal to ``shade`` of
-    ``lookup_lobes`` to float rounding (tested)."""
+def _glossy_planes_product(at, normal, view, roughness):
+    """``shade``'s glossy part for fetched texels as planes (``lobe_planes``: seven (..., N)),
+    as Fresnel's two parts (``_fresnel_mix``): the same Eq. 15-24 arithmetic (``sg.convolve_sg_asg``
+    of each lobe with the warped NDF, axes renormalised after filtering), written on (..., N)
+    planes; the evaluator's frame equals ``shade`` of ``lookup_lobes`` to float rounding (tested)."""
     ux, uy, uz, lam = at[:4]
     inv = jax.lax.rsqrt(jnp.maximum(ux * ux + uy * uy + uz * uz, 1e-20))
     roughness = jnp.maximum(roughness, 1e-3)
@@ -603,8 +622,7 @@ def _shade_planes(at, normal, view, roughness, specular, diffuse_albedo):
     scale, sx, sy = _warped_convolution(cos_v, jnp.square(roughness)[..., None], 0.5 * lam)
     vx, vy, vz = dot(asg.x), dot(asg.y), dot(asg.z)
     per_lobe = scale * jnp.maximum(vz, 0.0) * jnp.exp(-sx * vx * vx - sy * vy * vy)
-    conv = _amplitude_sum(per_lobe, at)
-    return glossy_factor(conv, asg.z, normal, view, roughness, specular) + diffuse_albedo / jnp.pi * at[7]
+    return _glossy_parts(_amplitude_sum(per_lobe, at), asg.z, normal, view, roughness)
 
 
 def _amplitude_sum(weights, at):
@@ -630,7 +648,7 @@ def _brdf_sampled(n, v, nv, m2, lobes, s: int):
     Normals"), at (u1, u2) = ((i + 1/2) / s, (j + 1/2) / s), l the view reflected about the
     sampled normal h. With separable Smith G, f (n . l) over the density of l is F G1(l), so each
     direction carries that times the lobe's light there; the directions are the pixel's, shared by
-    its lobes. Returns (plain, grazing): Fresnel's two parts as in ``_shade_planes_sampled``,
+    its lobes. Returns (plain, grazing): Fresnel's two parts as in ``_glossy_planes_sampled``,
     (..., N) each. Accurate where the lobe is smooth over the BRDF's directions (a lobe broader
     than the BRDF); a sharp lobe falls between them."""
     nx, ny, nz = n
@@ -686,10 +704,10 @@ def _brdf_sampled(n, v, nv, m2, lobes, s: int):
     return plain / (s * s), grazing / (s * s)
 
 
-def _shade_planes_sampled(at, normal, view, roughness, specular, diffuse_albedo, samples: int,
-                          brdf_sampled: bool = True, broad_bound: float = 1.0):
-    """``shade_sampled`` for fetched texels as planes (``lobe_planes``), the layout of
-    ``_shade_planes``."""
+def _glossy_planes_sampled(at, normal, view, roughness, samples: int, brdf_sampled: bool = True,
+                           broad_bound: float = 1.0):
+    """``shade_sampled``'s glossy part for fetched texels as planes (``lobe_planes``), as
+    Fresnel's two parts (``_fresnel_mix``), the layout of ``_glossy_planes_product``."""
     ux, uy, uz, lam = at[:4]
     inv = jax.lax.rsqrt(jnp.maximum(ux * ux + uy * uy + uz * uz, 1e-20))
     ux, uy, uz = ux * inv, uy * inv, uz * inv
@@ -741,9 +759,7 @@ def _shade_planes_sampled(at, normal, view, roughness, specular, diffuse_albedo,
         by_brdf = _brdf_sampled((nx, ny, nz), (vx, vy, vz), nv, m2, (ux, uy, uz, lam), s)
         broad = lam * (0.5 * m2) < broad_bound
         plain, grazing = jnp.where(broad, by_brdf[0], plain), jnp.where(broad, by_brdf[1], grazing)
-    base, schlick = _amplitude_sum(plain, at), _amplitude_sum(grazing, at)
-    f0 = jnp.asarray(specular)
-    return f0 * base + (1.0 - f0) * schlick + diffuse_albedo / jnp.pi * at[7]
+    return _amplitude_sum(plain, at), _amplitude_sum(grazing, at)
 
 
 def shade_sampled(lobes: Lobes, normal, view, roughness, specular, diffuse_albedo, irradiance, samples: int = 3,
@@ -788,19 +804,23 @@ def shade_sampled(lobes: Lobes, normal, view, roughness, specular, diffuse_albed
     """
     planes = (lobes.axes[..., 0], lobes.axes[..., 1], lobes.axes[..., 2], lobes.sharpness,
               lobes.amplitude[..., 0], lobes.amplitude[..., 1], lobes.amplitude[..., 2], jnp.asarray(irradiance))
-    return _shade_planes_sampled(planes, jnp.asarray(normal), jnp.asarray(view), jnp.asarray(roughness),
-                                 specular, jnp.asarray(diffuse_albedo), samples, brdf_sampled, broad_bound)
+    parts = _glossy_planes_sampled(planes, jnp.asarray(normal), jnp.asarray(view), jnp.asarray(roughness), samples,
+                                   brdf_sampled, broad_bound)
+    return _fresnel_mix(specular, *parts) + jnp.asarray(diffuse_albedo) / jnp.pi * planes[7]
 
 
-#: Pixels per tile of the evaluator's loop (see ``evaluator``).
+#: Pixels (or texels) per tile of the evaluator's loop (see ``evaluator``).
 TILE = 4096
+
+#: Where ``evaluator`` shades the lobes (``shading.space``).
+SHADING_SPACES = ("auto", "pixel", "texel")
 
 
 def map_tiles(fn, fields, tile: int):
     """``fn`` over the pixels of image-shaped ``fields`` (each (..., C) or (...) with the leading
     shape of the first, the uv), ``tile`` pixels at a time (a ``lax.map``): each field flattened
     to pixels, zero-padded to whole tiles (a zero normal shades to a finite value, discarded),
-    ``fn(*tile_fields) -> (tile, 3)``; returns (..., 3). A tile's working set stays in cache,
+    ``fn(*tile_fields) -> (tile, C)``; returns (..., C). A tile's working set stays in cache,
     where XLA would otherwise stream the whole frame through each fusion (the evaluators' timings).
 
     Numerics: not differentiable (the run-time tiling; the arithmetic is ``fn``'s).
@@ -817,7 +837,7 @@ def map_tiles(fn, fields, tile: int):
         return a.reshape((tiles, size) + a.shape[1:])
 
     out = jax.lax.map(lambda t: fn(*t), tuple(flat(a) for a in fields))
-    return out.reshape((tiles * size, 3))[:count].reshape(shape + (3,))
+    return out.reshape((tiles * size, -1))[:count].reshape(shape + (out.shape[-1],))
 
 
 def evaluator(params, config: dict | None = None, *, tile: int = TILE):
@@ -828,43 +848,106 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     transport is linear in the emitters' power: the only relighting a baked light field allows).
     Invalid pixels are 0.
 
-    The texture (lobes and irradiance of every atlas pixel, float32 from the float16 storage) is
-    packed once here, as a renderer uploads its textures once. Pixels are shaded in tiles of
-    ``tile`` (a ``lax.map``, one program): one bilinear fetch of the packed texture per pixel, then
-    the shading on (..., N) planes (``_shade_planes_sampled``, ``_shade_planes``): on a CPU
-    several times faster than the same program untiled or ``shade`` on (..., N, 3) vectors (XLA
-    fuses the fetch into every use of its result and streams the whole frame through each fusion;
-    a tile stays in cache).
+    ``shading.space`` says where the lobes are shaded:
+
+    * "pixel" (§6 of the paper): each pixel's lobes bilinear between its four texels (every
+      parameter filtered, axes renormalised), shaded at the pixel's normal, view and roughness. The
+      texture (lobes and irradiance of every atlas pixel, float32 from the float16 storage) is
+      packed once here, as a renderer uploads its textures once. Pixels are
+      shaded in tiles of ``tile`` (a ``lax.map``, one program): one bilinear fetch of the packed
+      texture per pixel, then the shading on (..., N) planes: on a CPU several times faster than
+      the same program untiled or ``shade`` on (..., N, 3) vectors (XLA fuses the fetch into every
+      use of its result and streams the whole frame through each fusion; a tile stays in cache).
+    * "texel" (texture-space shading, as engines do for costly shading: Baker 2016, "Object Space
+      Lighting"; Hillesland and Yang 2016, "Texel Shading"): each texel's own lobes are shaded
+      once, at the mean normal, view and roughness of the pixels that read it (weighted by their
+      bilinear weights, ``lightmap_lookup.texel_taps``), as Fresnel's two parts, which do not
+      depend on f0 (``_fresnel_mix``); each pixel then reads the shaded texels bilinearly and
+      applies its own specular and diffuse albedo. The work is per texel, not per pixel. It
+      differs from "pixel" in two ways: the light between texels is the bilinear mix of their
+      lobes' shading, not the shading of bilinearly mixed lobes, and the view and normal are
+      constant over a texel's footprint. At texel centres the two are equal (tested).
+    * "auto" (the default): "texel" where the atlas has no more texels than the frame has pixels,
+      "pixel" otherwise (the shading's work is then the smaller of the two).
 
     Numerics: not differentiable (builds the float32 run-time program; ``shade_sampled`` and ``shade`` are covered).
     """
-    from jprt.methods.lightmap_lookup import atlas_lookup
+    from jprt.methods.lightmap_lookup import atlas_lookup, texel_taps
 
     shading = _cfg(config)["shading"]
     samples, brdf_sampling, broad_bound = int(shading["samples"]), bool(shading["brdf_sampling"]), \
         float(shading["broad_bound"])
+    space = str(shading["space"])
     n = params["sharpness"].shape[-1]
     if samples < 0:
         raise ValueError(f"shading.samples must be >= 0 (0: Appendix B's product), got {samples}")
-    table = lobe_table(params)
+    if space not in SHADING_SPACES:
+        raise ValueError(f"shading.space must be one of {', '.join(SHADING_SPACES)}, got {space!r}")
     tile = int(tile)
+    fill = jnp.asarray(params["fill_index"], jnp.int32)
+    axes = jnp.asarray(params["axes"], jnp.float32)
+    amp = jnp.asarray(params["amplitude"], jnp.float32)
+    texels = (axes[..., 0], axes[..., 1], axes[..., 2], jnp.asarray(params["sharpness"], jnp.float32),
+              amp[..., 0], amp[..., 1], amp[..., 2])
+    count = texels[0].shape[0]
+    irradiance = jnp.asarray(params["irradiance"], jnp.float32) if "irradiance" in params else \
+        jnp.zeros((count, 3), jnp.float32)
+    # the packed atlas image of "pixel" (built here, outside any caller's trace)
+    table = None if space == "texel" else lobe_table(params)
+
+    def glossy(at, normal, view, roughness):
+        if samples:
+            return _glossy_planes_sampled(at, normal, view, roughness, samples, brdf_sampling, broad_bound)
+        return _glossy_planes_product(at, normal, view, roughness)
 
     @jax.jit
-    def _evaluate(table, inputs, scale):
+    def _pixels(table, inputs, scale):
         def shade_tile(uv, normal, view, roughness, specular, diffuse):
             at = lobe_planes(atlas_lookup(table, uv), n)
-            if samples:
-                return _shade_planes_sampled(at, normal, view, roughness, specular, diffuse, samples, brdf_sampling,
-                                             broad_bound)
-            return _shade_planes(at, normal, view, roughness, specular, diffuse)
+            return _fresnel_mix(specular, *glossy(at, normal, view, roughness)) + diffuse / jnp.pi * at[7]
 
         out = map_tiles(shade_tile, (inputs.uv, inputs.normal, inputs.view, inputs.roughness, inputs.specular_albedo,
                                      inputs.diffuse_albedo), tile)
         out = out * jnp.asarray(scale, jnp.float32).reshape((1,) * (out.ndim - 1) + (3,))
         return jnp.where(jnp.asarray(inputs.valid, bool)[..., None], out, 0.0)
 
+    @jax.jit
+    def _texels(texels, irradiance, fill, inputs, scale):
+        valid = jnp.asarray(inputs.valid, bool)
+        index, weight = texel_taps(fill, inputs.uv)
+        weight = weight * valid[..., None]
+        # each texel's footprint: the weighted sums of its pixels' normal, view and roughness
+        attrs = jnp.concatenate([jnp.asarray(inputs.normal, jnp.float32), jnp.asarray(inputs.view, jnp.float32),
+                                 jnp.asarray(inputs.roughness, jnp.float32)[..., None],
+                                 jnp.ones(valid.shape + (1,), jnp.float32)], axis=-1)
+        sums = jnp.zeros((count, 8), jnp.float32).at[index.reshape(-1)].add(
+            (weight[..., None] * attrs[..., None, :]).reshape(-1, 8))
+        seen = sums[:, 7] > 0.0  # a texel no pixel reads is shaded at a placeholder and read with weight 0
+
+        def unit(v):
+            norm = jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
+            ok = seen[:, None] & (norm > 0.0)
+            return jnp.where(ok, v / jnp.where(ok, norm, 1.0), jnp.asarray([0.0, 0.0, 1.0], jnp.float32))
+
+        roughness = jnp.where(seen, sums[:, 6] / jnp.where(seen, sums[:, 7], 1.0), 1.0)
+
+        def shade_tile(*fields):
+            return jnp.concatenate(glossy(fields[:7], *fields[7:]), axis=-1)
+
+        parts = map_tiles(shade_tile, (*texels, unit(sums[:, 0:3]), unit(sums[:, 3:6]), roughness), tile)
+        table = jnp.concatenate([parts, irradiance], axis=-1)  # (T, 9): base, grazing, irradiance
+        read = sum(weight[..., k:k + 1] * table[index[..., k]] for k in range(4))
+        out = _fresnel_mix(jnp.asarray(inputs.specular_albedo, jnp.float32), read[..., 0:3], read[..., 3:6]) + \
+            jnp.asarray(inputs.diffuse_albedo, jnp.float32) / jnp.pi * read[..., 6:9]
+        out = out * jnp.asarray(scale, jnp.float32).reshape((1,) * (out.ndim - 1) + (3,))
+        return jnp.where(valid[..., None], out, 0.0)
+
     def evaluate(inputs, lighting):
-        return _evaluate(table, inputs, lighting.scale if hasattr(lighting, "scale") else lighting)
+        scale = lighting.scale if hasattr(lighting, "scale") else lighting
+        pixels = math.prod(jnp.shape(inputs.uv)[:-1])
+        if space == "texel" or (space == "auto" and count <= pixels):
+            return _texels(texels, irradiance, fill, inputs, scale)
+        return _pixels(table, inputs, scale)
 
     return evaluate
 
