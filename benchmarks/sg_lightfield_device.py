@@ -2,8 +2,10 @@
 check of issue 15): the trained 16-lobe texture of a ``small`` run and its 512^2 held-out view's
 atlas G-buffer (``--export`` writes both from a finished run, here, with Mitsuba), timed at
 128^2 ... 1920x1080 (the larger frames nearest-resampled from the 512^2 G-buffer: same content,
-more pixels), plus random textures of 4-64 lobes at 1080p. Reports the XLA FLOP count of each
-program and this device's dense matmul rate measured in the same run.
+more pixels), plus random textures of 4-64 lobes at 1080p, at the evaluator's default
+``shading.space`` ("auto": every frame here has more pixels than the texture has texels, so each
+texel is shaded once). Reports the XLA FLOP count of each program and this device's dense matmul
+rate measured in the same run.
 
     python benchmarks/sg_lightfield_device.py --export results/sg_lightfield/<hash> .gpu/sg.npz   # here
     python benchmarks/sg_lightfield_device.py .gpu/sg.npz out.json                                 # on the device

@@ -9,8 +9,8 @@ Capture the receivers' light field (cached), train the CNN encoder on every texe
 the evaluator on each view's atlas G-buffer against Mitsuba's indirect render (pixels on the
 receivers). Stages: per-texel baselines, float16 storage, PSNR by roughness, the references' noise,
 quadrature shading, interpolation at captured midpoints, lobe counts, pixel- against texture-space
-shading, frame times, §5's environment visibility (Table 3 setting); helpers in ``jprt.methods.sg_lightfield.evaluation``. Report:
-results/sg_lightfield/<config hash>/ (``benchmarks/sg_lightfield.py`` -> its benchmark JSON).
+shading, frame times, §5's environment visibility (Table 3 setting); helpers in
+``jprt.methods.sg_lightfield.evaluation``. Report: results/sg_lightfield/<config hash>/ (``benchmarks/sg_lightfield.py`` -> its benchmark JSON).
 """
 
 from __future__ import annotations

@@ -194,8 +194,9 @@ def test_broad_lobes_keep_their_glossy_reflection_at_grazing_views():
 
 
 def test_evaluator_shades_by_samples_or_by_appendix_b():
-    """``shading.samples`` picks the evaluator's shading: its frame equals ``shade_sampled`` (or,
-    at 0, ``shade``) of the bilinearly looked-up lobes; a negative count is refused."""
+    """``shading.samples`` picks the evaluator's shading: its pixel-space frame equals
+    ``shade_sampled`` (or, at 0, ``shade``) of the bilinearly looked-up lobes; a negative count is
+    refused."""
     rng = np.random.default_rng(3)
     res, t_count, n_lobes = 4, 16, 2
     axes = rng.normal(size=(t_count, n_lobes, 3))
@@ -217,7 +218,7 @@ def test_evaluator_shades_by_samples_or_by_appendix_b():
     irr = np.asarray(params["irradiance"]).reshape(res, res, 3)
     pixel = (g.normal, g.view, g.roughness, g.specular_albedo, g.diffuse_albedo, irr)
     for samples, want in ((3, M.shade_sampled(lobes, *pixel, samples=3)), (0, M.shade(lobes, *pixel))):
-        got = M.evaluator(params, {"shading": {"samples": samples}})(g, np.ones(3, np.float32))
+        got = M.evaluator(params, {"shading": {"samples": samples, "space": "pixel"}})(g, np.ones(3, np.float32))
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-4, atol=1e-5)
     with pytest.raises(ValueError, match="shading.samples"):
         M.evaluator(params, {"shading": {"samples": -1}})
@@ -273,9 +274,10 @@ def test_texel_space_equals_pixel_space_at_texel_centres():
 
 def test_texel_space_shades_each_texel_at_its_pixels_mean_view():
     """Pixels between texels: each texel is shaded (``shade``, Fresnel's two parts at f0 1 and 0;
-    the sampled shading is the same function of the same view) at the bilinear-weight mean of the normals, views and roughness of the pixels that
-    read it, and each pixel mixes its four texels' shading with its bilinear weights and its own
-    f0 and diffuse albedo; "auto" shades in texel space when the atlas has no more texels than
+    the sampled shading is the same function of the same view) at the bilinear-weight mean of the
+    normals, views and roughness of the valid pixels that read it, and each pixel mixes its four
+    texels' shading with its bilinear weights and its own f0 and diffuse albedo; invalid pixels
+    holding NaN change nothing and are 0; "auto" shades in texel space when the atlas has no more texels than
     the frame has pixels, in pixel space otherwise."""
     from jprt.methods.lightmap_lookup import texel_taps
 
@@ -285,6 +287,14 @@ def test_texel_space_shades_each_texel_at_its_pixels_mean_view():
     g = _random_gbuffer(rng, shape, rng.uniform(0, 1, shape + (2,)))
     index, weight = (np.asarray(a, np.float64) for a in texel_taps(params["fill_index"], g.uv))
     index = index.astype(int)
+    # two invalid pixels whose fields hold NaN: they take no part in any texel's footprint
+    valid = np.ones(shape, bool)
+    valid[0, 0] = valid[3, 2] = False
+    weight = np.where(valid[..., None], weight, 0.0)
+    nan = np.where(valid[..., None], 0.0, np.nan).astype(np.float32)
+    g = g._replace(valid=valid, normal=g.normal + nan, view=g.view + nan, uv=g.uv + nan[..., :2],
+                   roughness=g.roughness + nan[..., 0])
+    clean = lambda a: np.where(valid[..., None] if a.ndim == 3 else valid, a, 0.0)  # noqa: E731
     t_count = res * res
     w = np.zeros((t_count,) + shape)
     for k in range(4):
@@ -292,9 +302,9 @@ def test_texel_space_shades_each_texel_at_its_pixels_mean_view():
             w[t] += np.where(index[..., k] == t, weight[..., k], 0.0)
     sums = w.reshape(t_count, -1)
     unit = lambda v: v / np.linalg.norm(v, axis=-1, keepdims=True)  # noqa: E731
-    normal = unit(sums @ np.asarray(g.normal, np.float64).reshape(-1, 3))
-    view = unit(sums @ np.asarray(g.view, np.float64).reshape(-1, 3))
-    rough = sums @ np.asarray(g.roughness, np.float64).reshape(-1) / sums.sum(-1)
+    normal = unit(sums @ clean(np.asarray(g.normal, np.float64)).reshape(-1, 3))
+    view = unit(sums @ clean(np.asarray(g.view, np.float64)).reshape(-1, 3))
+    rough = sums @ clean(np.asarray(g.roughness, np.float64)).reshape(-1) / sums.sum(-1)
     assert (sums.sum(-1) > 0).all()  # every texel is read by some pixel here
     lobes = M.Lobes(*(jnp.asarray(params[k], jnp.float32) for k in ("axes", "sharpness", "amplitude")))
     zero = np.zeros((t_count, 3), np.float32)
@@ -305,14 +315,16 @@ def test_texel_space_shades_each_texel_at_its_pixels_mean_view():
     read = sum(weight[..., k:k + 1] * texel[index[..., k]] for k in range(4))
     want = g.specular_albedo * read[..., 0:3] + (1 - g.specular_albedo) * read[..., 3:6] + \
         g.diffuse_albedo / np.pi * read[..., 6:9]
+    want = clean(want)  # 0 at invalid pixels
     evaluate = {space: M.evaluator(params, {"shading": {"samples": 0, "space": space}})
                 for space in ("texel", "auto", "pixel")}
     got = {space: np.asarray(f(g, np.ones(3))) for space, f in evaluate.items()}
+    assert np.isfinite(got["texel"]).all()
     np.testing.assert_allclose(got["texel"], want, rtol=1e-4, atol=1e-5)
     np.testing.assert_array_equal(got["auto"], got["texel"])  # 9 texels, 20 pixels
-    assert np.abs(got["pixel"] - got["texel"]).max() > 1e-3  # between texels the spaces differ
-    small = g._replace(**{f: getattr(g, f)[:2, :2] for f in g._fields})  # 4 pixels: fewer than the texels
-    np.testing.assert_allclose(np.asarray(evaluate["auto"](small, np.ones(3))), got["pixel"][:2, :2], rtol=1e-6)
+    assert np.nanmax(np.abs(got["pixel"] - got["texel"])) > 1e-3  # between texels the spaces differ
+    small = g._replace(**{f: getattr(g, f)[1:3, :2] for f in g._fields})  # 4 pixels: fewer than the texels
+    np.testing.assert_allclose(np.asarray(evaluate["auto"](small, np.ones(3))), got["pixel"][1:3, :2], rtol=1e-6)
 
 
 def test_float32_at_the_extremes_matches_float64():

@@ -92,7 +92,7 @@ def test_a_view_dependent_texel_is_shaded_along_the_view_and_the_rest_as_the_lig
 def test_texel_lookup_is_the_atlas_image_lookup():
     """Reading each bilinear corner through the fill index is the lookup of the built atlas image,
     to the bit, at texel centres, between them and clamped past the atlas's edges."""
-    from jprt.methods.lightmap_lookup import atlas_image, atlas_lookup, texel_lookup
+    from jprt.methods.lightmap_lookup import atlas_image, atlas_lookup, texel_lookup, texel_taps
 
     rng = np.random.default_rng(3)
     texels = rng.normal(size=(7, 5)).astype(np.float32)
@@ -101,6 +101,10 @@ def test_texel_lookup_is_the_atlas_image_lookup():
     expect = np.asarray(atlas_lookup(atlas_image(jnp.asarray(texels), jnp.asarray(fill)), jnp.asarray(uv)))
     got = np.asarray(texel_lookup(jnp.asarray(texels), jnp.asarray(fill), jnp.asarray(uv)))
     assert got.shape == (9, 11, 5) and np.array_equal(got, expect)
+    # the same corners as texel indices and weights (texel-space shading reads through them)
+    index, weight = (np.asarray(a) for a in texel_taps(jnp.asarray(fill), jnp.asarray(uv)))
+    np.testing.assert_allclose(weight.sum(-1), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(np.einsum("...k,...kc->...c", weight, texels[index]), expect, rtol=1e-5, atol=1e-6)
 
 
 def test_without_exit_transfer_the_evaluator_is_the_lightmap():

@@ -156,7 +156,9 @@ def self_check(dataset: SGData, result, config: dict | None = None) -> dict:
                  specular_albedo=per_view(specular), roughness=per_view(rough),
                  object_id=np.broadcast_to(np.asarray(a["texel_object"], np.int32)[idx][:, None], (k, v)),
                  valid=np.broadcast_to(ok[:, None], (k, v)))
-    pred = np.asarray(evaluator(result.params, cfg)(gb, np.ones(3, np.float32)))
+    # each check texel is seen along several views at its centre: shaded per pixel, not per texel
+    pixel = {**cfg, "shading": {**cfg.get("shading", {}), "space": "pixel"}}
+    pred = np.asarray(evaluator(result.params, pixel)(gb, np.ones(3, np.float32)))
 
     def reference(maps, irradiance):
         maps = np.asarray(maps, np.float32)

@@ -56,7 +56,7 @@ def quadrature_images(data, params, gbuffers, sub: int) -> tuple[list, list]:
             return np.where(g.valid[..., None], np.asarray(image), 0.0)
 
         raw.append(shade(np.asarray(atlas_lookup(table, g.uv)).reshape(g.uv.shape[:2] + (n, n, 3))))
-        lobes = sgm.lookup_lobes(params, g.uv)  # the lobes as the evaluator filters them
+        lobes = sgm.lookup_lobes(params, g.uv)  # the lobes as the pixel-space evaluator filters them
         at = dirs.reshape((1,) * (g.uv.ndim - 1) + dirs.shape)  # the pixels' leading axes, for broadcasting
         lobed.append(shade(np.asarray(sgm.lobe_radiance(lobes, at)).reshape(g.uv.shape[:2] + (n, n, 3))))
     return raw, lobed

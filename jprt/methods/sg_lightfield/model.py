@@ -37,8 +37,8 @@
   (``_glossy_planes_product``, equal to ``shade`` to rounding, tested), tile by tile: the same
   arithmetic, laid out for XLA on CPU (``evaluator``'s docstring says why). Where the atlas has no
   more texels than the frame has pixels, each texel is shaded once (``shading.space``, texture-space
-  shading) and the pixels read the shaded texels bilinearly: a departure from §6, measured in
-  docs/methods/sg_lightfield.md.
+  shading) and the pixels read the shaded texels bilinearly: a departure from §6 (its cost in
+  accuracy and its gain in time: docs/methods/sg_lightfield.md, "Where the lobes are shaded").
 * **Environment visibility** (§5, Eq. 3-8): ``jprt.methods.sg_lightfield.environment``.
 """
 
@@ -866,7 +866,8 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
       applies its own specular and diffuse albedo. The work is per texel, not per pixel. It
       differs from "pixel" in two ways: the light between texels is the bilinear mix of their
       lobes' shading, not the shading of bilinearly mixed lobes, and the view and normal are
-      constant over a texel's footprint. At texel centres the two are equal (tested).
+      constant over a texel's footprint. At texel centres the two are equal (tested). A G-buffer
+      whose pixels see one texel from several directions at once (the self-check's) needs "pixel".
     * "auto" (the default): "texel" where the atlas has no more texels than the frame has pixels,
       "pixel" otherwise (the shading's work is then the smaller of the two).
 
@@ -914,12 +915,14 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     @jax.jit
     def _texels(texels, irradiance, fill, inputs, scale):
         valid = jnp.asarray(inputs.valid, bool)
-        index, weight = texel_taps(fill, inputs.uv)
-        weight = weight * valid[..., None]
+        # an invalid pixel's fields may hold anything (NaN included): zeroed, not multiplied by 0
+        index, weight = texel_taps(fill, jnp.where(valid[..., None], jnp.asarray(inputs.uv, jnp.float32), 0.0))
+        weight = jnp.where(valid[..., None], weight, 0.0)
         # each texel's footprint: the weighted sums of its pixels' normal, view and roughness
         attrs = jnp.concatenate([jnp.asarray(inputs.normal, jnp.float32), jnp.asarray(inputs.view, jnp.float32),
                                  jnp.asarray(inputs.roughness, jnp.float32)[..., None],
                                  jnp.ones(valid.shape + (1,), jnp.float32)], axis=-1)
+        attrs = jnp.where(valid[..., None], attrs, 0.0)
         sums = jnp.zeros((count, 8), jnp.float32).at[index.reshape(-1)].add(
             (weight[..., None] * attrs[..., None, :]).reshape(-1, 8))
         seen = sums[:, 7] > 0.0  # a texel no pixel reads is shaded at a placeholder and read with weight 0
