@@ -17,8 +17,10 @@
 //     matrix-vector product), and the shader sums mean |x| + sum_i b_i u_i over the basis layers.
 //   * SG light-field textures (Currius et al. 2020): the shader fetches the texel's lobes
 //     (params/axes, sharpness, amplitude: float16), its irradiance and its material
-//     (sg_materials.bin), shades the lobes as the export's config says (shading.samples): by
-//     samples^2 directions drawn from each lobe through the GGX BRDF (jprt's shade_sampled), or, at
+//     (sg_materials.bin), shades the lobes as the export's config says (shading.samples,
+//     brdf_sampling, broad_bound): by samples^2 directions drawn from each lobe through the GGX
+//     BRDF (jprt's shade_sampled; a lobe broader than the BRDF at samples^2 directions drawn from
+//     the BRDF's visible normals, where brdf_sampling is on), or, at
 //     0 or in exports without the key, by Appendix B (Eq. 15-24: the GGX NDF warped to an ASG about
 //     the reflected view direction, convolved with each lobe by Xu et al. 2013 Eq. 12, Smith G,
 //     Schlick's Fresnel and n.l at that direction); adds albedo / pi x irradiance and scales by the
@@ -206,6 +208,9 @@ async function sgLightfield(base, manifest) {
   const [, n] = sharpness.shape;
   const res = manifest.lightmap.resolution;
   const samples = manifest.config?.shading?.samples ?? 0;  // 0: Appendix B's product
+  // a lobe broader than the BRDF at the BRDF's directions (exports without the key: lobe-drawn only)
+  const brdfSampling = manifest.config?.shading?.brdf_sampling ? 1 : 0;
+  const broadBound = Number(manifest.config?.shading?.broad_bound ?? 1.0);
   const sh = sharpness.data;
   // layers 2j: lobe j's axis and sharpness, 2j + 1: its amplitude; 2N: irradiance;
   // 2N + 1: diffuse albedo and roughness; 2N + 2: specular reflectance at normal incidence
@@ -223,7 +228,7 @@ async function sgLightfield(base, manifest) {
   const material = new THREE.ShaderMaterial({
     glslVersion: THREE.GLSL3,
     side: THREE.DoubleSide,
-    defines: { LOBES: n, SAMPLES: samples },
+    defines: { LOBES: n, SAMPLES: samples, BRDF_SAMPLING: brdfSampling, BROAD_BOUND: broadBound.toFixed(9) },
     uniforms: { lobes: { value: texture }, scale: { value: new THREE.Vector3(1, 1, 1) } },
     vertexShader: VERTEX_WORLD,
     fragmentShader: `
@@ -253,11 +258,68 @@ async function sgLightfield(base, manifest) {
         // and Schlick's Fresnel, alpha^2 widened by 1 / (lambda SAMPLES^2) (a stratum's spread)
         const float S2 = float(SAMPLES * SAMPLES);
         vec3 plain = vec3(0.0), grazing = vec3(0.0);
+#if BRDF_SAMPLING
+        // jprt's _brdf_sampled: SAMPLES^2 directions drawn from the GGX visible normals (Heitz
+        // 2018) at the view, shared by the lobes; each carries G1(l) (and Fresnel's grazing factor)
+        // times a broad lobe's light there
+        vec3 bl[SAMPLES * SAMPLES];
+        float bw[SAMPLES * SAMPLES], bf[SAMPLES * SAMPLES];
+        {
+          float alpha = r, sgn = nrm.z >= 0.0 ? 1.0 : -1.0, fa = -1.0 / (sgn + nrm.z), fc = nrm.x * nrm.y * fa;
+          vec3 tn = vec3(1.0 + sgn * nrm.x * nrm.x * fa, sgn * fc, -sgn * nrm.x);
+          vec3 bn = vec3(fc, sgn + nrm.y * nrm.y * fa, -nrm.y);
+          float vt = dot(v, tn), vb = dot(v, bn);
+          vec3 st = vec3(alpha * vt, alpha * vb, cosV);
+          st *= inversesqrt(dot(st, st));
+          float lensq = st.x * st.x + st.y * st.y;
+          bool far = lensq > 1e-12;
+          float il = inversesqrt(far ? lensq : 1.0);
+          vec2 t1 = far ? vec2(-st.y * il, st.x * il) : vec2(1.0, 0.0);
+          vec3 t2 = vec3(-st.z * t1.y, st.z * t1.x, st.x * t1.y - st.y * t1.x);
+          float half_ = 0.5 * (1.0 + st.z);
+          for (int i = 0; i < SAMPLES; i++) {
+            float rr = sqrt((float(i) + 0.5) / float(SAMPLES));
+            for (int k = 0; k < SAMPLES; k++) {
+              float phi = 6.283185307179586 * (float(k) + 0.5) / float(SAMPLES);
+              float p1 = rr * cos(phi);
+              float p2 = (1.0 - half_) * sqrt(max(1.0 - p1 * p1, 0.0)) + half_ * (rr * sin(phi));
+              float p3 = sqrt(max(1.0 - p1 * p1 - p2 * p2, 0.0));
+              vec3 m = vec3(p1 * t1.x + p2 * t2.x + p3 * st.x, p1 * t1.y + p2 * t2.y + p3 * st.y, p2 * t2.z + p3 * st.z);
+              m = vec3(alpha * m.x, alpha * m.y, max(m.z, 0.0));
+              m *= inversesqrt(max(dot(m, m), 1e-20));
+              float vh = vt * m.x + vb * m.y + cosV * m.z;
+              float nl = 2.0 * vh * m.z - cosV;
+              vec3 h = m.x * tn + m.y * bn + m.z * nrm;
+              vec3 l = 2.0 * vh * h - v;
+              l *= inversesqrt(max(dot(l, l), 1e-20));
+              float fw = 1.0 - clamp(vh, 0.0, 1.0);
+              int q = i * SAMPLES + k;
+              bl[q] = l;
+              bw[q] = 2.0 * ggxV1Cos(r2, nl);
+              bf[q] = fw * fw * fw * fw * fw;
+            }
+          }
+        }
+#endif
         for (int j = 0; j < LOBES; j++) {
           vec4 lobe = at(2 * j);
           vec3 amp = at(2 * j + 1).rgb;
           float lam = lobe.w;
           vec3 u = lobe.xyz * inversesqrt(max(dot(lobe.xyz, lobe.xyz), 1e-20));
+#if BRDF_SAMPLING
+          if (lam * 0.5 * r2 < BROAD_BOUND) {  // broader than the BRDF: its light at the BRDF's directions
+            float bp = 0.0, bg = 0.0;
+            for (int q = 0; q < SAMPLES * SAMPLES; q++) {
+              vec3 dl = bl[q] - u;  // l . u - 1 = -|l - u|^2 / 2
+              float light = exp(-0.5 * lam * dot(dl, dl)) * bw[q];
+              bp += light;
+              bg += light * bf[q];
+            }
+            plain += bp / S2 * amp;
+            grazing += bg / S2 * amp;
+            continue;
+          }
+#endif
           vec3 t = abs(u.z) >= 0.9 ? vec3(0.0, -u.z, u.y) : vec3(-u.y, u.x, 0.0);
           t *= inversesqrt(max(dot(t, t), 1e-20));
           vec3 b = cross(u, t);
