@@ -853,15 +853,15 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     * "pixel" (§6 of the paper): each pixel's lobes bilinear between its four texels (every
       parameter filtered, axes renormalised), shaded at the pixel's normal, view and roughness. The
       texture (lobes and irradiance of every atlas pixel, float32 from the float16 storage) is
-      packed once here, as a renderer uploads its textures once. Pixels are
-      shaded in tiles of ``tile`` (a ``lax.map``, one program): one bilinear fetch of the packed
-      texture per pixel, then the shading on (..., N) planes: on a CPU several times faster than
-      the same program untiled or ``shade`` on (..., N, 3) vectors (XLA fuses the fetch into every
-      use of its result and streams the whole frame through each fusion; a tile stays in cache).
+      packed once here, as a renderer uploads its textures once. Pixels are shaded in tiles of
+      ``tile`` (a ``lax.map``, one program): one bilinear fetch of the packed texture per pixel,
+      then the shading on (..., N) planes: on a CPU several times faster than the same program
+      untiled or ``shade`` on (..., N, 3) vectors (XLA fuses the fetch into every use of its
+      result and streams the whole frame through each fusion; a tile stays in cache).
     * "texel" (texture-space shading, as engines do for costly shading: Baker 2016, "Object Space
       Lighting"; Hillesland and Yang 2016, "Texel Shading"): each texel's own lobes are shaded
-      once, at the mean normal, view and roughness of the pixels that read it (weighted by their
-      bilinear weights, ``lightmap_lookup.texel_taps``), as Fresnel's two parts, which do not
+      once, at the mean normal, view and roughness of the valid pixels that read it (weighted by
+      their bilinear weights, ``lightmap_lookup.texel_taps``), as Fresnel's two parts, which do not
       depend on f0 (``_fresnel_mix``); each pixel then reads the shaded texels bilinearly and
       applies its own specular and diffuse albedo. The work is per texel, not per pixel. It
       differs from "pixel" in two ways: the light between texels is the bilinear mix of their
