@@ -371,6 +371,9 @@ def test_demodulated_fit_shades_texture_finer_than_a_texel(demodulate):
     x = PointRadiance(direct[0][params["fine_index"]].astype(np.float32))
     lightmap = np.asarray(dd.lightmap(params, x.direct, cfg))
     np.testing.assert_allclose(lightmap, indirect[0], rtol=1e-4)
+    # batched over lightings, as the self-check calls it: the texture goes back on every one
+    batch = np.asarray(dd.lightmap(params, direct[:2][:, params["fine_index"]].astype(np.float32), cfg))
+    np.testing.assert_allclose(batch, indirect[:2], rtol=1e-4)
     atlas = np.asarray(evaluate(atlas_inputs(res, np.arange(t)), x)).reshape(-1, 3)
     np.testing.assert_allclose(atlas, indirect[0], rtol=1e-4)
     # pixels halfway between texel columns c and c + 1 of each row, with albedos of their own

@@ -620,7 +620,8 @@ def lightmap(params: dict, direct, config: dict | None = None):
     out = _lightmap(arrays, jnp.asarray(direct, arrays["transfer"].dtype), channels=cfg["basis"]["channels"],
                     gamma=float(cfg["basis"]["gamma"]))
     if "texel_modulation" in params:  # a demodulated fit: its texture back on, the texels' light
-        out = out * jnp.asarray(params["texel_modulation"], out.dtype)
+        mod = jnp.asarray(params["texel_modulation"], out.dtype)  # (T, 3), over the leading axes
+        out = out * mod.reshape((1,) * (out.ndim - mod.ndim) + mod.shape)
     return out
 
 
