@@ -78,8 +78,8 @@ def main() -> int:
                           "CPU at its default shading.space (auto: texture space where the atlas has no more texels "
                           "than the frame has pixels), G-buffer given; psnr_indirect_by_space / frame_ms_by_space: "
                           "the same lobes shaded per pixel (§6) and per texel in the same run; speedup against "
-                          "Mitsuba's indirect (full + direct renders) at equal RMSE; evaluator_cost: the same evaluator re-timed after "
-                          "the run at 128^2 to 1920x1080 (larger frames nearest-resampled from the 512^2 held-out "
+                          "Mitsuba's indirect (full + direct renders) at equal RMSE; evaluator_cost: the same "
+                          "evaluator re-timed after the run at 128^2 to 1920x1080 (larger frames nearest-resampled from the 512^2 held-out "
                           "G-buffer), XLA's FLOP count of each program, the f32 matmul rate measured in the same "
                           "process, and random textures of 4 / 16 / 64 lobes at 1080p.")
     return 0

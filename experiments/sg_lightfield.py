@@ -10,7 +10,8 @@ the evaluator on each view's atlas G-buffer against Mitsuba's indirect render (p
 receivers). Stages: per-texel baselines, float16 storage, PSNR by roughness, the references' noise,
 quadrature shading, interpolation at captured midpoints, lobe counts, pixel- against texture-space
 shading, frame times, §5's environment visibility (Table 3 setting); helpers in
-``jprt.methods.sg_lightfield.evaluation``. Report: results/sg_lightfield/<config hash>/ (``benchmarks/sg_lightfield.py`` -> its benchmark JSON).
+``jprt.methods.sg_lightfield.evaluation``. Report: results/sg_lightfield/<config hash>/
+(``benchmarks/sg_lightfield.py`` -> its benchmark JSON).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import jax
 import numpy as np
 
 from jprt import eval as jeval
+from jprt.config import merge
 from jprt.inputs import LightScale
 from jprt.methods import REGISTRY
 from jprt.methods.sg_lightfield import baselines
@@ -263,7 +265,7 @@ def shading_space(run) -> dict:
     gb, one = jax.device_put(frame(run))
     psnr, ms = {}, {}
     for space in ("pixel", "texel"):
-        config = {**run.method_config, "shading": {**run.method_config["shading"], "space": space}}
+        config = merge(run.method_config, {"shading": {"space": space}})
         psnr[space] = _psnr(run, _images(run, run.result.params, config))
         evaluate = jax.jit(sgm.evaluator(run.result.params, config))
         ms[space] = jeval.time_call(evaluate, gb, one, repeats=int(e["timing_repeats"]))["median_ms"]

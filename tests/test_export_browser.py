@@ -17,6 +17,7 @@ import pytest
 
 from jprt import io
 from jprt.cli import main
+from jprt.config import merge
 from jprt.methods import REGISTRY
 from jprt.runner import save_fit
 
@@ -121,8 +122,7 @@ def test_browser_relighting_equals_the_evaluator(name, tmp_path):
         gb = lightmap.atlas_gbuffer(s.handle, lightmap.Atlas(**s.dataset.atlas), s.camera(SIZE))
         light = LightScale(np.asarray([1.6, 0.9, 0.5], np.float32))
         # relight.js shades every fragment's filtered lobes: jprt's pixel space (§6)
-        config = {**s.method_config, "shading": {**s.method_config["shading"], "space": "pixel"}}
-        want = np.asarray(m.evaluator(s.params, config)(gb, light))
+        want = np.asarray(m.evaluator(s.params, merge(s.method_config, {"shading": {"space": "pixel"}}))(gb, light))
     else:  # a light the model never saw: the view's default light moved and tinted
         s.set(light=tuple(np.asarray(s.state["light"]) + [0.25, -0.2, 0.15]), colour=(1.0, 0.8, 0.6), power=2.0,
               mode="indirect")

@@ -10,6 +10,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jprt.config import merge
 from jprt.methods.base import resolve
 from jprt.methods.sg_lightfield.environment import ENV_DEFAULTS, ENV_RECEIVERS  # noqa: F401 (re-exported)
 from jprt.methods.sg_lightfield.model import DEFAULT_CONFIG, SGData, texel_irradiance
@@ -157,7 +158,7 @@ def self_check(dataset: SGData, result, config: dict | None = None) -> dict:
                  object_id=np.broadcast_to(np.asarray(a["texel_object"], np.int32)[idx][:, None], (k, v)),
                  valid=np.broadcast_to(ok[:, None], (k, v)))
     # each check texel is seen along several views at its centre: shaded per pixel, not per texel
-    pixel = {**cfg, "shading": {**cfg.get("shading", {}), "space": "pixel"}}
+    pixel = merge(cfg, {"shading": {"space": "pixel"}})
     pred = np.asarray(evaluator(result.params, pixel)(gb, np.ones(3, np.float32)))
 
     def reference(maps, irradiance):

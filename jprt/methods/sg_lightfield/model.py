@@ -891,8 +891,7 @@ def evaluator(params, config: dict | None = None, *, tile: int = TILE):
     texels = (axes[..., 0], axes[..., 1], axes[..., 2], jnp.asarray(params["sharpness"], jnp.float32),
               amp[..., 0], amp[..., 1], amp[..., 2])
     count = texels[0].shape[0]
-    irradiance = jnp.asarray(params["irradiance"], jnp.float32) if "irradiance" in params else \
-        jnp.zeros((count, 3), jnp.float32)
+    irradiance = jnp.asarray(params["irradiance"], jnp.float32)
     # the packed atlas image of "pixel" (built here, outside any caller's trace)
     table = None if space == "texel" else lobe_table(params)
 
