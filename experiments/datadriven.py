@@ -182,11 +182,11 @@ def fit_report(run) -> dict:
          "lambda_cv": result.info["lambda_cv"], "conditioning": result.info["conditioning"],
          "fit_warnings": result.info["warnings"]}
     s["bake_s"] = s["render_train_s"] + s["fit_s"]
-    s.update(_scores(result, data))
+    s.update(ev.scores(result, data.direct_test, data.indirect_test, data.atlas))
     s["reference_rms"] = float(np.sqrt(np.mean(np.square(data.indirect_test))))
     s["relative_rmse"] = s["rmse"] / s["reference_rms"]
     run.say(f"{s['texels']} texels, {result.info['points']} points; n = {run.method_config['basis']['n']}: RMSE "
-            f"{s['rmse']:.5f} (projection {s['projection_rmse']:.5f}, reference RMS {s['reference_rms']:.4f})")
+            f"{s['rmse']:.5f} ({s['rmse_shown']:.5f} over the texels an image shows; projection {s['projection_rmse']:.5f}, reference RMS {s['reference_rms']:.4f})")
     return s
 
 

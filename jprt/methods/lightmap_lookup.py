@@ -16,8 +16,8 @@ import numpy as np
 
 from jprt.inputs import GBuffer
 
-__all__ = ["atlas_lookup", "texel_lookup", "texel_taps", "atlas_image", "atlas_inputs", "modulation", "lambertian",
-           "texel_modulation", "remodulated_lookup", "modulation_params", "lightmap_shader", "ALBEDO_FLOOR"]
+__all__ = ["atlas_lookup", "texel_lookup", "texel_taps", "atlas_image", "atlas_inputs", "shown_texels", "modulation",
+           "lambertian", "texel_modulation", "remodulated_lookup", "modulation_params", "lightmap_shader", "ALBEDO_FLOOR"]
 
 
 def atlas_lookup(image, uv):
@@ -155,6 +155,14 @@ def atlas_image(texels, fill_index):
     return texels[fill_index].reshape(res, res, texels.shape[-1])
 
 
+def shown_texels(texel_index, fill_index) -> np.ndarray:
+    """(T,) bool: the texels whose own atlas pixel shows them. A texel no view sees has its pixel
+    pointed at a seen neighbour's (``fill_index``; ``jprt.render.lightmap.build_atlas``'
+    ``seen_from``), so no image of the atlas shows its value."""
+    texel_index = np.asarray(texel_index)
+    return np.asarray(fill_index)[texel_index] == np.arange(texel_index.size)
+
+
 def atlas_inputs(resolution: int, texel_index, fill_index=None) -> GBuffer:
     """A G-buffer of the atlas itself, (R, R): every pixel looks up its own texel centre; valid
     where a texel is covered. A lightmap evaluator given it returns the lightmap as an (R, R, 3)
@@ -167,8 +175,7 @@ def atlas_inputs(resolution: int, texel_index, fill_index=None) -> GBuffer:
     uv = np.stack(np.meshgrid(centres, centres, indexing="xy"), axis=-1)
     valid = np.zeros(res * res, bool)
     texel_index = np.asarray(texel_index)
-    shows_itself = (np.ones(texel_index.size, bool) if fill_index is None
-                    else np.asarray(fill_index)[texel_index] == np.arange(texel_index.size))
+    shows_itself = np.ones(texel_index.size, bool) if fill_index is None else shown_texels(texel_index, fill_index)
     valid[texel_index[shows_itself]] = True
     zeros3 = np.zeros((res, res, 3), np.float32)
     return GBuffer(position=zeros3, normal=zeros3, view=zeros3, reflected=zeros3, uv=uv,

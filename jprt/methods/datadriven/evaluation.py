@@ -13,6 +13,7 @@ import numpy as np
 
 from jprt.methods.base import FitResult
 from jprt.methods.datadriven import model as dd
+from jprt.methods.lightmap_lookup import shown_texels
 
 __all__ = ["fit_recorded", "scores", "lightmap_image", "spot_lights", "spectrum", "out_of_scenario_lights",
            "sh_prt_lightmaps", "basis_picture", "basis_sizes", "regularisation_sweeps",
@@ -30,14 +31,20 @@ def fit_recorded(data, cfg: dict) -> FitResult:
     return result
 
 
-def scores(result: FitResult, direct, indirect) -> dict:
+def scores(result: FitResult, direct, indirect, atlas=None) -> dict:
     """Lightmap RMSE of a fit (``fit_recorded``) on (direct, indirect) lightmaps, and of projecting
-    the references onto its basis (Fig. 14): {"rmse", "projection_rmse"}."""
+    the references onto its basis (Fig. 14): {"rmse", "projection_rmse"}, over every texel. Given
+    the ``atlas``, also "rmse_shown": over the texels whose atlas pixel shows them
+    (``lightmap_lookup.shown_texels``), the set the runner's held-out images score."""
     params, cfg = result.params, result.info["config"]
     fine = np.asarray(params["fine_index"])
     pred = np.asarray(dd.lightmap(params, direct[:, fine], cfg))
     proj = dd.project(params, direct[:, fine], indirect, cfg)
-    return {"rmse": dd.lightmap_rmse(pred, indirect), "projection_rmse": dd.lightmap_rmse(proj, indirect)}
+    out = {"rmse": dd.lightmap_rmse(pred, indirect), "projection_rmse": dd.lightmap_rmse(proj, indirect)}
+    if atlas is not None:
+        shown = shown_texels(atlas["texel_index"], atlas["fill_index"])
+        out["rmse_shown"] = dd.lightmap_rmse(pred[:, shown], np.asarray(indirect)[:, shown])
+    return out
 
 
 def lightmap_image(texels, atlas) -> np.ndarray:
