@@ -186,7 +186,8 @@ def fit_report(run) -> dict:
     s["reference_rms"] = float(np.sqrt(np.mean(np.square(data.indirect_test))))
     s["relative_rmse"] = s["rmse"] / s["reference_rms"]
     run.say(f"{s['texels']} texels, {result.info['points']} points; n = {run.method_config['basis']['n']}: RMSE "
-            f"{s['rmse']:.5f} ({s['rmse_shown']:.5f} over the texels an image shows; projection {s['projection_rmse']:.5f}, reference RMS {s['reference_rms']:.4f})")
+            f"{s['rmse']:.5f} ({s['rmse_shown']:.5f} over the texels an image shows; projection "
+            f"{s['projection_rmse']:.5f}, reference RMS {s['reference_rms']:.4f})")
     return s
 
 

@@ -14,7 +14,7 @@ import jax
 
 from jprt.inputs import PointRadiance
 from jprt.methods.datadriven import model as dd
-from jprt.methods.lightmap_lookup import atlas_inputs, texel_modulation
+from jprt.methods.lightmap_lookup import atlas_inputs, shown_texels, texel_modulation
 
 
 def _layout(params, texels, res=8):
@@ -423,3 +423,5 @@ def test_atlas_inputs_leave_out_texels_whose_pixel_shows_another():
     g = atlas_inputs(3, texel_index, fill)
     assert np.flatnonzero(np.asarray(g.valid).reshape(-1)).tolist() == [0, 1, 5]
     assert np.flatnonzero(np.asarray(atlas_inputs(3, texel_index).valid).reshape(-1)).tolist() == [0, 1, 2, 5]
+    # the same texels by index, as the fit report's rmse_shown selects them
+    assert shown_texels(texel_index, fill).tolist() == [True, True, False, True]
