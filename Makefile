@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.jprt-installed
 
-.PHONY: setup llvm test test-slow view-deps view demo bench bench-rrf bench-datadriven bench-wavelet bench-sg bench-mrt bench-atlas clean
+.PHONY: setup llvm test test-slow view-deps view demo bench bench-rrf bench-datadriven bench-wavelet bench-sg bench-sg-environment bench-mrt bench-atlas clean
 
 setup: llvm $(STAMP)
 
@@ -75,6 +75,9 @@ bench-wavelet: setup
 
 bench-sg: setup
 	$(PY) benchmarks/sg_lightfield.py
+
+bench-sg-environment: setup
+	$(PY) benchmarks/sg_environment.py
 
 bench-mrt: setup
 	$(PY) benchmarks/mrt.py

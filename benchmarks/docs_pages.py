@@ -139,6 +139,15 @@ INTROS: dict[str, dict] = {
                  "See [SG light-field textures](../methods/sg_lightfield.md).",
         "make": "make bench-sg",
     },
+    "sg_environment": {
+        "title": "SG environment visibility",
+        "intro": "SG environment visibility (Currius et al. 2020, §5) at its default `small` preset: glossy "
+                 "receivers of the open-top Cornell box reflecting a distant environment, scored against "
+                 "Mitsuba's direct light from held-out views under the map W_E was computed for, the map "
+                 "turned and a synthetic sky; the 256^2 frame against its roofline, and equal error. "
+                 "See [SG environment visibility](../methods/sg_environment.md).",
+        "make": "make bench-sg-environment",
+    },
     "sg_shading": {
         "title": "SG light-field textures: shading one lobe",
         "intro": "The run-time shading of SG light-field textures, one light lobe reflected by the GGX BRDF, "
