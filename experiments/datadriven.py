@@ -150,27 +150,14 @@ def pathtracer(run) -> PathTracer:
     a seed unlike the references'), timed for one configuration's whole lightmap."""
     from jprt.render import lightmap
 
-    data, handle = run.dataset, _handle(run)
-    lights = _test_lights(run)
-    pos, nrm = data.atlas["position"], data.atlas["normal"]
-
-    def render_at(spp):
-        out = []
-        for k, lighting in enumerate(lights):
-            handle.set_lighting(lighting)
-            out.append(ev.lightmap_image(lightmap.indirect_at_points(handle, pos, nrm, spp=spp, seed=4242 + k),
-                                         data.atlas))
-        return out
-
-    def time_at(spp):
-        handle.set_lighting(lights[0])
-        lightmap.indirect_at_points(handle, pos, nrm, spp=spp, seed=3)  # warm-up (kernel compile)
-        return jeval.time_call(lambda: lightmap.indirect_at_points(handle, pos, nrm, spp=spp, seed=3),
-                               repeats=int(run.config["eval"]["pathtrace_repeats"]), warmup=0)["median_ms"]
-
-    return PathTracer(render_at, time_at, "Mitsuba llvm_ad_rgb at the lightmap texels: indirect = full (max_depth "
-                                          "-1) minus direct (max_depth 2), both renders timed; the evaluator's "
-                                          "frame is the same lightmap (transfer, reconstruction, atlas lookup)")
+    atlas = run.dataset.atlas
+    return lightmap.points_pathtracer(
+        _handle(run), atlas["position"], atlas["normal"], _test_lights(run),
+        lambda texels: [ev.lightmap_image(t, atlas) for t in texels], seed=4242, time_seed=3, warmup=True,
+        repeats=int(run.config["eval"]["pathtrace_repeats"]),
+        note="Mitsuba llvm_ad_rgb at the lightmap texels: indirect = full (max_depth -1) minus direct (max_depth "
+             "2), both renders timed; the evaluator's frame is the same lightmap (transfer, reconstruction, atlas "
+             "lookup)")
 
 
 def fit_report(run) -> dict:

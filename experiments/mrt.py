@@ -116,27 +116,13 @@ def pathtracer(run) -> PathTracer:
     from jprt.render.scenes import SceneHandle
 
     ds = run.dataset
-    handle = SceneHandle(run.config["scene"])
     lights = [PointLights.create(p, i) for p, i in zip(ds.lights_test["position"], ds.lights_test["intensity"])]
-    p, nrm = ds.positions.reshape(-1, 3), ds.normals.reshape(-1, 3)
-
-    def render_at(spp):
-        out = []
-        for k, light in enumerate(lights):
-            handle.set_lighting(light)
-            texels = lightmap.indirect_at_points(handle, p, nrm, spp=int(spp), seed=777 + k)
-            out.append(texels.reshape(ds.positions.shape))
-        return ev.atlas_images(np.stack(out), ds.albedo.shape)
-
-    def time_at(spp):
-        handle.set_lighting(lights[0])
-        t0 = time.perf_counter()
-        lightmap.indirect_at_points(handle, p, nrm, spp=int(spp), seed=999)
-        return (time.perf_counter() - t0) * 1e3
-
-    return PathTracer(render_at, time_at, "Mitsuba path (LLVM, this CPU): indirect at every texel centre = full "
-                                          "minus direct (two renders, equal seeds); MRT's time is the lightmap at "
-                                          "the same texels with Mitsuba's direct given")
+    return lightmap.points_pathtracer(
+        SceneHandle(run.config["scene"]), ds.positions.reshape(-1, 3), ds.normals.reshape(-1, 3), lights,
+        lambda texels: ev.atlas_images(np.stack([t.reshape(ds.positions.shape) for t in texels]), ds.albedo.shape),
+        seed=777, time_seed=999,
+        note="Mitsuba path (LLVM, this CPU): indirect at every texel centre = full minus direct (two renders, "
+             "equal seeds); MRT's time is the lightmap at the same texels with Mitsuba's direct given")
 
 
 def held_out_layouts(run) -> dict:

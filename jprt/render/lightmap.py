@@ -53,6 +53,7 @@ __all__ = [
     "radiance_at_points",
     "direct_at_points",
     "indirect_at_points",
+    "points_pathtracer",
     "incident_delta_lights",
     "free_positions",
     "enclosing_objects",
@@ -907,6 +908,33 @@ def indirect_at_points(handle: SceneHandle, position, normal, *, spp: int, seed:
     normal = np.asarray(normal, np.float64)
     eps = ray_offset(handle)
     return images.indirect_rays(handle, position + eps * normal, -normal, spp=spp, seed=seed).indirect
+
+
+def points_pathtracer(handle: SceneHandle, position, normal, lightings: Sequence, to_images, *, seed: int,
+                      time_seed: int, warmup: bool = False, repeats: int = 1, note: str = ""):
+    """Mitsuba as the equal-error peer of a lightmap method (a ``jprt.eval.PathTracer``): its
+    ``render_at(spp)`` is the indirect light (``indirect_at_points``) at the points under each of
+    ``lightings`` in turn (seed ``seed + k`` for the k-th), the list of (S, 3) arrays passed to
+    ``to_images`` (-> the held-out images); its ``time_at(spp)`` renders the first lighting at
+    ``time_seed``: one untimed call first when ``warmup`` (the kernel's compilation), then the
+    median of ``repeats`` timed calls (ms)."""
+    from jprt import eval as jeval
+
+    def render_at(spp):
+        texels = []
+        for k, lighting in enumerate(lightings):
+            handle.set_lighting(lighting)
+            texels.append(indirect_at_points(handle, position, normal, spp=int(spp), seed=int(seed) + k))
+        return to_images(texels)
+
+    def time_at(spp):
+        handle.set_lighting(lightings[0])
+        if warmup:
+            indirect_at_points(handle, position, normal, spp=int(spp), seed=int(time_seed))
+        return jeval.time_call(lambda: indirect_at_points(handle, position, normal, spp=int(spp), seed=int(time_seed)),
+                               repeats=int(repeats), warmup=0)["median_ms"]
+
+    return jeval.PathTracer(render_at, time_at, note)
 
 
 def incident_delta_lights(handle: SceneHandle, point, lighting: Lighting) -> tuple[np.ndarray, np.ndarray]:
