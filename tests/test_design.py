@@ -144,7 +144,7 @@ def test_reverse_mode_gradient_of_the_direct_light_is_finite_beside_empty_pixels
         radiance, irradiance = design.point_direct(gb, p, inten, jnp.ones((6, 6, 1)))
         return jnp.sum(radiance) + jnp.sum(irradiance)
 
-    g_rev, g_fwd = np.asarray(jax.grad(loss)(pos)), np.asarray(jax.jacfwd(loss)(pos))
+    g_rev, g_fwd = np.asarray(jax.jit(jax.grad(loss))(pos)), np.asarray(jax.jit(jax.jacfwd(loss))(pos))
     assert np.all(np.isfinite(g_rev)) and np.abs(g_rev).max() > 0
     np.testing.assert_allclose(g_rev, g_fwd, rtol=1e-5, atol=1e-7)
 
