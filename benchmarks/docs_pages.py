@@ -453,7 +453,10 @@ def rooflines(entries: list[tuple[str, dict]]) -> str:
              "1). Rows without `frame_transcendentals` predate loop-aware counting (CHANGELOG.md, "
              "2026-12-06, from 20:00): XLA's analysis counted a tiled evaluator's loop body once, so their "
              "FLOPs and bytes for a `lax.map` over tiles (SG light-field and SG environment frames) are "
-             "one tile's. Each row's date is the run that wrote its JSON.", ""]
+             "one tile's. `stream at its size` is the same triad moving the frame's bytes in one call "
+             "(`jprt.eval.stream_at_size`) over the 256 MiB triad's rate: below the target, no single call "
+             "moving those bytes reaches the target on the memory roof here (rows before 2026-12-08 lack "
+             "it). Each row's date is the run that wrote its JSON.", ""]
     rows, missing = [], []
     for name, data in entries:
         found = list(_rooflines(data))
@@ -464,11 +467,13 @@ def rooflines(entries: list[tuple[str, dict]]) -> str:
                          text(str(r.get("bound", ""))), fmt(r.get("frame_flops") and r["frame_flops"] / 1e6),
                          fmt(r.get("frame_bytes") and r["frame_bytes"] / 1e6), fmt(r.get("matmul_gflops")),
                          fmt(r.get("bandwidth_gbs")), fmt(r.get("attainable_gflops")), fmt(frac),
-                         "" if frac is None else ("yes" if frac >= ROOFLINE_TARGET else "no"), date])
+                         "" if frac is None else ("yes" if frac >= ROOFLINE_TARGET else "no"),
+                         "" if r.get("stream_fraction_at_frame_bytes") is None
+                         else fmt(r["stream_fraction_at_frame_bytes"]), date])
         if not found and _times_frames(data):
             missing.append(f"- [{name}]({name}.md) (`{name}.json`, {date or 'undated'})")
     lines += table(["benchmark", "record", "roof", "bound", "MFLOP", "MB", "compute roof GFLOP/s", "GB/s",
-                    "attainable GFLOP/s", "fraction", f">= {ROOFLINE_TARGET}", "date"], rows)
+                    "attainable GFLOP/s", "fraction", f">= {ROOFLINE_TARGET}", "stream at its size", "date"], rows)
     if missing:
         lines += ["## Timed without a roofline", "",
                   "These JSONs time a frame (`frame_ms`) and carry no roofline yet; their next run adds one.",

@@ -28,7 +28,7 @@ from jprt.metrics import error_map, tonemap
 __all__ = ["set_rmse", "object_scores", "noise_removed", "DARK_OBJECT_SCALE", "HeldOut", "SCORES", "SUMMARY_SCORES",
            "score_images", "score_held_out", "optional_metric", "time_call", "interleaved_times", "xla_flops",
            "xla_cost", "loop_aware_cost", "gather_overcount", "matmul_peak_gflops", "stream_bandwidth_gbs", "roofline",
-           "roofline_of",
+           "roofline_of", "stream_at_size",
            "PathTracer", "EqualErrorCurve", "equal_error_spp", "side_by_side", "plot_series"]
 
 
@@ -646,6 +646,29 @@ def stream_bandwidth_gbs(n_bytes: int = 256 << 20, repeats: int = 5) -> float:
     return 4.0 * 4 * n / min(times) / 1e9
 
 
+#: The triad's repeats at a frame's size (``stream_at_size``): a frame-sized triad takes
+#: microseconds to milliseconds, and its fastest call needs more tries than a 256 MiB one.
+SIZED_STREAM_REPEATS = 50
+
+
+def stream_at_size(moved: float, bandwidth_gbs: float) -> dict:
+    """A pure stream of a frame's own size against the memory roof: ``stream_bandwidth_gbs``'s
+    triad with its four arrays moving ``moved`` bytes in one call (each array ``moved`` / 4,
+    rounded up to 64 KiB), the fastest of ``SIZED_STREAM_REPEATS``. Returns
+    {``stream_gbs_at_frame_bytes``, ``stream_fraction_at_frame_bytes``: that rate over
+    ``bandwidth_gbs``}.
+
+    A small call does not reach the 256 MiB triad's rate (below a few MB each call's fixed cost,
+    the launch of XLA's threads among it, outweighs its bytes; CHANGELOG.md, 2026-12-07), and a
+    mid-size one can beat it (its arrays stay in cache). Where the fraction is below a target
+    fraction of the roofline, no single call moving the frame's bytes reaches that target on its
+    memory roof: the yardstick says what the frame's size alone allows."""
+    chunk = 64 << 10
+    n_bytes = max(int(math.ceil(float(moved) / 4.0 / chunk)) * chunk, chunk)
+    rate = stream_bandwidth_gbs(n_bytes=n_bytes, repeats=SIZED_STREAM_REPEATS)
+    return {"stream_gbs_at_frame_bytes": rate, "stream_fraction_at_frame_bytes": rate / float(bandwidth_gbs)}
+
+
 def matmul_peak_gflops(n: int = 1024, repeats: int = 10, dtype: str = "float32",
                        precision: str | None = None) -> float:
     """The JAX matmul rate of this process (GFLOP/s): an n x n by n x n product, the fastest of
@@ -674,8 +697,9 @@ def roofline(jitted: Callable, *args, frame_ms: float, peak_gflops: float | None
     ``frame_bytes_xla`` (XLA's own figure, every loop iteration's fusions counted),
     ``frame_transcendentals`` (XLA's count, loops counted), ``intensity`` (FLOP per byte),
     ``attainable_gflops`` = min(peak, intensity x bandwidth), ``bound`` ("compute" or "memory":
-    which of the two is the smaller), ``fraction_of_roofline`` = achieved / attainable}. None
-    where nothing counts (no FLOP or byte count)."""
+    which of the two is the smaller), ``fraction_of_roofline`` = achieved / attainable, and
+    ``stream_at_size``'s two numbers for the frame's bytes}. None where nothing counts (no FLOP or
+    byte count)."""
     cost = xla_cost(jitted, *args)
     out = roofline_of(cost["flops"] if flops is None else float(flops),
                       cost["bytes"] if frame_bytes is None else float(frame_bytes), frame_ms=frame_ms,
@@ -689,7 +713,8 @@ def roofline_of(flops: float | None, moved: float | None, *, frame_ms: float, pe
                 bandwidth_gbs: float | None = None) -> dict:
     """``roofline``'s report from counts already known: ``flops`` and bytes ``moved`` per call
     (e.g. ``xla_cost`` of a program compiled elsewhere) taking ``frame_ms``; the matmul rate and
-    the triad bandwidth measured now unless given."""
+    the triad bandwidth measured now unless given, the triad at the frame's size
+    (``stream_at_size``) measured now where ``moved`` is known."""
     peak = matmul_peak_gflops() if peak_gflops is None else float(peak_gflops)
     bandwidth = stream_bandwidth_gbs() if bandwidth_gbs is None else float(bandwidth_gbs)
     rate = None if flops is None else flops / (frame_ms * 1e-3) / 1e9
@@ -700,7 +725,9 @@ def roofline_of(flops: float | None, moved: float | None, *, frame_ms: float, pe
             "roofline": {"matmul_gflops": peak, "bandwidth_gbs": bandwidth, "frame_flops": flops, "frame_bytes": moved,
                          "intensity": intensity, "attainable_gflops": attainable,
                          "bound": None if attainable is None else ("compute" if attainable >= peak else "memory"),
-                         "fraction_of_roofline": None if attainable is None else rate / attainable}}
+                         "fraction_of_roofline": None if attainable is None else rate / attainable,
+                         **(stream_at_size(moved, bandwidth) if moved else
+                            {"stream_gbs_at_frame_bytes": None, "stream_fraction_at_frame_bytes": None})}}
 
 
 def _leaves(out):

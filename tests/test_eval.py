@@ -197,6 +197,21 @@ def test_stream_bandwidth_moves_three_arrays():
     assert np.allclose(np.asarray(jeval._triad()(a, b, c)), 2.5)
 
 
+def test_a_roofline_carries_the_stream_of_its_own_size():
+    """``roofline_of`` measures the triad at the frame's bytes (``stream_at_size``: four arrays of
+    a quarter each, rounded up to 64 KiB, so nearby sizes share one measurement) and reports its
+    rate over the bandwidth it was given; without a byte count there is no size to measure."""
+    sized = jeval.stream_at_size(3e5, 10.0)
+    assert sized["stream_gbs_at_frame_bytes"] == jeval.stream_bandwidth_gbs(
+        n_bytes=128 << 10, repeats=jeval.SIZED_STREAM_REPEATS) > 0  # 75 000 bytes an array -> 128 KiB
+    assert sized["stream_fraction_at_frame_bytes"] == pytest.approx(sized["stream_gbs_at_frame_bytes"] / 10.0)
+    assert jeval.stream_at_size(3.1e5, 10.0) == sized
+    r = jeval.roofline_of(1e6, 3e5, frame_ms=1.0, peak_gflops=100.0, bandwidth_gbs=10.0)["roofline"]
+    assert r["stream_gbs_at_frame_bytes"] == sized["stream_gbs_at_frame_bytes"]
+    r = jeval.roofline_of(1e6, None, frame_ms=1.0, peak_gflops=100.0, bandwidth_gbs=10.0)["roofline"]
+    assert r["stream_gbs_at_frame_bytes"] is None and r["stream_fraction_at_frame_bytes"] is None
+
+
 def test_object_scores_relative_rmse_on_lit_objects():
     """On a lit object the score is ||p - r|| / ||r||: predicting zero scores 1, a 10 % error 0.1."""
     ref = np.ones((4, 4, 3))
