@@ -116,13 +116,15 @@ def evaluate(d, degree: int):
         c, s = cos_m[-1], sin_m[-1]
         cos_m.append(c * x - s * y)
         sin_m.append(c * y + s * x)
-    trig = jnp.concatenate(cos_m + sin_m, axis=-1)  # (..., 2 (L + 1))
-    ls = np.concatenate([np.full(2 * l + 1, l) for l in range(size)])
-    mm = np.concatenate([np.arange(-l, l + 1) for l in range(size)])
-    scale = np.where(mm == 0, 1.0, math.sqrt(2.0))
-    trig_index = np.where(mm >= 0, np.abs(mm), size + np.abs(mm))
-    values = q[..., ls, np.abs(mm)] * trig[..., trig_index]
-    return values * jnp.broadcast_to(jnp.asarray(scale, d.dtype), values.shape)
+    # Y_lm = scale_m Q[l, |m|] (cos or sin)(|m| phi) sin^|m|(theta), in k = l^2 + l + m order; the
+    # (l, m) picks are static slices (an index array would compile to gathers, slow on a CPU)
+    columns = []
+    for l in range(size):
+        for m in range(-l, l + 1):
+            trig = cos_m[abs(m)] if m >= 0 else sin_m[abs(m)]
+            value = q[..., l, abs(m)] * trig[..., 0]
+            columns.append(value if m == 0 else value * jnp.asarray(math.sqrt(2.0), d.dtype))
+    return jnp.stack(columns, axis=-1)
 
 
 def project(values, directions, weights, degree: int):
