@@ -658,9 +658,9 @@ def stream_at_size(moved: float, bandwidth_gbs: float) -> dict:
     {``stream_gbs_at_frame_bytes``, ``stream_fraction_at_frame_bytes``: that rate over
     ``bandwidth_gbs``}.
 
-    A small call does not reach the 256 MiB triad's rate (below a few MB each call's fixed cost,
-    the launch of XLA's threads among it, outweighs its bytes; CHANGELOG.md, 2026-12-07), and a
-    mid-size one can beat it (its arrays stay in cache). Where the fraction is below a target
+    A small call does not reach the 256 MiB triad's rate (below about 1 MB each call's fixed cost
+    outweighs its bytes; CHANGELOG.md, 2026-12-08), and a mid-size one beats it (its arrays stay
+    in cache). Where the fraction is below a target
     fraction of the roofline, no single call moving the frame's bytes reaches that target on its
     memory roof: the yardstick says what the frame's size alone allows."""
     chunk = 64 << 10
