@@ -654,7 +654,8 @@ SIZED_STREAM_REPEATS = 50
 def stream_at_size(moved: float, bandwidth_gbs: float) -> dict:
     """A pure stream of a frame's own size against the memory roof: ``stream_bandwidth_gbs``'s
     triad with its four arrays moving ``moved`` bytes in one call (each array ``moved`` / 4,
-    rounded up to 64 KiB), the fastest of ``SIZED_STREAM_REPEATS``. Returns
+    rounded up to 64 KiB, at most 256 MiB: the roof's own size), the fastest of
+    ``SIZED_STREAM_REPEATS`` (of 5 past 16 MiB an array). Returns
     {``stream_gbs_at_frame_bytes``, ``stream_fraction_at_frame_bytes``: that rate over
     ``bandwidth_gbs``}.
 
@@ -664,8 +665,9 @@ def stream_at_size(moved: float, bandwidth_gbs: float) -> dict:
     fraction of the roofline, no single call moving the frame's bytes reaches that target on its
     memory roof: the yardstick says what the frame's size alone allows."""
     chunk = 64 << 10
-    n_bytes = max(int(math.ceil(float(moved) / 4.0 / chunk)) * chunk, chunk)
-    rate = stream_bandwidth_gbs(n_bytes=n_bytes, repeats=SIZED_STREAM_REPEATS)
+    n_bytes = min(max(int(math.ceil(float(moved) / 4.0 / chunk)) * chunk, chunk), 256 << 20)
+    # past 16 MiB an array a call takes milliseconds and the 256 MiB triad's five tries do
+    rate = stream_bandwidth_gbs(n_bytes=n_bytes, repeats=SIZED_STREAM_REPEATS if n_bytes <= 16 << 20 else 5)
     return {"stream_gbs_at_frame_bytes": rate, "stream_fraction_at_frame_bytes": rate / float(bandwidth_gbs)}
 
 
@@ -726,7 +728,7 @@ def roofline_of(flops: float | None, moved: float | None, *, frame_ms: float, pe
                          "intensity": intensity, "attainable_gflops": attainable,
                          "bound": None if attainable is None else ("compute" if attainable >= peak else "memory"),
                          "fraction_of_roofline": None if attainable is None else rate / attainable,
-                         **(stream_at_size(moved, bandwidth) if moved else
+                         **(stream_at_size(moved, bandwidth) if moved and math.isfinite(moved) else
                             {"stream_gbs_at_frame_bytes": None, "stream_fraction_at_frame_bytes": None})}}
 
 

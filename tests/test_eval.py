@@ -200,7 +200,8 @@ def test_stream_bandwidth_moves_three_arrays():
 def test_a_roofline_carries_the_stream_of_its_own_size():
     """``roofline_of`` measures the triad at the frame's bytes (``stream_at_size``: four arrays of
     a quarter each, rounded up to 64 KiB, so nearby sizes share one measurement) and reports its
-    rate over the bandwidth it was given; without a byte count there is no size to measure."""
+    rate over the bandwidth it was given; without a byte count (none, zero, not finite) there is
+    no size to measure."""
     sized = jeval.stream_at_size(3e5, 10.0)
     assert sized["stream_gbs_at_frame_bytes"] == jeval.stream_bandwidth_gbs(
         n_bytes=128 << 10, repeats=jeval.SIZED_STREAM_REPEATS) > 0  # 75 000 bytes an array -> 128 KiB
@@ -208,8 +209,11 @@ def test_a_roofline_carries_the_stream_of_its_own_size():
     assert jeval.stream_at_size(3.1e5, 10.0) == sized
     r = jeval.roofline_of(1e6, 3e5, frame_ms=1.0, peak_gflops=100.0, bandwidth_gbs=10.0)["roofline"]
     assert r["stream_gbs_at_frame_bytes"] == sized["stream_gbs_at_frame_bytes"]
-    r = jeval.roofline_of(1e6, None, frame_ms=1.0, peak_gflops=100.0, bandwidth_gbs=10.0)["roofline"]
-    assert r["stream_gbs_at_frame_bytes"] is None and r["stream_fraction_at_frame_bytes"] is None
+    assert jeval.stream_at_size(1.0, 10.0)["stream_gbs_at_frame_bytes"] == jeval.stream_bandwidth_gbs(
+        n_bytes=64 << 10, repeats=jeval.SIZED_STREAM_REPEATS)  # never below 64 KiB an array
+    for moved in (None, 0.0, float("nan")):
+        r = jeval.roofline_of(1e6, moved, frame_ms=1.0, peak_gflops=100.0, bandwidth_gbs=10.0)["roofline"]
+        assert r["stream_gbs_at_frame_bytes"] is None and r["stream_fraction_at_frame_bytes"] is None
 
 
 def test_object_scores_relative_rmse_on_lit_objects():
