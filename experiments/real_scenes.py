@@ -84,7 +84,12 @@ CONFIG = {
     "rrf": {"data": {"n_lights": 128, "n_views": 4, "n_rays": 192, "spp": 256, "min_object_rays": 8,
                      "light_spread": "latin", "seed": 0, "check_lights": 2},
             "tree": {"max_leaves": 32, "min_samples": 600}, "train": {"max_iters": 30, "seed": 0}},
-    "datadriven": {"lightmap": {"resolution": 96}, "points": {"candidates": 8192, "count": 512},
+    # data-driven PRT: points.count 1024 (the method's default; was 512), basis.n 48 (was 16) and
+    # basis.gamma 2.2 (§5.3's gamma space; was 0, linear), chosen on living-room, validated on
+    # cornell_box_picture and veach-bidir (CHANGELOG.md, 2026-12-08 (from 01:23)); basis keys are
+    # named so a validation run can vary them
+    "datadriven": {"lightmap": {"resolution": 96}, "points": {"candidates": 8192, "count": 1024},
+                   "basis": {"n": 48, "channels": "mono", "gamma": 2.2},
                    "data": {"n_train": 128, "n_test": 4, "spp": 64, "test_spp": 64}},
     # SG light-field textures: train.steps 4000 (was 1000) chosen on staircase, validated on
     # living-room and veach-bidir (CHANGELOG.md, 2026-12-07 (from 22:39)); shading's keys are named
