@@ -116,15 +116,20 @@ def evaluate(d, degree: int):
         c, s = cos_m[-1], sin_m[-1]
         cos_m.append(c * x - s * y)
         sin_m.append(c * y + s * x)
-    # Y_lm = scale_m Q[l, |m|] (cos or sin)(|m| phi) sin^|m|(theta), in k = l^2 + l + m order; the
-    # (l, m) picks are static slices (an index array would compile to gathers, slow on a CPU)
-    columns = []
+    # Y_lm = scale_m Q[l, |m|] (cos or sin)(|m| phi) sin^|m|(theta), in k = l^2 + l + m order, band
+    # by band from static slices (an index array would compile to gathers, slow on a CPU; one
+    # column at a time, to a program that grows as the degree squared)
+    cos_all, sin_all = jnp.concatenate(cos_m, axis=-1), jnp.concatenate(sin_m, axis=-1)  # (..., L + 1)
+    root2 = jnp.asarray(math.sqrt(2.0), d.dtype)
+    bands = []
     for l in range(size):
-        for m in range(-l, l + 1):
-            trig = cos_m[abs(m)] if m >= 0 else sin_m[abs(m)]
-            value = q[..., l, abs(m)] * trig[..., 0]
-            columns.append(value if m == 0 else value * jnp.asarray(math.sqrt(2.0), d.dtype))
-    return jnp.stack(columns, axis=-1)
+        row = q[..., l, :]
+        if l:
+            bands.append(jnp.flip(row[..., 1:l + 1] * sin_all[..., 1:l + 1], axis=-1) * root2)  # m = -l .. -1
+        bands.append(row[..., :1] * cos_all[..., :1])  # m = 0
+        if l:
+            bands.append(row[..., 1:l + 1] * cos_all[..., 1:l + 1] * root2)  # m = 1 .. l
+    return jnp.concatenate(bands, axis=-1)
 
 
 def project(values, directions, weights, degree: int):
