@@ -10,7 +10,6 @@ run's summary.json (its folder is recorded).
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
@@ -56,15 +55,12 @@ def targets(s: dict) -> dict:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--preset", default="small")
-    parser.add_argument("--out", default=os.path.join(HERE, "results", "mrt.json"))
-    args = parser.parse_args()
     sys.path.insert(0, ROOT)
     from jprt.eval import write_benchmark
-    from jprt.runner import flat_summary, run_file
+    from jprt.runner import preset_benchmark
 
-    s = flat_summary(run_file(os.path.join(ROOT, "experiments", "mrt.py"), args.preset))
+    args, s = preset_benchmark(__doc__.split("\n")[0], os.path.join(ROOT, "experiments", "mrt.py"),
+                                 os.path.join(HERE, "results", "mrt.json"))
     result = {k: s.get(k) for k in KEYS}
     result["rmse"] = s["texel_rmse"]["rmse"]
     result["relative_rmse"] = s["texel_rmse"]["relative_rmse"]

@@ -11,7 +11,6 @@ point on Mitsuba's curve. Every value is read from the run's summary.json (its f
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
@@ -27,15 +26,12 @@ KEYS = ("indirect_rmse", "indirect_rel_rmse", "indirect_rel_rmse_worst_image", "
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--preset", default="small")
-    parser.add_argument("--out", default=os.path.join(HERE, "results", "sg_environment.json"))
-    args = parser.parse_args()
     sys.path.insert(0, ROOT)
     from jprt.eval import write_benchmark
-    from jprt.runner import flat_summary, run_file
+    from jprt.runner import preset_benchmark
 
-    summary = flat_summary(run_file(os.path.join(ROOT, "experiments", "sg_environment.py"), args.preset))
+    args, summary = preset_benchmark(__doc__.split("\n")[0], os.path.join(ROOT, "experiments", "sg_environment.py"),
+                                 os.path.join(HERE, "results", "sg_environment.json"))
     result = {k: summary.get(k) for k in KEYS}
     roof = summary.get("roofline") or {}
     result["targets"] = {"fraction_of_roofline >= 0.5 (issue 49)": (roof.get("fraction_of_roofline") or 0.0) >= 0.5}

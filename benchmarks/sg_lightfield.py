@@ -10,7 +10,6 @@ folder is recorded).
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
@@ -47,15 +46,12 @@ def targets(s: dict) -> dict:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--preset", default="small")
-    parser.add_argument("--out", default=os.path.join(HERE, "results", "sg_lightfield.json"))
-    args = parser.parse_args()
     sys.path.insert(0, ROOT)
     from jprt.eval import write_benchmark
-    from jprt.runner import flat_summary, run_file
+    from jprt.runner import preset_benchmark
 
-    s = flat_summary(run_file(os.path.join(ROOT, "experiments", "sg_lightfield.py"), args.preset))
+    args, s = preset_benchmark(__doc__.split("\n")[0], os.path.join(ROOT, "experiments", "sg_lightfield.py"),
+                                 os.path.join(HERE, "results", "sg_lightfield.json"))
     result = {k: s.get(k) for k in KEYS}
     result["targets"] = targets(s)
     # FLOPs of the evaluator's program (XLA's count) beside its time, and the machine's matmul rate,

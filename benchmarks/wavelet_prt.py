@@ -13,7 +13,6 @@ experiment at the same preset: its rows are ``front``, the default model's far-v
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
@@ -74,15 +73,12 @@ def _front(preset: str, default_psnr: float) -> dict:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--preset", default="small")
-    parser.add_argument("--out", default=os.path.join(HERE, "results", "wavelet_prt.json"))
-    args = parser.parse_args()
     sys.path.insert(0, ROOT)
     from jprt.eval import write_benchmark
-    from jprt.runner import flat_summary, run_file
+    from jprt.runner import preset_benchmark
 
-    s = flat_summary(run_file(os.path.join(ROOT, "experiments", "wavelet_prt_cornell.py"), args.preset))
+    args, s = preset_benchmark(__doc__.split("\n")[0], os.path.join(ROOT, "experiments", "wavelet_prt_cornell.py"),
+                                 os.path.join(HERE, "results", "wavelet_prt.json"))
     result = {k: s.get(k) for k in KEYS}
     result.update(_front(args.preset, s["psnr_indirect_far"]))
     result["targets"] = {

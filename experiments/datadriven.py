@@ -106,11 +106,7 @@ def _scores(result: FitResult, data=None, oos=None) -> dict:
 
 def _handle(run):
     """The run's scene handle (made once), lit by the first held-out spot light."""
-    from jprt.render.scenes import SceneHandle
-
-    if "handle" not in run.state:
-        run.state["handle"] = SceneHandle(run.config["scene"], ev.spot_lights(run.dataset.lights_test, 1)[0])
-    return run.state["handle"]
+    return run.scene_handle(ev.spot_lights(run.dataset.lights_test, 1)[0])
 
 
 def _test_lights(run) -> list:

@@ -81,12 +81,10 @@ def _lightings(run) -> list:
 
 def _handle(run, radiance):
     from jprt.render.lights import EnvMap
-    from jprt.render.scenes import SceneHandle
 
-    if "handle" not in run.state:
-        run.state["handle"] = SceneHandle(run.config["scene"])
-    run.state["handle"].set_lighting(EnvMap.create(radiance))
-    return run.state["handle"]
+    handle = run.scene_handle()
+    handle.set_lighting(EnvMap.create(radiance))
+    return handle
 
 
 def held_out(run) -> HeldOut:

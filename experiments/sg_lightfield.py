@@ -88,18 +88,10 @@ def _cameras(config: dict, resolution: int | None = None) -> list:
     return ev.cameras(config["eval"]["views"], int(resolution or config["eval"]["resolution"]))
 
 
-def _handle(run):
-    from jprt.render.scenes import SceneHandle
-
-    if "handle" not in run.state:
-        run.state["handle"] = SceneHandle(run.config["scene"])
-    return run.state["handle"]
-
-
 def _gbuffer(run, camera):
     from jprt.render import lightmap
 
-    return lightmap.atlas_gbuffer(_handle(run), lightmap.Atlas(**run.dataset.atlas), camera)
+    return lightmap.atlas_gbuffer(run.scene_handle(), lightmap.Atlas(**run.dataset.atlas), camera)
 
 
 def held_out(run) -> HeldOut:
@@ -124,7 +116,7 @@ def frame(run):
 def pathtracer(run) -> PathTracer:
     """Mitsuba's indirect (full minus direct, a seed unlike the references') of the held-out views."""
     timed = _cameras(run.config, int(run.config["eval"]["timing_resolution"]))[0]
-    return ev.pathtracer(_handle(run), run.state["cameras"], timed)
+    return ev.pathtracer(run.scene_handle(), run.state["cameras"], timed)
 
 
 def _psnr(run, predictions, references=None, masks=None) -> float:
@@ -181,7 +173,8 @@ def storage_precision(run) -> dict:
 
 def by_roughness(run) -> dict:
     """PSNR of the held-out views over each receiver's pixels alone, keyed by its GGX alpha."""
-    masks = ev.roughness_masks(run.state["gbuffers"], _handle(run).object_names(), run.config["scene"]["materials"])
+    masks = ev.roughness_masks(run.state["gbuffers"], run.scene_handle().object_names(),
+                               run.config["scene"]["materials"])
     out = {alpha: _psnr(run, run.state["held_out"].predictions, masks=m) for alpha, m in masks.items()}
     run.say("PSNR by roughness: " + ", ".join(f"alpha {k}: {v:.2f} dB" for k, v in sorted(out.items())))
     return {"psnr_indirect_by_roughness": out}
@@ -224,7 +217,7 @@ def midpoint_interpolation(run) -> dict:
     halfway between two baked texels, as the run time filters them, scored by log-L2 against the
     light field captured at that midpoint (``evaluation.midpoints``). SH interpolates its coefficients."""
     e = run.config["eval"]
-    first, second, images, below = ev.midpoints(_handle(run), run.config["scene"], run.dataset,
+    first, second, images, below = ev.midpoints(run.scene_handle(), run.config["scene"], run.dataset,
                                                 run.method_config["capture"], int(e["midpoints"]), int(e["seed"]))
     fitted = run.state["baselines"]
     lobe_sets = {"cnn": ev.stored_lobes(run.result.params)} | {k: v["lobes"] for k, v in fitted.items() if "lobes" in v}

@@ -44,8 +44,8 @@ from jprt.hashing import config_hash
 from jprt.methods import REGISTRY
 from jprt.methods.base import FitResult, Method, model_bytes
 
-__all__ = ["SUMMARY_SCHEMA", "Run", "HeldOut", "PathTracer", "run", "run_file", "save_fit", "flat_summary",
-           "method_config", "common_summary"]
+__all__ = ["SUMMARY_SCHEMA", "Run", "HeldOut", "PathTracer", "run", "run_file", "preset_benchmark", "save_fit",
+           "flat_summary", "method_config", "common_summary"]
 
 #: Every key of the common summary, with its meaning.
 SUMMARY_SCHEMA: dict[str, str] = {
@@ -133,6 +133,17 @@ class Run:
     def with_config(self, overrides: dict) -> dict:
         """The method config with ``overrides`` merged in (strict): for ablation fits."""
         return self.method.resolve(merge(self.method_config, overrides))
+
+    def scene_handle(self, lighting=None):
+        """The ``jprt.render.scenes.SceneHandle`` of the experiment's ``scene``, made on the first
+        call (with ``lighting``, as ``SceneHandle`` takes it) and kept in ``state["handle"]``:
+        the hooks of one run share one loaded scene."""
+        from jprt.render.scenes import SceneHandle
+
+        if "handle" not in self.state:
+            self.state["handle"] = SceneHandle(self.config["scene"]) if lighting is None else \
+                SceneHandle(self.config["scene"], lighting)
+        return self.state["handle"]
 
 
 def method_config(method: Method, config: dict) -> dict:
@@ -293,6 +304,19 @@ def run_file(path: str, preset: str | None = None, overrides: Sequence[str] = ()
     module = load_experiment(path)
     config = resolve_config(module, list(overrides), preset)
     return module.main(config) if callable(getattr(module, "main", None)) else run(module, config)
+
+
+def preset_benchmark(description: str, experiment: str, out: str, argv: Sequence[str] | None = None):
+    """A benchmark script's run of one experiment file: parses ``--preset`` (default "small") and
+    ``--out`` (default ``out``) from ``argv`` (default the command line), runs ``experiment`` at
+    that preset (``run_file``) and returns (the parsed arguments, ``flat_summary`` of its summary)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--preset", default="small")
+    parser.add_argument("--out", default=out)
+    args = parser.parse_args(argv)
+    return args, flat_summary(run_file(experiment, args.preset))
 
 
 def flat_summary(summary: dict) -> dict:

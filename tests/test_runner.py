@@ -109,3 +109,20 @@ def test_common_summary_refuses_lightmaps_and_handles_small_images():
     assert s["ssim_indirect"] is None and s["psnr_full"] is None  # 8 x 8 < SSIM window; no direct given
     with pytest.raises(ValueError, match=r"\(H, W, C\) images"):
         runner.common_summary(runner.HeldOut([np.ones((10, 3))], [np.ones((10, 3))], [np.ones(10, bool)]))
+
+
+def test_preset_benchmark_runs_the_experiment_at_the_parsed_preset(monkeypatch):
+    """A benchmark script's shared opening: --preset (default small) and --out (default the
+    script's own), the experiment run at that preset, its summary flattened."""
+    calls = []
+
+    def fake_run_file(path, preset=None, overrides=()):
+        calls.append((path, preset))
+        return {"frame_ms": 1.0, "extra": {"psnr": 30.0, "frame_ms": 2.0}}
+
+    monkeypatch.setattr(runner, "run_file", fake_run_file)
+    args, s = runner.preset_benchmark("d", "exp.py", "default.json", argv=[])
+    assert (args.preset, args.out) == ("small", "default.json") and calls == [("exp.py", "small")]
+    assert s == {"frame_ms": 1.0, "psnr": 30.0}
+    args, _ = runner.preset_benchmark("d", "exp.py", "default.json", argv=["--preset", "paper", "--out", "x.json"])
+    assert (args.preset, args.out) == ("paper", "x.json") and calls[-1] == ("exp.py", "paper")
